@@ -1,0 +1,47 @@
+# Two commands do all set-up on a fresh machine: `make run` and `make test`.
+# Both create .venv when it is missing and (re)install the package when its sources change.
+
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.hybridoc-installed
+# Directories whose file lists decide the editable install's link tree (strict mode).
+PKG_DIRS := hybridoc reference solvers problems problems/scenes
+
+.PHONY: run test lint format docs bench install clean
+
+run: $(STAMP)
+	$(BIN)/hybridoc demo --out out
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -p no:cacheprovider
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
+
+docs: $(STAMP)
+	$(BIN)/sphinx-build -W --keep-going -b html docs docs/_build/html
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_evaluator.py
+
+install: $(STAMP)
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+# torch: the CPU build 2.13.0 on disk first, so the dependency range is already satisfied
+# and pip never fetches the multi-gigabyte CUDA build.
+$(STAMP): $(BIN)/python pyproject.toml $(PKG_DIRS)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check torch==2.13.0
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check \
+		-e ".[dev]" --config-settings editable_mode=strict
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) build *.egg-info docs/_build out

@@ -1,0 +1,32 @@
+"""Exceptions raised for user errors.
+
+Every problem a user can cause (a bad scene, a wrong array shape, NaN, a solver that did not
+converge) raises a subclass of :class:`HybridocError` with one clear message. The CLI turns
+these into one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+
+class HybridocError(Exception):
+    """Base class of all user-facing errors in hybridoc."""
+
+
+class SceneError(HybridocError, ValueError):
+    """A scene file or scene object is invalid."""
+
+
+class ControlsError(HybridocError, ValueError):
+    """A control array or controls file is invalid (shape, NaN, unreadable)."""
+
+
+class EvaluationError(HybridocError, RuntimeError):
+    """The event-exact evaluator cannot simulate this system faithfully.
+
+    Raised for example for sustained contact or Zeno behaviour, which the impulsive model
+    does not represent.
+    """
+
+
+class ConvergenceError(HybridocError, RuntimeError):
+    """A solver did not converge to a point satisfying its optimality conditions."""

@@ -1,0 +1,498 @@
+"""Declarative disc-and-wall scenes.
+
+A scene is a TOML file or a :class:`Scene` object. Every field has a documented default or is
+required; every invalid input raises :class:`~hybridoc.errors.SceneError` with one message
+naming the problem.
+
+TOML layout::
+
+    name = "single-collision"          # optional, default: file stem
+    description = "..."                # optional
+    horizon = 1.0                      # T, required, > 0
+    steps = 480                        # N, default 480
+    control_weight = 0.01              # eps in eps*|u|^2, default 0.01, > 0
+    restitution = 1.0                  # e in [0, 1], default 1.0
+
+    [[discs]]
+    name = "striker"                   # required, unique
+    position = [-1.0, -2.0]            # required
+    velocity = [0.0, 0.0]              # default zeros
+    radius = 0.2                       # required, > 0
+    mass = 1.0                         # default 1, > 0
+    actuated = true                    # default false
+    initial_control = [0.0, 3.0]       # actuated discs only; a constant [ux, uy] or N rows
+    target = [0.0, 0.0]                # optional: adds |p(T) - target|^2 to the terminal cost
+
+    [[walls]]
+    name = "ceiling"                   # optional, default "wall<k>"
+    point = [0.0, 1.0]                 # required
+    normal = [0.0, -1.0]               # required, nonzero, points into free space
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.errors import SceneError
+
+__all__ = ["Disc", "Wall", "Scene"]
+
+_TOP_KEYS = {"name", "description", "horizon", "steps", "control_weight", "restitution"}
+_DISC_KEYS = {
+    "name",
+    "position",
+    "velocity",
+    "radius",
+    "mass",
+    "actuated",
+    "initial_control",
+    "target",
+}
+_WALL_KEYS = {"name", "point", "normal"}
+
+
+def _vec2(value: Any, what: str) -> tuple[float, float]:
+    if isinstance(value, str) or not isinstance(value, Sequence | np.ndarray):
+        raise SceneError(f"{what} must be a list of 2 numbers, got {value!r}")
+    if len(value) != 2:
+        raise SceneError(f"{what} must have 2 components, got {len(value)}")
+    out = tuple(_number(v, what) for v in value)
+    return (out[0], out[1])
+
+
+def _number(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise SceneError(f"{what} must be a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise SceneError(f"{what} must be finite, got {x}")
+    return x
+
+
+def _positive(value: Any, what: str) -> float:
+    x = _number(value, what)
+    if x <= 0:
+        raise SceneError(f"{what} must be positive, got {x}")
+    return x
+
+
+@dataclass(frozen=True)
+class Disc:
+    """A rigid disc in the plane.
+
+    Parameters
+    ----------
+    name
+        Unique name, used in event reports.
+    position
+        Initial centre ``[x, y]``.
+    radius
+        Radius, > 0.
+    velocity
+        Initial velocity ``[vx, vy]``; default zeros.
+    mass
+        Mass, > 0; default 1.
+    actuated
+        Whether a force ``[ux, uy]`` acts on this disc (a control input).
+    initial_control
+        Initial guess of the force for solvers: ``None`` (zeros), a constant ``[ux, uy]``,
+        or an ``(N, 2)`` array. Only for actuated discs.
+    target
+        Optional target position; adds ``|p(T) - target|^2`` to the terminal cost.
+    """
+
+    name: str
+    position: tuple[float, float]
+    radius: float
+    velocity: tuple[float, float] = (0.0, 0.0)
+    mass: float = 1.0
+    actuated: bool = False
+    initial_control: Any = None
+    target: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        what = f"disc {self.name!r}"
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise SceneError(f"disc name must be a non-empty string, got {self.name!r}")
+        object.__setattr__(self, "position", _vec2(self.position, f"{what}: position"))
+        object.__setattr__(self, "velocity", _vec2(self.velocity, f"{what}: velocity"))
+        object.__setattr__(self, "radius", _positive(self.radius, f"{what}: radius"))
+        object.__setattr__(self, "mass", _positive(self.mass, f"{what}: mass"))
+        if not isinstance(self.actuated, bool | np.bool_):
+            raise SceneError(f"{what}: actuated must be true or false, got {self.actuated!r}")
+        object.__setattr__(self, "actuated", bool(self.actuated))
+        if self.target is not None:
+            object.__setattr__(self, "target", _vec2(self.target, f"{what}: target"))
+        if self.initial_control is not None:
+            if not self.actuated:
+                raise SceneError(f"{what}: initial_control given but the disc is not actuated")
+            arr = np.asarray(self.initial_control, dtype=object)
+            if arr.ndim == 1:
+                u = np.array(_vec2(self.initial_control, f"{what}: initial_control"))
+            elif arr.ndim == 2 and arr.shape[1] == 2:
+                u = np.array(
+                    [_vec2(row, f"{what}: initial_control row") for row in self.initial_control]
+                )
+            else:
+                raise SceneError(
+                    f"{what}: initial_control must be [ux, uy] or a list of N [ux, uy] rows"
+                )
+            u.setflags(write=False)
+            object.__setattr__(self, "initial_control", u)
+
+
+@dataclass(frozen=True)
+class Wall:
+    """An infinite straight wall through ``point`` with ``normal`` pointing into free space.
+
+    The normal is normalised to unit length; a zero-length normal is an error.
+    """
+
+    point: tuple[float, float]
+    normal: tuple[float, float]
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        what = f"wall {self.name!r}" if self.name else "wall"
+        object.__setattr__(self, "point", _vec2(self.point, f"{what}: point"))
+        n = _vec2(self.normal, f"{what}: normal")
+        length = math.hypot(*n)
+        if length < 1e-12:
+            raise SceneError(f"{what}: normal has zero length")
+        object.__setattr__(self, "normal", (n[0] / length, n[1] / length))
+        if not isinstance(self.name, str):
+            raise SceneError(f"wall name must be a string, got {self.name!r}")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A disc-and-wall optimal control problem.
+
+    Cost: ``sum over discs with a target of |p_i(T) - target_i|^2 + integral eps |u|^2 dt``
+    with ``u`` the stacked forces of the actuated discs (scene order).
+
+    Parameters
+    ----------
+    horizon
+        Final time ``T`` > 0.
+    discs
+        The discs; at least one actuated, at least one with a target.
+    walls
+        The walls (may be empty).
+    steps
+        ``N``: grid of the discrete solvers and of sampled controls.
+    control_weight
+        ``eps`` > 0.
+    restitution
+        Coefficient of restitution ``e`` in [0, 1] for all contacts.
+    name, description
+        Free text.
+    """
+
+    horizon: float
+    discs: tuple[Disc, ...]
+    walls: tuple[Wall, ...] = ()
+    steps: int = 480
+    control_weight: float = 0.01
+    restitution: float = 1.0
+    name: str = "scene"
+    description: str = ""
+    _derived: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "horizon", _positive(self.horizon, "horizon"))
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int | np.integer):
+            raise SceneError(f"steps must be a positive integer, got {self.steps!r}")
+        if self.steps < 1:
+            raise SceneError(f"steps must be a positive integer, got {self.steps}")
+        object.__setattr__(self, "steps", int(self.steps))
+        object.__setattr__(
+            self, "control_weight", _positive(self.control_weight, "control_weight")
+        )
+        e = _number(self.restitution, "restitution")
+        if not 0.0 <= e <= 1.0:
+            raise SceneError(f"restitution must lie in [0, 1], got {e}")
+        object.__setattr__(self, "restitution", e)
+        discs = tuple(self.discs)
+        walls = tuple(self.walls)
+        for d in discs:
+            if not isinstance(d, Disc):
+                raise SceneError(f"discs must be Disc objects, got {d!r}")
+        for w in walls:
+            if not isinstance(w, Wall):
+                raise SceneError(f"walls must be Wall objects, got {w!r}")
+        if not discs:
+            raise SceneError("scene has no discs")
+        names = [d.name for d in discs]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise SceneError(f"disc names must be unique; repeated: {', '.join(dupes)}")
+        walls = tuple(
+            w if w.name else Wall(point=w.point, normal=w.normal, name=f"wall{k}")
+            for k, w in enumerate(walls)
+        )
+        wnames = [w.name for w in walls]
+        wd = sorted({n for n in wnames if wnames.count(n) > 1} | (set(wnames) & set(names)))
+        if wd:
+            raise SceneError(f"wall names must be unique and differ from disc names: {wd}")
+        object.__setattr__(self, "discs", discs)
+        object.__setattr__(self, "walls", walls)
+        if not any(d.actuated for d in discs):
+            raise SceneError("scene has no actuated disc: nothing to control")
+        if not any(d.target is not None for d in discs):
+            raise SceneError("scene has nothing in the terminal cost: give some disc a target")
+        for d in discs:
+            u = d.initial_control
+            if u is not None and u.ndim == 2 and u.shape[0] != self.steps:
+                raise SceneError(
+                    f"disc {d.name!r}: initial_control has {u.shape[0]} rows, expected "
+                    f"steps = {self.steps}"
+                )
+        for i, a in enumerate(discs):
+            for b in discs[i + 1 :]:
+                gap = math.dist(a.position, b.position) - (a.radius + b.radius)
+                if gap < 0:
+                    raise SceneError(
+                        f"discs {a.name!r} and {b.name!r} overlap at t = 0 "
+                        f"(penetration {-gap:.6g})"
+                    )
+            for w in walls:
+                gap = (a.position[0] - w.point[0]) * w.normal[0] + (
+                    a.position[1] - w.point[1]
+                ) * w.normal[1]
+                gap -= a.radius
+                if gap < 0:
+                    raise SceneError(
+                        f"disc {a.name!r} overlaps wall {w.name!r} at t = 0 "
+                        f"(penetration {-gap:.6g}; the wall normal points into free space)"
+                    )
+
+    # ------------------------------------------------------------------ layout helpers
+    @property
+    def n_discs(self) -> int:
+        """Number of discs."""
+        return len(self.discs)
+
+    @property
+    def actuated_indices(self) -> list[int]:
+        """Indices (scene order) of the actuated discs."""
+        return [i for i, d in enumerate(self.discs) if d.actuated]
+
+    @property
+    def n_controls(self) -> int:
+        """Control dimension: 2 per actuated disc."""
+        return 2 * len(self.actuated_indices)
+
+    @property
+    def dt(self) -> float:
+        """Grid step ``T / N``."""
+        return self.horizon / self.steps
+
+    def initial_state(self) -> np.ndarray:
+        """State ``s = [p_1, ..., p_n, v_1, ..., v_n]`` (x, y per disc) at t = 0."""
+        p = np.array([d.position for d in self.discs], dtype=float).ravel()
+        v = np.array([d.velocity for d in self.discs], dtype=float).ravel()
+        return np.concatenate([p, v])
+
+    def initial_controls(self) -> np.ndarray:
+        """The initial guess as an ``(N, n_controls)`` array."""
+        cols = []
+        for i in self.actuated_indices:
+            u = self.discs[i].initial_control
+            if u is None:
+                cols.append(np.zeros((self.steps, 2)))
+            elif u.ndim == 1:
+                cols.append(np.tile(u, (self.steps, 1)))
+            else:
+                cols.append(np.array(u, dtype=float))
+        return np.hstack(cols)
+
+    def control_labels(self) -> list[str]:
+        """Column labels of the control array, e.g. ``['striker.ux', 'striker.uy']``."""
+        return [f"{self.discs[i].name}.{c}" for i in self.actuated_indices for c in ("ux", "uy")]
+
+    def time_grid(self) -> np.ndarray:
+        """The ``N + 1`` grid times ``0, dt, ..., T``."""
+        return np.linspace(0.0, self.horizon, self.steps + 1)
+
+    def with_steps(self, steps: int) -> Scene:
+        """The same scene on another grid (constant initial controls are kept)."""
+        discs = []
+        for d in self.discs:
+            u = d.initial_control
+            if u is not None and u.ndim == 2:
+                # sample the old piecewise-constant guess at the new cell midpoints
+                t_new = (np.arange(steps) + 0.5) / steps
+                u = u[np.minimum((t_new * self.steps).astype(int), self.steps - 1)]
+            discs.append(
+                Disc(
+                    name=d.name,
+                    position=d.position,
+                    radius=d.radius,
+                    velocity=d.velocity,
+                    mass=d.mass,
+                    actuated=d.actuated,
+                    initial_control=u,
+                    target=d.target,
+                )
+            )
+        return Scene(
+            horizon=self.horizon,
+            discs=tuple(discs),
+            walls=self.walls,
+            steps=steps,
+            control_weight=self.control_weight,
+            restitution=self.restitution,
+            name=self.name,
+            description=self.description,
+        )
+
+    def to_ocp(self) -> Any:
+        """Compile to a :class:`hybridoc.HybridOCP` (cached)."""
+        if "ocp" not in self._derived:
+            from hybridoc.problems.compile import scene_to_ocp
+
+            self._derived["ocp"] = scene_to_ocp(self)
+        return self._derived["ocp"]
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, default_name: str = "scene") -> Scene:
+        """Build a scene from a mapping with the TOML layout (see module docstring)."""
+        if not isinstance(data, Mapping):
+            raise SceneError(f"scene must be a table, got {type(data).__name__}")
+        unknown = set(data) - _TOP_KEYS - {"discs", "walls"}
+        if unknown:
+            raise SceneError(
+                f"unknown top-level key(s): {', '.join(sorted(unknown))} "
+                f"(allowed: {', '.join(sorted(_TOP_KEYS | {'discs', 'walls'}))})"
+            )
+        if "horizon" not in data:
+            raise SceneError("missing required key 'horizon'")
+        discs_raw = data.get("discs")
+        if discs_raw is None:
+            raise SceneError("missing required [[discs]] tables")
+        if not isinstance(discs_raw, list):
+            raise SceneError("'discs' must be an array of tables ([[discs]])")
+        discs = []
+        for k, d in enumerate(discs_raw):
+            if not isinstance(d, Mapping):
+                raise SceneError(f"discs[{k}] must be a table")
+            label = f"discs[{k}]" + (f" ({d['name']!r})" if "name" in d else "")
+            unknown = set(d) - _DISC_KEYS
+            if unknown:
+                raise SceneError(
+                    f"{label}: unknown key(s) {', '.join(sorted(unknown))} "
+                    f"(allowed: {', '.join(sorted(_DISC_KEYS))})"
+                )
+            for req in ("name", "position", "radius"):
+                if req not in d:
+                    raise SceneError(f"{label}: missing required key {req!r}")
+            if not isinstance(d["name"], str):
+                raise SceneError(f"{label}: name must be a string, got {d['name']!r}")
+            discs.append(Disc(**dict(d)))
+        walls_raw = data.get("walls", [])
+        if not isinstance(walls_raw, list):
+            raise SceneError("'walls' must be an array of tables ([[walls]])")
+        walls = []
+        for k, w in enumerate(walls_raw):
+            if not isinstance(w, Mapping):
+                raise SceneError(f"walls[{k}] must be a table")
+            unknown = set(w) - _WALL_KEYS
+            if unknown:
+                raise SceneError(
+                    f"walls[{k}]: unknown key(s) {', '.join(sorted(unknown))} "
+                    f"(allowed: {', '.join(sorted(_WALL_KEYS))})"
+                )
+            for req in ("point", "normal"):
+                if req not in w:
+                    raise SceneError(f"walls[{k}]: missing required key {req!r}")
+            walls.append(Wall(**dict(w)))
+        name = data.get("name", default_name)
+        description = data.get("description", "")
+        if not isinstance(name, str) or not isinstance(description, str):
+            raise SceneError("name and description must be strings")
+        kwargs: dict[str, Any] = {}
+        for key in ("steps", "control_weight", "restitution"):
+            if key in data:
+                kwargs[key] = data[key]
+        return cls(
+            horizon=data["horizon"],
+            discs=tuple(discs),
+            walls=tuple(walls),
+            name=name,
+            description=description,
+            **kwargs,
+        )
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Scene:
+        """Read a scene from a TOML file."""
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise SceneError(f"cannot read scene file {str(path)!r}: {exc.strerror}") from None
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"scene file {str(path)!r} is not valid TOML: {exc}") from None
+        try:
+            return cls.from_dict(data, default_name=path.stem)
+        except SceneError as exc:
+            raise SceneError(f"scene file {str(path)!r}: {exc}") from None
+
+    def to_toml(self) -> str:
+        """Serialise to TOML text that :meth:`from_toml` reads back to an equal scene."""
+
+        def f(x: float) -> str:
+            return repr(float(x))
+
+        def v(p: Sequence[float]) -> str:
+            return "[" + ", ".join(f(x) for x in p) + "]"
+
+        lines = [
+            f"name = {_toml_str(self.name)}",
+            f"description = {_toml_str(self.description)}",
+            f"horizon = {f(self.horizon)}",
+            f"steps = {self.steps}",
+            f"control_weight = {f(self.control_weight)}",
+            f"restitution = {f(self.restitution)}",
+        ]
+        for d in self.discs:
+            lines += [
+                "",
+                "[[discs]]",
+                f"name = {_toml_str(d.name)}",
+                f"position = {v(d.position)}",
+                f"velocity = {v(d.velocity)}",
+                f"radius = {f(d.radius)}",
+                f"mass = {f(d.mass)}",
+                f"actuated = {'true' if d.actuated else 'false'}",
+            ]
+            if d.initial_control is not None:
+                u = d.initial_control
+                txt = v(u) if u.ndim == 1 else "[" + ", ".join(v(r) for r in u) + "]"
+                lines.append(f"initial_control = {txt}")
+            if d.target is not None:
+                lines.append(f"target = {v(d.target)}")
+        for w in self.walls:
+            lines += [
+                "",
+                "[[walls]]",
+                f"name = {_toml_str(w.name)}",
+                f"point = {v(w.point)}",
+                f"normal = {v(w.normal)}",
+            ]
+        return "\n".join(lines) + "\n"
+
+
+def _toml_str(s: str) -> str:
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
