@@ -6,6 +6,7 @@ CLI. Scenes live in :mod:`hybridoc.problems`, the HMP reference in
 :mod:`hybridoc.reference`, the solvers in :mod:`hybridoc.solvers`.
 """
 
+from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import (
     ControlsError,
     ConvergenceError,
@@ -13,10 +14,10 @@ from hybridoc.errors import (
     HybridocError,
     SceneError,
 )
-from hybridoc.ocp import Guard, HybridOCP
 from hybridoc.evaluator import Evaluation, Event, Gradient, evaluate, gradient
-from hybridoc.callable_eval import evaluate_callable
+from hybridoc.ocp import Guard, HybridOCP
 from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
+from hybridoc.solution import Solution
 
 __version__ = "0.1.0"
 
@@ -33,6 +34,7 @@ __all__ = [
     "HybridocError",
     "Scene",
     "SceneError",
+    "Solution",
     "Wall",
     "builtin_names",
     "evaluate",

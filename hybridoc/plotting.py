@@ -1,0 +1,407 @@
+"""Figures: scenes with trajectories, controls and costates against time.
+
+Every function returns a :class:`matplotlib.figure.Figure` built without pyplot, so nothing
+is ever shown and no interactive backend is needed; :func:`save_figure` writes PNG through
+matplotlib's Agg renderer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Circle, Patch, Polygon
+
+__all__ = ["plot_scene", "plot_controls", "plot_costates", "save_figure"]
+
+_POINTS_PER_INTERVAL = 10
+
+
+def _colors(n: int) -> list[Any]:
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10"]
+    return [cmap(k % 10) for k in range(n)]
+
+
+def _positions(states: np.ndarray, n_discs: int) -> np.ndarray:
+    """``(M, nx)`` disc-scene states -> ``(M, n_discs, 2)`` positions."""
+    return np.asarray(states)[:, : 2 * n_discs].reshape(-1, n_discs, 2)
+
+
+def _path_states(evaluation: Any) -> np.ndarray:
+    """States sampled densely along the trajectory (positions are continuous at jumps)."""
+    if getattr(evaluation, "segments", None):
+        ocp = evaluation.ocp
+        t = np.linspace(0.0, ocp.horizon, _POINTS_PER_INTERVAL * ocp.steps + 1)
+        return evaluation.sample(t)
+    return np.asarray(evaluation.states)
+
+
+def _wall_geometry(
+    point: np.ndarray, normal: np.ndarray, box: tuple[float, float, float, float], depth: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """End points of the wall across ``box`` and the hatched strip on its solid side."""
+    x0, x1, y0, y1 = box
+    along = np.array([-normal[1], normal[0]])
+    corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]])
+    proj = (corners - point) @ along
+    lo, hi = proj.min() - 1.0, proj.max() + 1.0  # beyond the box; the axes clip
+    a, b = point + lo * along, point + hi * along
+    strip = np.array([a, b, b - depth * normal, a - depth * normal])
+    return np.array([a, b]), strip
+
+
+def plot_scene(
+    scene: Any,
+    evaluation: Any = None,
+    *,
+    ax: Axes | None = None,
+    title: str | None = None,
+) -> Figure:
+    """Draw a disc scene to scale, optionally with the trajectory of an evaluation.
+
+    Discs are drawn at their initial positions (filled) and, with an evaluation, at ``t = T``
+    (dashed outline) and faintly where they take part in an event; paths of the disc centres,
+    contact points of the events (crosses, numbered in time order), walls (thick line,
+    hatched on the solid side) and targets (stars).
+
+    Parameters
+    ----------
+    scene
+        A :class:`~hybridoc.problems.Scene`, a built-in name or a TOML path.
+    evaluation
+        Optional :class:`~hybridoc.Evaluation` of this scene.
+    ax
+        Axes to draw into; default: a new figure.
+    title
+        Axes title; default: the scene name.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from hybridoc.problems import load_scene
+
+    scene = load_scene(scene)
+    n = scene.n_discs
+    names = [d.name for d in scene.discs]
+    radii = np.array([d.radius for d in scene.discs])
+    colors = _colors(n)
+    p0 = np.array([d.position for d in scene.discs], dtype=float)
+
+    path = None
+    if evaluation is not None:
+        path = _positions(_path_states(evaluation), n)
+        p_final = _positions(np.asarray(evaluation.final_state)[None, :], n)[0]
+    events = list(getattr(evaluation, "events", []) or [])
+
+    # bounding box of everything drawn (discs with their radii, paths, targets)
+    pts = [p0 - radii[:, None], p0 + radii[:, None]]
+    if path is not None:
+        flat = path.reshape(-1, 2)
+        pts += [flat - radii.max(), flat + radii.max()]
+    pts += [np.array([d.target]) for d in scene.discs if d.target is not None]
+    allp = np.vstack(pts)
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    for w in scene.walls:  # keep the nearest point of each wall in view
+        c = (lo + hi) / 2
+        nrm = np.array(w.normal)
+        q = c - ((c - np.array(w.point)) @ nrm) * nrm
+        lo, hi = np.minimum(lo, q), np.maximum(hi, q)
+    span = max(hi - lo)
+    pad = 0.08 * span + 0.05
+    lo, hi = lo - pad, hi + pad
+    # a square-ish box avoids very thin figures
+    size = hi - lo
+    if size[0] < 0.5 * size[1]:
+        extra = (0.5 * size[1] - size[0]) / 2
+        lo[0], hi[0] = lo[0] - extra, hi[0] + extra
+    elif size[1] < 0.5 * size[0]:
+        extra = (0.5 * size[0] - size[1]) / 2
+        lo[1], hi[1] = lo[1] - extra, hi[1] + extra
+    box = (lo[0], hi[0], lo[1], hi[1])
+
+    if ax is None:
+        aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+        width = 7.5
+        height = float(np.clip(5.2 * aspect, 3.5, 8.0)) + 0.6
+        fig = Figure(figsize=(width, height), layout="constrained")
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    handles: list[Any] = []
+
+    for w in scene.walls:
+        line, strip = _wall_geometry(
+            np.array(w.point), np.array(w.normal), box, depth=0.04 * span + 0.03
+        )
+        ax.add_patch(
+            Polygon(strip, closed=True, facecolor="0.85", edgecolor="0.35", hatch="///", lw=0)
+        )
+        ax.plot(line[:, 0], line[:, 1], color="0.15", lw=3, solid_capstyle="butt")
+    if scene.walls:
+        handles.append(Patch(facecolor="0.85", edgecolor="0.35", hatch="///", label="wall"))
+
+    for i, d in enumerate(scene.discs):
+        role = "actuated" if d.actuated else "passive"
+        ax.add_patch(
+            Circle(p0[i], d.radius, facecolor=colors[i], alpha=0.35, edgecolor=colors[i], lw=1.5)
+        )
+        ax.text(*p0[i], d.name, ha="center", va="center", fontsize=8)
+        handles.append(
+            Patch(facecolor=colors[i], alpha=0.5, edgecolor=colors[i], label=f"{d.name} ({role})")
+        )
+
+    if path is not None:
+        for i in range(n):
+            ax.plot(path[:, i, 0], path[:, i, 1], color=colors[i], lw=1.4)
+            ax.add_patch(
+                Circle(p_final[i], radii[i], fill=False, edgecolor=colors[i], lw=1.3, ls="--")
+            )
+        handles.append(Line2D([], [], color="0.3", lw=1.4, label="path of centre"))
+        handles.append(Patch(facecolor="none", edgecolor="0.3", ls="--", label="position at t = T"))
+
+    wall_by_name = {w.name: w for w in scene.walls}
+    for k, ev in enumerate(events, start=1):
+        s = np.asarray(ev.state_before)
+        pos = _positions(s[None, :], n)[0]
+        involved = [names.index(b) for b in ev.bodies if b in names]
+        for i in involved:
+            ax.add_patch(
+                Circle(
+                    pos[i],
+                    radii[i],
+                    facecolor=colors[i],
+                    alpha=0.12,
+                    edgecolor=colors[i],
+                    lw=0.8,
+                    ls=":",
+                )
+            )
+        contact = None
+        if ev.kind == "disc-disc" and len(involved) == 2:
+            i, j = involved
+            u = pos[j] - pos[i]
+            contact = pos[i] + radii[i] * u / np.linalg.norm(u)
+        elif ev.kind == "disc-wall" and involved:
+            wall = next((wall_by_name[b] for b in ev.bodies if b in wall_by_name), None)
+            if wall is not None:
+                contact = pos[involved[0]] - radii[involved[0]] * np.array(wall.normal)
+        if contact is not None:
+            ax.plot(*contact, marker="x", color="k", ms=8, mew=2, zorder=5)
+            ax.annotate(
+                str(k),
+                contact,
+                xytext=(5, 4),
+                textcoords="offset points",
+                fontsize=9,
+                fontweight="bold",
+                bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7},
+                zorder=6,
+            )
+    if events:
+        handles.append(
+            Line2D([], [], color="k", marker="x", ls="none", ms=7, mew=2, label="contact point")
+        )
+        # the numbered events, listed in the legend so labels never collide in the plot
+        for k, ev in enumerate(events, start=1):
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color="k",
+                    marker=f"${k}$",
+                    ls="none",
+                    ms=7,
+                    label=f"t = {ev.time:.3f}: {' / '.join(ev.bodies)}",
+                )
+            )
+
+    for i, d in enumerate(scene.discs):
+        if d.target is not None:
+            ax.plot(*d.target, marker="*", ms=16, color=colors[i], mec="k", mew=0.8, zorder=6)
+    if any(d.target is not None for d in scene.discs):
+        handles.append(
+            Line2D([], [], color="0.5", marker="*", ls="none", ms=12, mec="k", label="target")
+        )
+
+    ax.set_xlim(box[0], box[1])
+    ax.set_ylim(box[2], box[3])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.set_title(title if title is not None else scene.name)
+    ax.legend(
+        handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
+    )
+    return fig
+
+
+def _event_lines(
+    axes: Sequence[Axes], event_times: Any, colors: Mapping[str, Any] | None = None
+) -> None:
+    if event_times is None:
+        return
+    if isinstance(event_times, Mapping):
+        groups = [(colors.get(k, "0.4") if colors else "0.4", v) for k, v in event_times.items()]
+    else:
+        groups = [("0.4", event_times)]
+    for color, times in groups:
+        for t in times:
+            for a in axes:
+                a.axvline(float(t), color=color, ls="--", lw=0.9, alpha=0.8)
+
+
+def plot_controls(
+    time_grid: np.ndarray,
+    controls: Mapping[str, np.ndarray],
+    labels: Sequence[str],
+    *,
+    title: str | None = None,
+    event_times: Sequence[float] | Mapping[str, Sequence[float]] | None = None,
+) -> Figure:
+    """Piecewise-constant controls against time, one panel per control component.
+
+    Parameters
+    ----------
+    time_grid
+        The ``N + 1`` grid times.
+    controls
+        ``{method name: (N, nu) array}``; several methods are overlaid.
+    labels
+        The ``nu`` component names (y-axis labels).
+    title
+        Figure title.
+    event_times
+        Times drawn as vertical dashed lines; a mapping ``{method name: times}`` draws each
+        method's events in its colour.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    edges = np.asarray(time_grid, dtype=float)
+    nu = len(labels)
+    fig = Figure(figsize=(8.0, 1.0 + 1.9 * nu), layout="constrained")
+    axes = fig.subplots(nu, 1, sharex=True, squeeze=False)[:, 0]
+    colors = dict(zip(controls, _colors(len(controls)), strict=True))
+    for name, values in controls.items():
+        u = np.asarray(values, dtype=float)
+        if u.ndim == 1:
+            u = u[:, None]
+        if u.shape != (edges.size - 1, nu):
+            raise ValueError(
+                f"controls[{name!r}] has shape {u.shape}, expected ({edges.size - 1}, {nu})"
+            )
+        for k, a in enumerate(axes):
+            a.stairs(u[:, k], edges, color=colors[name], lw=1.5, label=name, baseline=None)
+    for k, a in enumerate(axes):
+        a.set_ylabel(labels[k])
+        a.grid(True, lw=0.4, alpha=0.5)
+        a.ticklabel_format(axis="y", useOffset=False)
+    _event_lines(axes, event_times, colors)
+    axes[-1].set_xlabel("t")
+    axes[-1].set_xlim(edges[0], edges[-1])
+    handles, names = axes[0].get_legend_handles_labels()
+    if event_times is not None and len(event_times):
+        handles.append(Line2D([], [], color="0.4", ls="--", lw=0.9))
+        names.append("event")
+    axes[0].legend(handles, names, fontsize=8, loc="best")
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_costates(
+    times: np.ndarray | Mapping[str, np.ndarray],
+    costates: np.ndarray | Mapping[str, np.ndarray],
+    labels: Sequence[str],
+    event_times: Sequence[float] | None = None,
+    *,
+    title: str | None = None,
+) -> Figure:
+    """Costate components against time, with the jumps at events left open.
+
+    Parameters
+    ----------
+    times
+        ``(M,)`` times; an event time appears twice (both sides of the jump). A mapping
+        ``{name: times}`` together with a mapping ``costates`` overlays several costates.
+    costates
+        ``(M, nx)`` values, or ``{name: (M, nx)}``.
+    labels
+        The ``nx`` state-component names.
+    event_times
+        Times drawn as vertical dashed lines.
+    title
+        Figure title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    if isinstance(costates, Mapping):
+        if not isinstance(times, Mapping) or times.keys() != costates.keys():
+            raise ValueError("with a mapping of costates, times must map the same names")
+        series = {
+            k: (np.asarray(times[k], float), np.asarray(costates[k], float)) for k in costates
+        }
+    else:
+        series = {"costate": (np.asarray(times, float), np.asarray(costates, float))}
+    nx = len(labels)
+    ncols = 2 if nx > 1 else 1
+    nrows = (nx + ncols - 1) // ncols
+    fig = Figure(figsize=(9.0, 0.8 + 1.7 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
+    flat = axes.ravel()
+    colors = dict(zip(series, _colors(len(series)), strict=True))
+    for name, (t, lam) in series.items():
+        if lam.shape != (t.size, nx):
+            raise ValueError(f"costates {name!r}: shape {lam.shape}, expected ({t.size}, {nx})")
+        # split at repeated times so a jump is a gap, not a vertical line
+        cuts = np.flatnonzero(np.diff(t) == 0) + 1
+        pieces = np.split(np.arange(t.size), cuts)
+        for k in range(nx):
+            for m, idx in enumerate(pieces):
+                flat[k].plot(
+                    t[idx], lam[idx, k], color=colors[name], lw=1.4, label=name if m == 0 else None
+                )
+    for k in range(nx):
+        flat[k].set_ylabel(f"λ[{labels[k]}]")
+        flat[k].grid(True, lw=0.4, alpha=0.5)
+        flat[k].ticklabel_format(axis="y", useOffset=False)
+    for a in flat[nx:]:
+        a.set_visible(False)
+    _event_lines(flat[:nx], event_times)
+    for a in axes[-1]:
+        a.set_xlabel("t")
+    if len(series) > 1:
+        flat[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` as PNG (dpi 120), creating parent directories, and close it.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=120)
+    if getattr(fig.canvas, "manager", None) is not None:  # a pyplot figure: release it
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+    return p
