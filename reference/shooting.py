@@ -43,7 +43,7 @@ __all__ = ["NewtonResult", "ShootingSystem", "is_disc_scene", "newton", "shootin
 
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
-    """Disc scenes compiled by hybridoc.problems: f = (v, A u), L = eps |u|^2."""
+    """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``."""
     return "n_discs" in ocp.meta and "control_weight" in ocp.meta
 
 
