@@ -170,6 +170,8 @@ class HybridOCP:
             self.control_labels = [f"u{i}" for i in range(self.nu)]
         if self.flow_map is None:
             self.flow_map = _integrator_flow_map(self.f, self.L)
+            # tells the evaluator it may sample the flow with one gridded integrator call
+            self._cache["integrator_flow"] = True
 
     @classmethod
     def from_expressions(
@@ -249,6 +251,16 @@ def _casadi_name(name: str) -> str:
 
 def _integrator_flow_map(f: ca.Function, L: ca.Function) -> ca.Function:
     """Flow map ``(s, u, h) -> (s(h), cost)`` from CVODES at tight tolerances."""
+    return _integrator_flow_samples(f, L, [1.0], name="flow_map")
+
+
+def _integrator_flow_samples(
+    f: ca.Function, L: ca.Function, fractions: Sequence[float], *, name: str = "flow_samples"
+) -> ca.Function:
+    """``(s, u, h) -> (s(h * fractions), cost(h * fractions))`` by one CVODES call.
+
+    ``fractions`` are increasing in (0, 1]; the outputs have one column per fraction.
+    """
     nx, nu = f.size1_in(0), f.size1_in(1)
     s = ca.MX.sym("s", nx)
     u = ca.MX.sym("u", nu)
@@ -256,8 +268,10 @@ def _integrator_flow_map(f: ca.Function, L: ca.Function) -> ca.Function:
     xs = ca.SX.sym("x", nx)
     ps = ca.SX.sym("p", nu + 1)
     us, hs = ps[:nu], ps[nu]
+    # time scaled to [0, 1] so that h is a parameter (and h = 0 is allowed)
     dae = {"x": xs, "p": ps, "ode": hs * f(xs, us), "quad": hs * L(xs, us)}
     opts = {"abstol": 1e-13, "reltol": 1e-13, "max_num_steps": 100000}
-    integ = ca.integrator("flow_int", "cvodes", dae, 0.0, 1.0, opts)
+    grid = [float(x) for x in fractions]
+    integ = ca.integrator(f"{name}_int", "cvodes", dae, 0.0, grid, opts)
     res = integ(x0=s, p=ca.vertcat(u, h))
-    return ca.Function("flow_map", [s, u, h], [res["xf"], res["qf"]], ["s", "u", "h"], ["s_end", "cost"])
+    return ca.Function(name, [s, u, h], [res["xf"], res["qf"]], ["s", "u", "h"], ["s_end", "cost"])

@@ -147,6 +147,22 @@ class Disc:
             u.setflags(write=False)
             object.__setattr__(self, "initial_control", u)
 
+    def _key(self) -> tuple[Any, ...]:
+        u = self.initial_control
+        u_key = None if u is None else (u.shape, tuple(u.ravel().tolist()))
+        fields = (self.name, self.position, self.radius, self.velocity, self.mass)
+        return (*fields, self.actuated, u_key, self.target)
+
+    # initial_control is an array: compare and hash it by value (the generated dataclass
+    # methods would fail on it)
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Disc):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
 
 @dataclass(frozen=True)
 class Wall:
@@ -166,7 +182,11 @@ class Wall:
         length = math.hypot(*n)
         if length < 1e-12:
             raise SceneError(f"{what}: normal has zero length")
-        object.__setattr__(self, "normal", (n[0] / length, n[1] / length))
+        # a normal that is already unit up to rounding is kept as given, so that normalising
+        # is idempotent and to_toml -> from_toml reproduces the wall bit for bit
+        if abs(length - 1.0) > 4 * np.finfo(float).eps:
+            n = (n[0] / length, n[1] / length)
+        object.__setattr__(self, "normal", n)
         if not isinstance(self.name, str):
             raise SceneError(f"wall name must be a string, got {self.name!r}")
 
@@ -213,9 +233,7 @@ class Scene:
         if self.steps < 1:
             raise SceneError(f"steps must be a positive integer, got {self.steps}")
         object.__setattr__(self, "steps", int(self.steps))
-        object.__setattr__(
-            self, "control_weight", _positive(self.control_weight, "control_weight")
-        )
+        object.__setattr__(self, "control_weight", _positive(self.control_weight, "control_weight"))
         e = _number(self.restitution, "restitution")
         if not 0.0 <= e <= 1.0:
             raise SceneError(f"restitution must lie in [0, 1], got {e}")
@@ -255,20 +273,25 @@ class Scene:
                     f"disc {d.name!r}: initial_control has {u.shape[0]} rows, expected "
                     f"steps = {self.steps}"
                 )
+
+        # touching is allowed; so is an overlap at the rounding level of the coordinates
+        # (e.g. a disc of radius 0.2 at y = -0.8 on the wall y = -1 computes a gap of -6e-17)
+        def slack(*xs: float) -> float:
+            return 1e-12 * (1.0 + max(abs(x) for x in xs))
+
         for i, a in enumerate(discs):
             for b in discs[i + 1 :]:
                 gap = math.dist(a.position, b.position) - (a.radius + b.radius)
-                if gap < 0:
+                if gap < -slack(*a.position, *b.position, a.radius + b.radius):
                     raise SceneError(
-                        f"discs {a.name!r} and {b.name!r} overlap at t = 0 "
-                        f"(penetration {-gap:.6g})"
+                        f"discs {a.name!r} and {b.name!r} overlap at t = 0 (penetration {-gap:.6g})"
                     )
             for w in walls:
                 gap = (a.position[0] - w.point[0]) * w.normal[0] + (
                     a.position[1] - w.point[1]
                 ) * w.normal[1]
                 gap -= a.radius
-                if gap < 0:
+                if gap < -slack(*a.position, *w.point, a.radius):
                     raise SceneError(
                         f"disc {a.name!r} overlaps wall {w.name!r} at t = 0 "
                         f"(penetration {-gap:.6g}; the wall normal points into free space)"
@@ -440,6 +463,8 @@ class Scene:
             text = path.read_text(encoding="utf-8")
         except OSError as exc:
             raise SceneError(f"cannot read scene file {str(path)!r}: {exc.strerror}") from None
+        except UnicodeDecodeError:
+            raise SceneError(f"scene file {str(path)!r} is not UTF-8 text") from None
         try:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
