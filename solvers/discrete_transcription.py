@@ -1,0 +1,422 @@
+"""The exact N-step problem that gradient descent minimises, solved by IPOPT.
+
+Gradient descent (:mod:`hybridoc.solvers.gd`) minimises the discrete loss
+
+    phi(s_N) + sum_n eps |u_n|^2 dt,    s_{n+1} = step(s_n, u_n)
+
+of the simulator's step (symplectic Euler, an impulse model and the time-of-impact
+corrections). Here the same step, in CasADi (:func:`hybridoc.solvers.casadi_step.make_step`),
+is transcribed by multiple shooting (states and controls at every step, the step as an
+equality constraint) and solved by IPOPT with exact second derivatives from a warm start.
+
+The step is only piecewise smooth (a contact impulse is applied or not), and IPOPT's
+infeasible iterates would leave the contact branches freely (e.g. drop the collision). So
+each round freezes the branches at those of a rollout of the current controls, keeps every
+contact in its region by bounds on the predicted gap and normal speed, solves that smooth
+NLP, and re-reads the branches from a rollout of the result; rounds repeat until the
+branches no longer change (a local optimum of the piecewise-smooth loss, possibly on a
+branch boundary). From a warm start near the optimum (the direct transcription's control,
+the default, or gradient descent's result) this gives the floor that gradient descent can
+reach at this N. The reported ``discrete_loss`` is that of a fresh rollout of
+the returned controls through the step, not the NLP's value.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from hybridoc.errors import ConvergenceError
+from hybridoc.evaluator import evaluate
+
+__all__ = ["discrete_loss", "solve_discrete"]
+
+
+def _scene(scene: Any) -> Any:
+    from hybridoc.problems import load_scene
+
+    return load_scene(scene)
+
+
+def _terminal(scene: Any, s: Any) -> Any:
+    n = scene.n_discs
+    out = 0
+    for i, d in enumerate(scene.discs):
+        if d.target is not None:
+            out = out + ca.sumsqr(s[2 * i : 2 * i + 2] - ca.DM(d.target))
+    del n
+    return out
+
+
+def _contacts(scene: Any) -> list[tuple[int, int | None, Any, Any]]:
+    """Contacts in the simulator's order: disc pairs, then disc-wall (disc-major)."""
+    out: list[tuple[int, int | None, Any, Any]] = []
+    n = scene.n_discs
+    for i in range(n):
+        for j in range(i + 1, n):
+            out.append((i, j, None, None))
+    for i in range(n):
+        for w in scene.walls:
+            out.append((i, None, ca.DM(w.point), ca.DM(w.normal)))
+    return out
+
+
+def _frozen_step(scene: Any, toi: str) -> tuple[ca.Function, ca.Function]:
+    """The ``direct`` step with its contact branches fixed by flags, and the branch tests.
+
+    Mirrors :func:`hybridoc.solvers.casadi_step.step_expression` (checked in the tests:
+    with the flags of the true branches it reproduces ``make_step`` to rounding). Returns
+    ``step(s, u, flags) -> s_next`` with ``flags`` one 0/1 per contact (impulse applied or
+    not), the predicted gaps and normal speeds ``d^``, ``w^``, and ``tests(s, u) -> (flags,
+    d^, w^)`` of the true step.
+    """
+    n = scene.n_discs
+    dt = scene.dt
+    e = scene.restitution
+    m = [d.mass for d in scene.discs]
+    s = ca.SX.sym("s", 4 * n)
+    u = ca.SX.sym("u", scene.n_controls)
+    contacts = _contacts(scene)
+    flags = ca.SX.sym("flags", len(contacts))
+    p = [s[2 * i : 2 * i + 2] for i in range(n)]
+    v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
+    a = []
+    k = 0
+    for i, d in enumerate(scene.discs):
+        if d.actuated:
+            a.append(u[k : k + 2] / m[i])
+            k += 2
+        else:
+            a.append(ca.DM.zeros(2))
+    v_hat = [v[i] + a[i] * dt for i in range(n)]
+    p_hat = [p[i] + v_hat[i] * dt for i in range(n)]
+    dv: list[Any] = [0] * n
+    dp: list[Any] = [0] * n
+    use_bar = toi in ("velocity", "both")
+    use_pos = toi in ("position", "both")
+
+    def rel(x: list[Any], i: int, j: int | None) -> Any:
+        return x[i] - x[j] if j is not None else x[i]
+
+    def gap_normal(r: Any, i: int, j: int | None, point: Any, normal: Any) -> tuple[Any, Any]:
+        if j is not None:
+            dist = ca.norm_2(r)
+            return dist - (scene.discs[i].radius + scene.discs[j].radius), r / dist
+        return ca.dot(r - point, normal) - scene.discs[i].radius, normal
+
+    tests = []
+    gaps = []
+    speeds = []
+    for c, (i, j, point, normal) in enumerate(contacts):
+        rp_hat, rv_hat = rel(p_hat, i, j), rel(v_hat, i, j)
+        d_hat, n_hat = gap_normal(rp_hat, i, j, point, normal)
+        w_hat = ca.dot(rv_hat, n_hat)
+        active = ca.logic_and(d_hat < 0, w_hat < 0)
+        w_safe = ca.if_else(active, w_hat, -1.0)
+        toi_true = ca.if_else(active, ca.fmin(ca.fmax(d_hat / w_safe, 0.0), dt), 0.0)
+        # frozen: the time of impact of an applied contact is d / w (unclamped, smooth)
+        w_frozen = ca.if_else(flags[c] > 0.5, w_hat, -1.0)
+        toi_c = flags[c] * d_hat / w_frozen
+        if use_bar:
+            for which, tc in (("frozen", toi_c), ("true", toi_true)):
+                tau = dt - tc
+                rp_bar = rel(p, i, j) + tau * rv_hat
+                rv_bar = rel(v, i, j) + tau * rel(a, i, j)
+                _, nrm_ = gap_normal(rp_bar, i, j, point, normal)
+                if which == "frozen":
+                    nrm, w = nrm_, ca.dot(rv_bar, nrm_)
+                else:
+                    w_true = ca.dot(rv_bar, nrm_)
+        else:
+            nrm, w, w_true = n_hat, w_hat, w_hat
+        tests.append(ca.logic_and(active, w_true < 0))
+        gaps.append(d_hat)
+        speeds.append(w_hat)
+        W_cc = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
+        lam = flags[c] * (-(1.0 + e) * w / W_cc)
+        dvi = lam / m[i] * nrm
+        dv[i] = dv[i] + dvi
+        if use_pos:
+            dp[i] = dp[i] + toi_c * dvi
+        if j is not None:
+            dvj = -lam / m[j] * nrm
+            dv[j] = dv[j] + dvj
+            if use_pos:
+                dp[j] = dp[j] + toi_c * dvj
+    out = ca.vertcat(*[p_hat[i] + dp[i] for i in range(n)], *[v_hat[i] + dv[i] for i in range(n)])
+    step = ca.Function("frozen_step", [s, u, flags], [out, ca.vertcat(*gaps), ca.vertcat(*speeds)])
+    test = ca.Function(
+        "contact_flags", [s, u], [ca.vertcat(*tests), ca.vertcat(*gaps), ca.vertcat(*speeds)]
+    )
+    return step, test
+
+
+def discrete_loss(
+    scene: Any, controls: Any, *, impulse: str = "direct", toi: str = "both"
+) -> float:
+    """The discrete loss of ``(N, nu)`` controls under the CasADi step (float64).
+
+    Parameters
+    ----------
+    scene
+        A Scene, a built-in name or a TOML path.
+    controls
+        ``(N, nu)`` controls.
+    impulse, toi
+        Simulator settings, as in :func:`hybridoc.solvers.casadi_step.make_step`.
+
+    Returns
+    -------
+    float
+        ``phi(s_N) + sum_n eps |u_n|^2 dt``.
+    """
+    from hybridoc.solvers.casadi_step import make_step
+
+    scene = _scene(scene)
+    ocp = scene.to_ocp()
+    u = ocp.check_controls(controls)
+    step = make_step(scene, impulse=impulse, toi=toi)
+    roll = step.mapaccum("roll", scene.steps)
+    states = np.asarray(roll(scene.initial_state(), u.T))
+    s_N = states[:, -1]
+    term = float(ocp.phi(s_N))
+    return term + scene.control_weight * scene.dt * float(np.sum(u**2))
+
+
+def solve_discrete(
+    scene: Any,
+    *,
+    impulse: str = "direct",
+    toi: str = "both",
+    warm_start: Any = None,
+    tol: float = 1e-12,
+    max_iter: int = 1000,
+    max_rounds: int = 10,
+    verbose: bool = False,
+) -> Any:
+    """Minimise the simulator's discrete N-step loss exactly with IPOPT.
+
+    Parameters
+    ----------
+    scene
+        A Scene, a built-in name or a TOML path (its ``steps`` is the N).
+    impulse, toi
+        Simulator settings (default: ``direct`` impulses with both TOI corrections, the
+        gradient-descent solver's default).
+    warm_start
+        ``None`` (the direct transcription's control, cell-averaged on the grid: usually in
+        the optimum's branch pattern), ``"initial"`` (the scene's initial guess), an
+        ``(N, nu)`` array or a :class:`~hybridoc.solution.Solution` (its controls), e.g.
+        gradient descent's result.
+    tol, max_iter
+        IPOPT's settings (per round).
+    max_rounds
+        Most re-freezings of the contact branches.
+    verbose
+        Print IPOPT's log.
+
+    Returns
+    -------
+    Solution
+        Method ``"discrete"``: ``cost`` and its parts from the event-exact evaluator (the
+        true continuous cost of the piecewise-constant controls), ``info["discrete_loss"]``
+        the discrete loss of a rollout of the controls (the floor for gradient descent at this
+        N), ``info["warm_start_loss"]`` that of the warm start, ``info["converged"]`` whether
+        the last round ended in IPOPT's optimum with the contact branches unchanged (a local
+        optimum of the piecewise-smooth loss); otherwise the best consistent rollout found.
+
+    Raises
+    ------
+    ConvergenceError
+        IPOPT failed.
+    """
+    from hybridoc.solution import Solution
+    from hybridoc.solvers.casadi_step import make_step
+
+    scene = _scene(scene)
+    ocp = scene.to_ocp()
+    N, nu = scene.steps, ocp.nu
+    if warm_start is None:
+        from hybridoc.solvers.transcription import solve_dt
+
+        u0 = solve_dt(scene).controls
+    elif isinstance(warm_start, str) and warm_start == "initial":
+        u0 = np.asarray(ocp.u_guess, dtype=float)
+    else:
+        u0 = ocp.check_controls(getattr(warm_start, "controls", warm_start), what="warm start")
+    t0 = time.perf_counter()
+    if impulse != "direct":
+        make_step(scene, impulse=impulse, toi=toi)  # raises the clear error
+    true_step = make_step(scene, impulse=impulse, toi=toi)
+    roll = true_step.mapaccum("roll", N)
+    fstep, ftest = _frozen_step(scene, toi)
+    nc = ftest.size1_out(0)
+    x0 = scene.initial_state()
+    nx = x0.size
+    # multiple shooting with the contact branches frozen at those of the current rollout:
+    # a smooth NLP, solved with exact second derivatives; the branches are then re-read from
+    # a rollout of its controls and the solve repeated until they no longer change
+    S = ca.SX.sym("S", nx, N + 1)
+    U = ca.SX.sym("U", nu, N)
+    F = ca.SX.sym("F", nc, N)
+    nxt, gaps, speeds = fstep.map(N)(S[:, :-1], U, F)
+    # the branch region is kept by bounds on (d^, w^): an applied contact needs d^ <= 0 and
+    # w^ <= 0; a skipped one keeps d^ >= 0 or w^ >= 0 (whichever holds at the start)
+    # and an applied contact keeps its time of impact within the step: d^ - dt w^ >= 0
+    g = ca.vertcat(
+        ca.vec(S[:, 0] - ca.DM(x0)),
+        ca.vec(S[:, 1:] - nxt),
+        ca.vec(gaps),
+        ca.vec(speeds),
+        ca.vec(gaps - scene.dt * speeds),
+    )
+    n_eq = nx * (N + 1)
+    J = _terminal(scene, S[:, -1]) + scene.control_weight * scene.dt * ca.sumsqr(U)
+    opts = {
+        "ipopt.tol": tol,
+        "ipopt.max_iter": max_iter,
+        "ipopt.print_level": 0,
+        "ipopt.sb": "yes",
+        # no bound relaxation: a contact held at its branch boundary must not cross it
+        "ipopt.bound_relax_factor": 0.0,
+        "print_time": False,
+    }
+    nlp = {"x": ca.vertcat(ca.vec(S), ca.vec(U)), "f": J, "g": g, "p": ca.vec(F)}
+    solver = ca.nlpsol("discrete", "ipopt", nlp, opts)
+    flags_of = ftest.map(N)
+
+    def rollout(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        states = np.hstack([x0[:, None], np.asarray(roll(x0, u.T))])
+        fl, gp, sp = (np.asarray(x) for x in flags_of(states[:, :-1], u.T))
+        bounds[0] = (fl.ravel(order="F"), gp.ravel(order="F"))
+        loss = float(ocp.phi(states[:, -1])) + scene.control_weight * scene.dt * float(np.sum(u**2))
+        return states, fl, loss
+
+    bounds: list[Any] = [None]
+
+    def region(f: np.ndarray, gp: np.ndarray, off_gap: np.ndarray) -> tuple[Any, Any]:
+        m = f.size
+        lo = np.full(3 * m, -np.inf)
+        hi = np.full(3 * m, np.inf)
+        on = f > 0.5
+        hi[:m][on] = 0.0
+        hi[m : 2 * m][on] = 0.0
+        lo[2 * m :][on] = 0.0
+        by_gap = ~on & ((gp >= 0) | off_gap)
+        lo[:m][by_gap] = 0.0
+        lo[m : 2 * m][~on & ~by_gap] = 0.0
+        return np.concatenate([np.zeros(n_eq), lo]), np.concatenate([np.zeros(n_eq), hi])
+
+    def flipped(f: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Flags on the other side of the active gap bounds (collision one step later or
+        earlier), or None when no gap bound is active."""
+        lam_gap = np.abs(lam[: f.size]).reshape((nc, N), order="F")
+        F2 = f.reshape((nc, N), order="F").copy()
+        off = np.zeros_like(F2, dtype=bool)
+        act = np.argwhere(lam_gap > 1e-9)
+        if act.size == 0:
+            return None
+        for c, n in act:
+            if F2[c, n] > 0.5:  # held at d^ = 0 from inside: let it hit one step later
+                F2[c, n] = 0.0
+                off[c, n] = True
+                if n + 1 < N:
+                    F2[c, n + 1] = 1.0
+            else:  # held at d^ = 0 from outside: let it hit here, not at its later step
+                later = np.flatnonzero(F2[c, n + 1 :] > 0.5)
+                F2[c, n] = 1.0
+                if later.size:
+                    F2[c, n + 1 + later[0]] = 0.0
+        return F2.ravel(order="F"), off.ravel(order="F")
+
+    best_u = u0
+    states, fl, best_loss = rollout(u0)
+    loss0 = best_loss
+    status, iters, rounds, converged = "", 0, 0, False
+    try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
+    flipping = False
+    for rounds in range(1, max_rounds + 1):
+        w0 = np.concatenate([states.ravel(order="F"), best_u.T.ravel(order="F")])
+        lbg, ubg = region(try_flags, bounds[0][1], try_off)
+        res = solver(x0=w0, lbg=lbg, ubg=ubg, p=try_flags)
+        stats = solver.stats()
+        status = str(stats.get("return_status", ""))
+        iters += int(stats.get("iter_count", 0))
+        ok = bool(stats.get("success", False)) or status == "Solved_To_Acceptable_Level"
+        if not ok:
+            converged = flipping  # the flipped branch is infeasible: the boundary is optimal
+            break
+        w = np.asarray(res["x"]).ravel()
+        u_new = w[nx * (N + 1) :].reshape((nu, N), order="F").T.copy()
+        saved = bounds[0]
+        states_new, fl_new, loss_new = rollout(u_new)
+        consistent_round = np.array_equal(fl_new.ravel(order="F"), try_flags)
+        if verbose:
+            print(
+                f"round {rounds}: {status}, {stats.get('iter_count')} it, loss {loss_new:.12g}, "
+                f"NLP {float(res['f']):.12g}, branches kept: {consistent_round}",
+                file=sys.stderr,
+            )
+        if loss_new >= best_loss - 1e-13 * abs(best_loss):
+            # no progress on the neighbouring branches: a local optimum on the boundary
+            # between branches (a contact exactly at a step end), or the end of progress
+            bounds[0] = saved if not flipping else bounds[0]
+            converged = flipping or consistent_round
+            break
+        best_u, states, fl, best_loss = u_new, states_new, fl_new, loss_new
+        nxt = flipped(fl.ravel(order="F"), np.asarray(res["lam_g"]).ravel()[n_eq:])
+        if nxt is not None and consistent_round:
+            try_flags, try_off = nxt
+            flipping = True
+        elif consistent_round:
+            converged = True
+            break
+        else:
+            try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
+            flipping = False
+    if (
+        best_loss >= loss0
+        and rounds == 1
+        and status
+        not in (
+            "Solve_Succeeded",
+            "Solved_To_Acceptable_Level",
+        )
+    ):
+        raise ConvergenceError(
+            f"discrete transcription did not converge (IPOPT: {status}); try a warm start "
+            "closer to the optimum (e.g. the direct transcription's or gradient descent's "
+            "controls)"
+        )
+    u = best_u
+    consistent = bool(np.array_equal(rollout(u)[1], fl))
+    solve_time = time.perf_counter() - t0
+    loss = discrete_loss(scene, u, impulse=impulse, toi=toi)
+    loss0 = discrete_loss(scene, u0, impulse=impulse, toi=toi)
+    if loss > loss0 + 1e-12 * max(1.0, abs(loss0)):
+        # the branch pattern changed along the way and IPOPT ended above its start
+        raise ConvergenceError(
+            f"discrete transcription ended above its warm start ({loss:.10g} > {loss0:.10g}); "
+            "try a warm start closer to the optimum"
+        )
+    ev = evaluate(ocp, u)
+    return Solution.from_evaluation(
+        ev,
+        method="discrete",
+        scene=scene.name,
+        settings={"impulse": impulse, "toi": toi, "tol": tol, "steps": N},
+        timings={"solve_time_s": solve_time},
+        info={
+            "discrete_loss": loss,
+            "warm_start_loss": loss0,
+            "iterations": iters,
+            "rounds": rounds,
+            "branches_consistent": consistent,
+            "converged": converged,
+            "ipopt_status": status,
+        },
+    )

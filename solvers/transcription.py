@@ -1,0 +1,843 @@
+"""Multi-phase direct transcription of a hybrid OCP (Legendre-Gauss-Radau collocation).
+
+For a given event sequence ``gamma_1 < ... < gamma_K`` (guard names) the problem splits into
+``K + 1`` phases with free durations ``h_k > 0``, ``sum h_k = T``. Each phase is divided into
+``M`` equal elements; on each element the state is a polynomial of degree ``d`` through the
+element start and the ``d`` Radau points (the last one is the element end), the dynamics are
+collocated at the Radau points and the running cost is integrated by the ``d``-point Radau
+rule (exact for polynomials of degree ``2 d - 2``). Phases are linked by the guard
+``psi(s(gamma-)) = 0``, the approach condition ``d psi/dt <= 0`` and the reset
+``s(gamma+) = g(s(gamma-))``; every other guard stays non-negative at the nodes, so the
+transcribed trajectory has no collision outside the sequence. IPOPT (bundled with CasADi)
+solves the NLP with exact second derivatives.
+
+Costates come from the NLP multipliers: the multiplier ``mu_j`` of the collocation defect
+``sum_r D_rj X_r - h_e f(X_j, U_j)`` at Radau point ``j`` gives ``lambda(t_j) = -mu_j / w_j``
+(``w_j`` the Radau weight), and the multiplier of the initial condition and of each reset
+link gives ``lambda(0)`` and ``lambda(gamma_k+)`` exactly (they are sensitivities of the
+optimal cost). For disc scenes the optimal flows are polynomials of degree <= 3 in time, so
+degree-3 collocation represents the optimum exactly and the answers agree with the HMP
+reference to round-off.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from hybridoc.errors import ConvergenceError, HybridocError
+from hybridoc.evaluator import Evaluation, as_ocp, evaluate
+from hybridoc.ocp import HybridOCP
+
+__all__ = [
+    "DTResult",
+    "cli_solve_dt",
+    "control_function",
+    "resample_controls",
+    "solve_dt",
+    "solve_dt_sequence",
+]
+
+_DEFAULT_MESH = 4
+_CACHE_KEY = "solvers.transcription"
+
+
+# ----------------------------------------------------------------------------------------
+# collocation tables
+
+
+@dataclass(frozen=True)
+class _Radau:
+    """Radau IIA tables on ``[0, 1]`` for degree ``d``."""
+
+    tau: np.ndarray  # (d + 1,): 0 and the d Radau points (the last is 1)
+    D: np.ndarray  # (d + 1, d): D[r, j] = dP_r/dtau at Radau point j
+    w: np.ndarray  # (d,): Radau quadrature weights
+
+    @classmethod
+    def make(cls, d: int) -> _Radau:
+        pts = np.array(ca.collocation_points(d, "radau"), dtype=float)
+        tau = np.concatenate([[0.0], pts])
+        D = np.zeros((d + 1, d))
+        for r in range(d + 1):
+            others = np.delete(tau, r)
+            poly = np.poly1d(others, r=True) / np.prod(tau[r] - others)
+            D[r] = np.polyder(poly)(pts)
+        w = np.zeros(d)
+        for j in range(d):
+            others = np.delete(pts, j)
+            poly = np.poly1d(others, r=True) / np.prod(pts[j] - others)
+            w[j] = np.polyint(poly)(1.0)
+        return cls(tau=tau, D=D, w=w)
+
+    def control_basis(self, s: np.ndarray) -> np.ndarray:
+        """Lagrange basis through the Radau points evaluated at ``s``: shape (len(s), d)."""
+        pts = self.tau[1:]
+        out = np.ones((s.size, pts.size))
+        for j in range(pts.size):
+            for m in range(pts.size):
+                if m != j:
+                    out[:, j] *= (s - pts[m]) / (pts[j] - pts[m])
+        return out
+
+
+# ----------------------------------------------------------------------------------------
+# the NLP for one sequence
+
+
+class _PhaseNLP:
+    """The transcribed NLP of one event sequence (built once, reused for warm starts)."""
+
+    def __init__(self, ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]):
+        self.ocp = ocp
+        self.guards = list(guards)
+        self.d = degree
+        self.mesh = list(mesh)
+        self.rad = _Radau.make(degree)
+        nx, nu, d = ocp.nx, ocp.nu, degree
+        P = len(self.guards) + 1
+        T = ocp.horizon
+        self.P = P
+
+        # SX symbols (a much faster NLP) unless a problem function is an MX graph
+        # (e.g. it calls an integrator), which cannot be evaluated on SX
+        funcs = (
+            [ocp.f, ocp.L, ocp.phi] + [g.psi for g in ocp.guards] + [g.reset for g in ocp.guards]
+        )
+        sym = ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
+        self.sym = sym
+
+        h = sym.sym("h", P)
+        Xs, Us = [], []
+        for k in range(P):
+            Xs.append(sym.sym(f"X{k}", nx, self.mesh[k] * d + 1))
+            Us.append(sym.sym(f"U{k}", nu, self.mesh[k] * d))
+        w_all = ca.vertcat(h, *[ca.vec(X) for X in Xs], *[ca.vec(U) for U in Us])
+        self.n_w = w_all.size1()
+
+        g_list: list[Any] = []
+        lbg: list[np.ndarray] = []
+        ubg: list[np.ndarray] = []
+        self.g_index: dict[str, Any] = {}
+        n_g = 0
+
+        def add(name: str, expr: Any, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+            nonlocal n_g
+            expr = ca.vec(expr)
+            m = expr.size1()
+            g_list.append(expr)
+            lbg.append(np.broadcast_to(np.asarray(lo, dtype=float), (m,)).copy())
+            ubg.append(np.broadcast_to(np.asarray(hi, dtype=float), (m,)).copy())
+            self.g_index.setdefault(name, []).append(slice(n_g, n_g + m))
+            n_g += m
+
+        f, L, phi = ocp.f, ocp.L, ocp.phi
+        D = ca.DM(self.rad.D)
+        psis = [g.psi for g in ocp.guards]
+        cost = 0
+        add("sum_h", ca.sum1(h), T, T)
+        add("x0", Xs[0][:, 0] - ca.DM(ocp.x0), 0.0, 0.0)
+        for k in range(P):
+            X, U, M = Xs[k], Us[k], self.mesh[k]
+            he = h[k] / M
+            for e in range(M):
+                Xe = X[:, e * d : e * d + d + 1]
+                Ue = U[:, e * d : e * d + d]
+                Fe = f.map(d)(Xe[:, 1:], Ue)
+                add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0)
+                Le = L.map(d)(Xe[:, 1:], Ue)
+                cost = cost + he * ca.mtimes(Le, ca.DM(self.rad.w))
+            # every guard stays in free space at the nodes, except the ones that are zero by
+            # construction at this phase's boundaries (their equality constraint covers them)
+            prev = self.guards[k - 1] if k > 0 else None
+            nxt = self.guards[k] if k < P - 1 else None
+            for gi, psi in enumerate(psis):
+                cols = list(range(M * d + 1))
+                if gi == prev:
+                    cols = cols[1:]
+                if gi == nxt:
+                    cols = cols[:-1]
+                if cols:
+                    add(f"path{k}", psi.map(len(cols))(X[:, cols]), 0.0, np.inf)
+            if k < P - 1:
+                gd = ocp.guards[self.guards[k]]
+                s_minus = X[:, -1]
+                add(f"guard{k}", gd.psi(s_minus), 0.0, 0.0)
+                s_ = sym.sym("s", nx)
+                dpsi = ca.Function("dpsi", [s_], [ca.jacobian(gd.psi(s_), s_)])
+                add(f"approach{k}", ca.mtimes(dpsi(s_minus), f(s_minus, U[:, -1])), -np.inf, 0.0)
+                add(f"link{k}", Xs[k + 1][:, 0] - gd.reset(s_minus), 0.0, 0.0)
+        cost = cost + phi(Xs[-1][:, -1])
+
+        self.cost_fn = ca.Function("J", [w_all], [cost])
+        nlp = {"x": w_all, "f": cost, "g": ca.vertcat(*g_list)}
+        self._nlp = nlp
+        self.lbg = np.concatenate(lbg)
+        self.ubg = np.concatenate(ubg)
+        self.n_g = n_g
+        self.lbx = np.full(self.n_w, -np.inf)
+        self.ubx = np.full(self.n_w, np.inf)
+        self.lbx[:P] = 1e-6 * T
+        self.ubx[:P] = T
+        self._solvers: dict[bool, Any] = {}
+
+        # unpacking helpers
+        sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes)])
+
+    def solver(self, verbose: bool) -> Any:
+        if verbose not in self._solvers:
+            opts = {
+                "ipopt.tol": 1e-12,
+                "ipopt.acceptable_tol": 1e-9,
+                "ipopt.max_iter": 500,
+                "ipopt.print_level": 5 if verbose else 0,
+                "ipopt.sb": "yes",
+                "print_time": bool(verbose),
+            }
+            self._solvers[verbose] = ca.nlpsol("dt", "ipopt", self._nlp, opts)
+        return self._solvers[verbose]
+
+    # --- packing ------------------------------------------------------------------------
+    def pack(self, h: np.ndarray, X: list[np.ndarray], U: list[np.ndarray]) -> np.ndarray:
+        parts = [np.asarray(h, dtype=float)]
+        parts += [np.asarray(x, dtype=float).ravel(order="F") for x in X]
+        parts += [np.asarray(u, dtype=float).ravel(order="F") for u in U]
+        return np.concatenate(parts)
+
+    def unpack(self, w: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+        o, P, nx, nu, d = self._offsets, self.P, self.ocp.nx, self.ocp.nu, self.d
+        h = w[:P].copy()
+        X = [
+            w[o[1 + k] : o[2 + k]].reshape((nx, self.mesh[k] * d + 1), order="F") for k in range(P)
+        ]
+        U = [
+            w[o[1 + P + k] : o[2 + P + k]].reshape((nu, self.mesh[k] * d), order="F")
+            for k in range(P)
+        ]
+        return h, X, U
+
+    def node_times(self, h: np.ndarray) -> list[np.ndarray]:
+        """Times of the ``M d + 1`` state nodes of each phase."""
+        starts = np.concatenate([[0.0], np.cumsum(h)[:-1]])
+        out = []
+        for k in range(self.P):
+            M = self.mesh[k]
+            he = h[k] / M
+            loc = (np.arange(M)[:, None] + self.rad.tau[None, 1:]).ravel()
+            out.append(starts[k] + he * np.concatenate([[0.0], loc]))
+        return out
+
+    def mult(self, lam_g: np.ndarray, name: str) -> list[np.ndarray]:
+        return [lam_g[s] for s in self.g_index.get(name, [])]
+
+
+def _nlp_for(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> _PhaseNLP:
+    cache = ocp._cache.setdefault(_CACHE_KEY, {})
+    key = (tuple(guards), degree, tuple(mesh))
+    if key not in cache:
+        cache[key] = _PhaseNLP(ocp, guards, degree, mesh)
+    return cache[key]
+
+
+# ----------------------------------------------------------------------------------------
+# initial guess from a simulated trajectory
+
+
+def _match_events(ev: Evaluation, guards: Sequence[int], T: float) -> list[tuple[float, Any]]:
+    """Event times (and the matched Event or None) for each guard of the sequence."""
+    matched: list[tuple[float, Any]] = []
+    start = 0
+    for g in guards:
+        hit = None
+        for i in range(start, len(ev.events)):
+            if ev.events[i].guard == g:
+                hit = i
+                break
+        if hit is None:
+            matched.append((np.nan, None))
+        else:
+            matched.append((ev.events[hit].time, ev.events[hit]))
+            start = hit + 1
+    # unmatched events: spread evenly between their matched neighbours
+    times = np.array([m[0] for m in matched] + [T])
+    prev_t = 0.0
+    i = 0
+    while i < len(matched):
+        if np.isnan(times[i]):
+            j = i
+            while np.isnan(times[j]):
+                j += 1
+            nxt = times[j]
+            for q in range(i, j):
+                times[q] = prev_t + (nxt - prev_t) * (q - i + 1) / (j - i + 1)
+                matched[q] = (times[q], None)
+            i = j
+        else:
+            prev_t = times[i]
+            i += 1
+    # keep the phases ordered and non-degenerate
+    out = []
+    floor = 0.0
+    K = len(matched)
+    for q, (t, e) in enumerate(matched):
+        t = min(max(t, floor + 1e-3 * T), T - 1e-3 * T * (K - q))
+        out.append((t, e))
+        floor = t
+    return out
+
+
+def _initial_point(
+    nlp: _PhaseNLP, ev: Evaluation, controls: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    ocp = nlp.ocp
+    T = ocp.horizon
+    matched = _match_events(ev, nlp.guards, T)
+    bounds = np.array([0.0] + [m[0] for m in matched] + [T])
+    h = np.diff(bounds)
+    times = nlp.node_times(h)
+    N = ocp.steps
+    X, U = [], []
+    for k in range(nlp.P):
+        Xk = ev.sample(times[k]).T
+        if k > 0 and matched[k - 1][1] is not None:
+            Xk[:, 0] = matched[k - 1][1].state_after
+        if k < nlp.P - 1 and matched[k][1] is not None:
+            Xk[:, -1] = matched[k][1].state_before
+        X.append(Xk)
+        idx = np.clip((times[k][1:] / T * N).astype(int), 0, N - 1)
+        U.append(controls[idx].T)
+    return nlp.pack(h, X, U), h
+
+
+# ----------------------------------------------------------------------------------------
+# result
+
+
+@dataclass
+class DTResult:
+    """The raw solution of the transcribed NLP for one sequence.
+
+    Attributes
+    ----------
+    sequence
+        Guard names of the events.
+    nlp_cost
+        The NLP objective.
+    event_times
+        ``gamma_1 .. gamma_K``.
+    node_times, states
+        Per phase: the state node times ``(M d + 1,)`` and states ``(nx, M d + 1)``.
+    control_times, controls
+        Per phase: Radau-point times and controls ``(nu, M d)``.
+    costate_times, costates
+        Costate estimates in time order (phase start from the link multiplier, then the
+        Radau points); event times appear twice (after and before the jump).
+    jump_multipliers
+        Multipliers of the guard equations (``pi_k`` of the HMP jump condition, up to sign).
+    lambda0
+        ``lambda(0) = dJ/ds(0)``.
+    iterations, status
+        IPOPT's counters.
+    active_path
+        Largest multiplier of the non-penetration constraints (non-zero: a guard outside the
+        sequence is touched, a grazing contact).
+    """
+
+    sequence: list[str]
+    nlp_cost: float
+    event_times: np.ndarray
+    node_times: list[np.ndarray]
+    states: list[np.ndarray]
+    control_times: list[np.ndarray]
+    controls: list[np.ndarray]
+    costate_times: np.ndarray
+    costates: np.ndarray
+    jump_multipliers: np.ndarray
+    lambda0: np.ndarray
+    iterations: int
+    status: str
+    active_path: float
+    element_bounds: np.ndarray
+    _nlp: _PhaseNLP
+    _w: np.ndarray
+
+    def control_function(self) -> Callable[[float], np.ndarray]:
+        """The continuous-time control: per element, the polynomial through the Radau points."""
+        return lambda t: self.control_at(np.array([t]))[0]
+
+    def control_at(self, t: np.ndarray) -> np.ndarray:
+        """The control at the times ``t`` (vectorised), shape ``(len(t), nu)``."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        nlp = self._nlp
+        d = nlp.d
+        eb = self.element_bounds
+        idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
+        s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
+        basis = nlp.rad.control_basis(s)  # (n, d)
+        U_all = np.concatenate(self.controls, axis=1)  # (nu, total elements * d)
+        vals = U_all.reshape(nlp.ocp.nu, -1, d)  # (nu, elements, d)
+        return np.einsum("nj,unj->nu", basis, vals[:, idx, :])
+
+    def cell_averages(self, grid: np.ndarray) -> np.ndarray:
+        """Averages of the control over the cells of ``grid`` (exact for polynomial pieces)."""
+        return _cell_averages(self.control_at, self.element_bounds, np.asarray(grid, dtype=float))
+
+
+def solve_dt_sequence(
+    ocp: HybridOCP,
+    sequence: Sequence[str],
+    *,
+    guess: Evaluation,
+    guess_controls: np.ndarray,
+    degree: int = 3,
+    mesh: int | Sequence[int] | None = None,
+    verbose: bool = False,
+) -> DTResult:
+    """Solve the transcribed NLP for one event sequence.
+
+    Parameters
+    ----------
+    ocp
+        The problem.
+    sequence
+        Guard names of the events, in time order.
+    guess, guess_controls
+        A simulated trajectory and its ``(N, nu)`` controls, to initialise the phases.
+    degree
+        Collocation degree ``d`` (state polynomial degree).
+    mesh
+        Elements per phase: one number for all phases or one per phase.
+    verbose
+        Print IPOPT's log.
+
+    Returns
+    -------
+    DTResult
+
+    Raises
+    ------
+    ConvergenceError
+        IPOPT did not converge.
+    """
+    names = [g.name for g in ocp.guards]
+    try:
+        guards = [names.index(s) for s in sequence]
+    except ValueError:
+        bad = [s for s in sequence if s not in names]
+        raise HybridocError(f"unknown guard(s) {bad}; the guards are {names}") from None
+    if degree < 1:
+        raise ValueError("degree must be >= 1")
+    P = len(guards) + 1
+    if mesh is None:
+        mesh = _DEFAULT_MESH
+    mesh_list = [int(mesh)] * P if np.isscalar(mesh) else [int(m) for m in mesh]  # type: ignore[arg-type]
+    if len(mesh_list) != P or min(mesh_list) < 1:
+        raise ValueError(f"mesh must be a positive int or {P} positive ints")
+    nlp = _nlp_for(ocp, guards, degree, mesh_list)
+    w0, _ = _initial_point(nlp, guess, guess_controls)
+    solver = nlp.solver(verbose)
+    res = solver(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    stats = solver.stats()
+    status = str(stats.get("return_status", ""))
+    if not stats.get("success", False) and status != "Solved_To_Acceptable_Level":
+        raise ConvergenceError(
+            f"direct transcription for sequence {list(sequence)} did not converge (IPOPT: "
+            f"{status}); try another initial guess or event sequence"
+        )
+    w = np.asarray(res["x"]).ravel()
+    lam_g = np.asarray(res["lam_g"]).ravel()
+    h, X, U = nlp.unpack(w)
+    times = nlp.node_times(h)
+    d, rad = nlp.d, nlp.rad
+
+    # costates: phase start from the initial-condition / link multiplier, then Radau points
+    ct: list[np.ndarray] = []
+    cs: list[np.ndarray] = []
+    lam0 = -nlp.mult(lam_g, "x0")[0]
+    for k in range(P):
+        start = lam0 if k == 0 else -nlp.mult(lam_g, f"link{k - 1}")[0]
+        coll = nlp.mult(lam_g, f"coll{k}")
+        lam_nodes = [
+            -(c.reshape((ocp.nx, d), order="F") / rad.w[None, :]) for c in coll
+        ]  # per element (nx, d)
+        ct.append(times[k][:1])
+        cs.append(start[None, :])
+        ct.append(times[k][1:])
+        cs.append(np.concatenate([ln.T for ln in lam_nodes], axis=0))
+    jumps = np.array([nlp.mult(lam_g, f"guard{k}")[0][0] for k in range(P - 1)])
+    path = [np.abs(m).max() for k in range(P) for m in nlp.mult(lam_g, f"path{k}") if m.size]
+    bounds = [np.array([0.0])]
+    for k in range(P):
+        bounds.append(times[k][d::d])
+    element_bounds = np.concatenate(bounds)
+    return DTResult(
+        sequence=list(sequence),
+        nlp_cost=float(res["f"]),
+        event_times=np.cumsum(h)[:-1],
+        node_times=times,
+        states=X,
+        control_times=[t[1:] for t in times],
+        controls=U,
+        costate_times=np.concatenate(ct),
+        costates=np.concatenate(cs, axis=0),
+        jump_multipliers=jumps,
+        lambda0=lam0,
+        iterations=int(stats.get("iter_count", -1)),
+        status=status,
+        active_path=float(max(path)) if path else 0.0,
+        element_bounds=element_bounds,
+        _nlp=nlp,
+        _w=w,
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# sequence discovery and the public solver
+
+
+def _sequence_of_events(ocp: HybridOCP, events: Sequence[Any]) -> list[str]:
+    """Guard names of events given as :class:`Event` objects or ``{"bodies": ...}`` dicts."""
+    out = []
+    for e in events:
+        if hasattr(e, "guard"):
+            out.append(ocp.guards[e.guard].name)
+            continue
+        bodies = tuple(e["bodies"])
+        hits = [g.name for g in ocp.guards if tuple(g.bodies) == bodies]
+        if not hits:
+            hits = [g.name for g in ocp.guards if g.name == "|".join(bodies)]
+        if not hits:
+            raise HybridocError(f"event with bodies {list(bodies)} matches no guard")
+        out.append(hits[0])
+    return out
+
+
+def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, list[str] | None]:
+    """Controls (N, nu) and, when ``initial`` is a solution, its event sequence."""
+    if initial is None:
+        return np.asarray(ocp.u_guess, dtype=float), None
+    controls = getattr(initial, "controls", None)
+    if controls is not None and hasattr(initial, "events"):  # a Solution or an Evaluation
+        u = ocp.check_controls(controls, what="initial controls")
+        info = getattr(initial, "info", {}) or {}
+        seq = info.get("sequence")
+        if seq is None:
+            seq = _sequence_of_events(ocp, initial.events)
+        return u, list(seq)
+    return ocp.check_controls(initial, what="initial controls"), None
+
+
+def _candidates(observed: list[str]) -> list[list[str]]:
+    """The observed sequence and every sequence with one of its events dropped."""
+    out = [list(observed)]
+    for i in range(len(observed)):
+        cand = observed[:i] + observed[i + 1 :]
+        if cand not in out:
+            out.append(cand)
+    return out
+
+
+def _resimulate(ocp: HybridOCP, r: DTResult) -> Evaluation:
+    from hybridoc.callable_eval import evaluate_callable
+
+    return evaluate_callable(ocp, r.control_function(), breakpoints=r.element_bounds[1:-1])
+
+
+def _sequence_matches(ocp: HybridOCP, r: DTResult, ev: Evaluation, tol: float = 1e-6) -> bool:
+    names = [ocp.guards[e.guard].name for e in ev.events]
+    if names != r.sequence:
+        return False
+    times = np.array([e.time for e in ev.events])
+    return bool(np.all(np.abs(times - r.event_times) <= tol * ocp.horizon))
+
+
+def solve_dt(
+    problem: Any,
+    *,
+    sequence: Sequence[str] | None = None,
+    initial: Any = None,
+    degree: int = 3,
+    mesh: int | Sequence[int] | None = None,
+    verbose: bool = False,
+) -> Any:
+    """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
+
+    Parameters
+    ----------
+    problem
+        A :class:`~hybridoc.HybridOCP` or a :class:`~hybridoc.problems.Scene`.
+    sequence
+        Event sequence as guard names, e.g. ``["ball1|ball2", "ball2|wall"]``. Default:
+        discovered from ``initial``: its simulated events and every sequence with one of them
+        dropped are solved, and the lowest-cost one whose control, re-simulated by the
+        event-exact evaluator, produces exactly the modelled events is kept.
+    initial
+        Initial guess: ``None`` (the problem's ``u_guess``), an ``(N, nu)`` control array, or
+        a :class:`~hybridoc.solution.Solution` (its controls and its events). The phases are
+        initialised from the guess's simulated trajectory.
+    degree
+        Collocation degree (``>= 3`` recommended; disc optima are cubic, so 3 is exact).
+    mesh
+        Collocation elements per phase (one int, or one per phase); default 4.
+    verbose
+        Print IPOPT's log and the candidates to stderr.
+
+    Returns
+    -------
+    Solution
+        Method ``"dt"``. ``cost`` and its parts are the continuous cost of the returned
+        control ``u(t)`` re-simulated by :func:`hybridoc.evaluate_callable`; ``controls`` are
+        cell averages of ``u(t)`` on the N-grid; ``costates`` are the multiplier estimates
+        (events appear twice). ``info`` holds ``sequence``, ``event_times``, ``nlp_cost``,
+        ``lambda0`` (``lambda(0)``, a warm start for the HMP reference), the candidates
+        tried and IPOPT's counters. The callable control is available through
+        :func:`control_function` on the solution.
+
+    Raises
+    ------
+    ConvergenceError
+        No candidate sequence converged to a solution whose re-simulation reproduces its
+        modelled events.
+    """
+    import sys
+
+    from hybridoc.solution import Solution
+
+    ocp = as_ocp(problem)
+    t_start = time.perf_counter()
+    u0, seq_from_initial = _initial_controls(ocp, initial)
+    guess = evaluate(ocp, u0)
+    if sequence is not None:
+        cands = [list(sequence)]
+    else:
+        observed = seq_from_initial or [ocp.guards[e.guard].name for e in guess.events]
+        cands = _candidates(observed)
+    results: list[DTResult] = []
+    tried: list[dict[str, Any]] = []
+    for cand in cands:
+        try:
+            r = solve_dt_sequence(
+                ocp,
+                cand,
+                guess=guess,
+                guess_controls=u0,
+                degree=degree,
+                mesh=mesh,
+                verbose=verbose,
+            )
+        except ConvergenceError as exc:
+            tried.append({"sequence": cand, "nlp_cost": None, "status": str(exc)})
+            continue
+        results.append(r)
+        tried.append({"sequence": cand, "nlp_cost": r.nlp_cost, "status": r.status})
+    best: DTResult | None = None
+    best_ev: Evaluation | None = None
+    for r in sorted(results, key=lambda r: r.nlp_cost):
+        ev = _resimulate(ocp, r)
+        ok = _sequence_matches(ocp, r, ev)
+        for t in tried:
+            if t["sequence"] == r.sequence:
+                t["resimulated"] = ok
+        if verbose:
+            print(f"dt: {r.sequence} cost {r.nlp_cost:.12g} valid {ok}", file=sys.stderr)
+        if ok:
+            best, best_ev = r, ev
+            break
+    if best is None or best_ev is None:
+        raise ConvergenceError(
+            "direct transcription found no event sequence whose control reproduces its events "
+            f"when re-simulated (tried {[t['sequence'] for t in tried]}); give an explicit "
+            "sequence or another initial guess"
+        )
+    solve_time = time.perf_counter() - t_start
+    grid = ocp.time_grid()
+    controls = best.cell_averages(grid)
+    scene = ocp.meta.get("scene")
+    scene_name = getattr(scene, "name", ocp.name)
+    info = {
+        "sequence": best.sequence,
+        "event_times": [float(t) for t in best.event_times],
+        "nlp_cost": best.nlp_cost,
+        "resimulated_cost_gap": float(abs(best_ev.cost - best.nlp_cost)),
+        "lambda0": [float(x) for x in best.lambda0],
+        "jump_multipliers": [float(x) for x in best.jump_multipliers],
+        "iterations": best.iterations,
+        "ipopt_status": best.status,
+        "active_path_multiplier": best.active_path,
+        "candidates": tried,
+    }
+    sol = Solution(
+        method="dt",
+        scene=scene_name,
+        controls=controls,
+        time_grid=grid,
+        cost=float(best_ev.cost),
+        terminal_cost=float(best_ev.terminal_cost),
+        running_cost=float(best_ev.running_cost),
+        events=best_ev.event_dicts(),
+        state_times=np.array(best_ev.times),
+        states=np.array(best_ev.states),
+        costate_times=best.costate_times,
+        costates=best.costates,
+        settings={
+            "degree": int(degree),
+            "mesh": mesh if mesh is not None else _DEFAULT_MESH,
+            "sequence": list(sequence) if sequence is not None else None,
+        },
+        timings={"solve_time_s": solve_time},
+        info=info,
+        arrays={
+            "event_times": np.array(best.event_times),
+            "lambda0": np.array(best.lambda0),
+            "element_bounds": best.element_bounds,
+            "radau_controls": np.concatenate(best.controls, axis=1),
+        },
+    )
+    return sol
+
+
+class _PiecewisePolynomial:
+    """``u(t)`` of a transcription Solution, rebuilt from its arrays."""
+
+    def __init__(self, solution: Any) -> None:
+        try:
+            self.eb = np.asarray(solution.arrays["element_bounds"], dtype=float)
+            vals = np.asarray(solution.arrays["radau_controls"], dtype=float)
+            self.d = int(solution.settings["degree"])
+        except (KeyError, AttributeError, TypeError):
+            raise HybridocError(
+                "not a direct-transcription Solution (no collocation data)"
+            ) from None
+        self.rad = _Radau.make(self.d)
+        self.vals = vals.reshape(vals.shape[0], -1, self.d)  # (nu, elements, d)
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        eb = self.eb
+        idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
+        s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
+        return np.einsum("nj,unj->nu", self.rad.control_basis(s), self.vals[:, idx, :])
+
+
+def _cell_averages(
+    u_at: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray, grid: np.ndarray, n_gauss: int = 6
+) -> np.ndarray:
+    """Cell averages on ``grid`` of a function smooth between ``bounds`` (Gauss-Legendre)."""
+    xg, wg = np.polynomial.legendre.leggauss(n_gauss)
+    cuts = np.union1d(grid, bounds)
+    cuts = cuts[(cuts >= grid[0]) & (cuts <= grid[-1])]
+    a, b = cuts[:-1], cuts[1:]
+    keep = b - a > 0
+    a, b = a[keep], b[keep]
+    mid, half = 0.5 * (a + b), 0.5 * (b - a)
+    tq = (mid[:, None] + half[:, None] * xg[None, :]).ravel()
+    uq = u_at(tq).reshape(a.size, n_gauss, -1)
+    integ = np.einsum("q,pqu->pu", wg, uq) * half[:, None]
+    cell = np.clip(np.searchsorted(grid, mid, side="right") - 1, 0, grid.size - 2)
+    out = np.zeros((grid.size - 1, uq.shape[-1]))
+    np.add.at(out, cell, integ)
+    return out / np.diff(grid)[:, None]
+
+
+def control_function(solution: Any) -> Callable[[float], np.ndarray]:
+    """The continuous-time control ``u(t)`` of a Solution returned by :func:`solve_dt`.
+
+    Rebuilt from ``solution.arrays`` (``element_bounds``, ``radau_controls``) and the
+    collocation degree, so it also works for a saved and reloaded solution.
+    """
+    pp = _PiecewisePolynomial(solution)
+    return lambda t: pp.at(np.array([t]))[0]
+
+
+def resample_controls(solution: Any, grid: np.ndarray) -> np.ndarray:
+    """Cell averages of a transcription Solution's ``u(t)`` on any time grid.
+
+    Parameters
+    ----------
+    solution
+        A Solution from :func:`solve_dt`.
+    grid
+        Increasing times from 0 to T (e.g. ``scene.with_steps(N).time_grid()``).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(len(grid) - 1, nu)`` averages (exact up to rounding: Gauss-Legendre on each
+        polynomial piece).
+    """
+    pp = _PiecewisePolynomial(solution)
+    return _cell_averages(pp.at, pp.eb, np.asarray(grid, dtype=float))
+
+
+def cli_solve_dt(args: Any) -> int:
+    """``hybridoc solve SCENE --method dt [--json] [--out DIR]``.
+
+    Prints the cost parts, the events and the solve time (one JSON object with ``--json``:
+    keys ``cost``, ``terminal_cost``, ``running_cost``, ``events``, ``solve_time_s``,
+    ``sequence``, ``nlp_cost``); ``--out DIR`` writes ``DIR/solution.npz`` + ``.json`` and the
+    trajectory and control figures.
+    """
+    from hybridoc.cli_util import emit_json, ensure_dir, resolve_scene, say
+
+    scene = resolve_scene(args.scene)
+    seq = getattr(args, "sequence", None)
+    if isinstance(seq, str):
+        seq = [x.strip() for x in seq.split(",") if x.strip()]
+    sol = solve_dt(scene, sequence=seq)
+    written = []
+    if getattr(args, "out", None) is not None:
+        from hybridoc.plotting import plot_controls, plot_scene, save_figure
+
+        out = ensure_dir(args.out)
+        sol.save(out / "solution")
+        written += [out / "solution.npz", out / "solution.json"]
+        ev = evaluate(scene, sol.controls)
+        written.append(
+            save_figure(
+                plot_scene(
+                    scene, ev, title=f"{scene.name}: direct transcription, J = {sol.cost:.8g}"
+                ),
+                out / "dt_trajectory.png",
+            )
+        )
+        written.append(
+            save_figure(
+                plot_controls(
+                    scene.time_grid(),
+                    {"dt (cell averages)": sol.controls},
+                    scene.control_labels(),
+                    title=f"{scene.name}: direct transcription controls",
+                ),
+                out / "dt_controls.png",
+            )
+        )
+    payload = {
+        "method": "dt",
+        "scene": scene.name,
+        "cost": sol.cost,
+        "terminal_cost": sol.terminal_cost,
+        "running_cost": sol.running_cost,
+        "events": sol.events,
+        "solve_time_s": sol.timings["solve_time_s"],
+        "sequence": sol.info["sequence"],
+        "nlp_cost": sol.info["nlp_cost"],
+    }
+    if getattr(args, "json", False):
+        emit_json(payload)
+    else:
+        say(args, f"{scene.name}: direct transcription (LGR degree 3)")
+        say(args, f"  cost          {sol.cost:.12g}")
+        say(args, f"  terminal cost {sol.terminal_cost:.12g}")
+        say(args, f"  running cost  {sol.running_cost:.12g}")
+        for e in sol.events:
+            say(args, f"  event t = {e['time']:.10f}  {e['kind']}  {'|'.join(e['bodies'])}")
+        say(args, f"  solve time    {sol.timings['solve_time_s']:.3f} s")
+    for p in written:
+        say(args, f"wrote {p}")
+    return 0

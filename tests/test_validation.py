@@ -1,0 +1,150 @@
+"""Validation reports: user controls, cross-validation entries, convergence orders, CLI errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hybridoc
+from hybridoc.validation import (
+    _orders,
+    control_errors,
+    convergence,
+    event_comparison,
+    method_entry,
+    validate_controls,
+)
+
+SCENE = "single-collision"
+EXE = Path(sys.executable).with_name("hybridoc")
+
+
+@pytest.fixture(scope="module")
+def ref():
+    from hybridoc.reference import solve_reference
+
+    return solve_reference(hybridoc.load_scene(SCENE))
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(EXE), *args], capture_output=True, text=True, cwd="/")
+
+
+def test_control_errors_closed_form():
+    u = np.zeros((4, 2))
+    v = np.zeros((4, 2))
+    v[1, 0] = 2.0
+    e = control_errors(u, v, dt=0.25)
+    assert e["max"] == 2.0
+    assert e["l2"] == pytest.approx(np.sqrt(4.0 * 0.25))
+
+
+def test_event_comparison():
+    a = [{"time": 0.5, "kind": "disc-disc", "bodies": ["a", "b"]}]
+    b = [{"time": 0.4, "kind": "disc-disc", "bodies": ["a", "b"]}]
+    c = [{"time": 0.5, "kind": "disc-wall", "bodies": ["a", "w"]}]
+    assert event_comparison(a, b)["time_errors"] == pytest.approx([0.1])
+    assert event_comparison(a, c) == {
+        "sequence_matches": False,
+        "time_errors": None,
+        "max_time_error": None,
+    }
+
+
+def test_orders():
+    o = _orders([10, 20, 40], [1.0, 0.25, 0.0625])
+    assert o[0] is None and o[1] == pytest.approx(2.0) and o[2] == pytest.approx(2.0)
+
+
+def test_validate_reference_controls_is_its_own_cost(ref):
+    scene = hybridoc.load_scene(SCENE)
+    rep = validate_controls(scene, ref.controls, reference=ref)
+    assert rep["sequence_matches"]
+    assert rep["control_error"]["max"] == 0.0
+    # the reference's cell averages, piecewise constant, cost O(dt) more than the optimum
+    assert 0.0 <= rep["cost_gap_relative"] < 1e-3
+    assert rep["cost"] == pytest.approx(hybridoc.evaluate(scene, ref.controls).cost, rel=1e-15)
+    # the initial guess is far worse and its single event happens elsewhere
+    bad = validate_controls(scene, scene.initial_controls(), reference=ref)
+    assert bad["cost_gap_relative"] > 1.0
+    assert abs(bad["event_time_errors"][0]) > 0.1
+
+
+def test_method_entry_of_dt(ref):
+    from hybridoc.solvers.transcription import solve_dt
+
+    dt = solve_dt(hybridoc.load_scene(SCENE))
+    e = method_entry(dt, ref)
+    assert abs(e["cost_gap_relative"]) < 1e-6
+    assert e["sequence_matches"] and max(map(abs, e["event_time_errors"])) < 1e-5
+    assert e["control_error"]["max"] < 1e-6
+
+
+def test_convergence_dt_only_small():
+    rep = convergence(SCENE, steps=(60, 120), include_gd=False)
+    assert rep["steps"] == [60, 120] and "gd" not in rep
+    # coarser grids of the optimal control cost more; errors are relative to J*
+    assert rep["dt"]["error"][0] > rep["dt"]["error"][1] > 0
+    assert rep["dt"]["cost"][0] == pytest.approx(
+        rep["reference_cost"] * (1 + rep["dt"]["error"][0]), rel=1e-12
+    )
+
+
+def test_validate_cli_json_and_figures(tmp_path, ref):
+    f = tmp_path / "u.npy"
+    np.save(f, ref.controls)
+    res = _cli("validate", SCENE, str(f), "--json", "--out", str(tmp_path / "o"))
+    assert res.returncode == 0, res.stderr
+    data = json.loads(res.stdout)
+    assert data["sequence_matches"] is True
+    assert data["cost_gap_relative"] == pytest.approx(
+        (data["cost"] - data["reference_cost"]) / data["reference_cost"]
+    )
+    assert (tmp_path / "o" / f"{SCENE}_validate_controls.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "content, suffix, message",
+    [
+        (np.ones((10, 2)), ".npy", "expected shape"),
+        (np.full((480, 2), np.nan), ".npy", "non-finite"),
+        ("a,b\nx,y\n", ".csv", "not a number"),
+    ],
+)
+def test_validate_cli_bad_files(tmp_path, content, suffix, message):
+    f = tmp_path / f"bad{suffix}"
+    if isinstance(content, str):
+        f.write_text(content)
+    else:
+        np.save(f, content)
+    res = _cli("validate", SCENE, str(f), "--json")
+    assert res.returncode == 2
+    assert res.stdout == ""
+    assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_validate_cli_missing_file(tmp_path):
+    res = _cli("validate", SCENE, str(tmp_path / "nope.npy"))
+    assert res.returncode == 2 and "does not exist" in res.stderr
+
+
+def test_crossval_cli_json(tmp_path):
+    res = _cli("crossval", SCENE, "--json", "--out", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    data = json.loads(res.stdout)
+    assert set(data) >= {"reference", "dt", "gd"}
+    assert data["reference"]["cost_gap_relative"] == 0.0
+    assert abs(data["dt"]["cost_gap_relative"]) < 1e-6
+    # no control beats the optimum; the gap is what the entry says it is
+    gd = data["gd"]
+    assert gd["cost"] >= data["reference"]["cost"]
+    assert gd["cost_gap_relative"] == pytest.approx(
+        (gd["cost"] - data["reference"]["cost"]) / data["reference"]["cost"], rel=1e-12
+    )
+    for name in ("controls", "trajectories", "learning_curve"):
+        assert (tmp_path / f"{SCENE}_crossval_{name}.png").exists()
