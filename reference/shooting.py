@@ -37,6 +37,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from hybridoc.errors import ConvergenceError
 from hybridoc.ocp import HybridOCP
 
 __all__ = ["NewtonResult", "ShootingSystem", "is_disc_scene", "newton", "shooting_system"]
@@ -45,6 +46,16 @@ __all__ = ["NewtonResult", "ShootingSystem", "is_disc_scene", "newton", "shootin
 def is_disc_scene(ocp: HybridOCP) -> bool:
     """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``."""
     return "n_discs" in ocp.meta and "control_weight" in ocp.meta
+
+
+def _residual_and_jacobian(F: ca.Function, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Evaluate the shooting system; an integrator failure reads as a non-finite residual."""
+    try:
+        R, J = (np.asarray(x) for x in F(z))
+    except RuntimeError:  # CVODES gives up on a wild trial point: let the line search back off
+        n = int(F.size1_out(0))
+        return np.full(n, np.nan), np.full((n, z.size), np.nan)
+    return R.ravel(), J
 
 
 @dataclass
@@ -399,8 +410,13 @@ def newton(
     """
     F = system.F
     z = np.asarray(z0, dtype=float).copy()
-    R, J = (np.asarray(x) for x in F(z))
-    R = R.ravel()
+    R, J = _residual_and_jacobian(F, z)
+    if not np.all(np.isfinite(R)):
+        raise ConvergenceError(
+            f"HMP shooting for sequence {list(system.sequence)}: the phases cannot be "
+            "integrated from the initial guess (integrator failure or overflow); try another "
+            "initial guess or an explicit sequence"
+        )
     norm = float(np.max(np.abs(R))) if R.size else 0.0
     hist = [norm]
     if verbose:
@@ -417,8 +433,7 @@ def newton(
         n2 = float(R @ R)
         while True:
             zn = z + alpha * dz
-            Rn, Jn = (np.asarray(x) for x in F(zn))
-            Rn = Rn.ravel()
+            Rn, Jn = _residual_and_jacobian(F, zn)
             if np.all(np.isfinite(Rn)) and float(Rn @ Rn) <= (1 - 1e-4 * alpha) * n2:
                 break
             alpha *= 0.5
