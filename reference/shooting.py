@@ -37,7 +37,6 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from hybridoc.errors import ConvergenceError
 from hybridoc.ocp import HybridOCP
 
 __all__ = ["NewtonResult", "ShootingSystem", "is_disc_scene", "newton", "shooting_system"]
@@ -410,13 +409,7 @@ def newton(
     """
     F = system.F
     z = np.asarray(z0, dtype=float).copy()
-    R, J = _residual_and_jacobian(F, z)
-    if not np.all(np.isfinite(R)):
-        raise ConvergenceError(
-            f"HMP shooting for sequence {list(system.sequence)}: the phases cannot be "
-            "integrated from the initial guess (integrator failure or overflow); try another "
-            "initial guess or an explicit sequence"
-        )
+    R, J = _residual_and_jacobian(F, z)  # non-finite: reported as not converged
     norm = float(np.max(np.abs(R))) if R.size else 0.0
     hist = [norm]
     if verbose:
