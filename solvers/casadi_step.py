@@ -1,0 +1,178 @@
+"""The simulator's discrete step as a CasADi function.
+
+:func:`make_step` writes the same symplectic-Euler step with ``direct`` impulses and the
+time-of-impact corrections as :class:`hybridoc.solvers.simulator.Simulator` (see that module
+for the equations and for how several contacts in one step are handled) in CasADi ``SX``
+symbols, with ``if_else`` for the contact branches. The direct transcription and the compiled
+rollout (:mod:`hybridoc.solvers.compiled`) are built from it, so all three agree with the torch
+simulator to rounding.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import casadi as ca
+
+from hybridoc.errors import SceneError
+
+__all__ = ["make_step", "step_expression"]
+
+_TOI_MODES = ("none", "position", "velocity", "both")
+NEWTON_ITERATIONS = 4  # as hybridoc.solvers.simulator.NEWTON_ITERATIONS
+
+
+def step_expression(
+    scene: Any, s: Any, u: Any, toi: str = "both", integrator: str = "symplectic-euler"
+) -> Any:
+    """The next state of one ``direct``-impulse step as a CasADi expression.
+
+    Parameters
+    ----------
+    scene
+        A :class:`~hybridoc.problems.Scene`.
+    s, u
+        State ``(nx,)`` and control ``(nu,)`` symbols (``SX`` or ``MX``).
+    toi
+        ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``.
+    integrator
+        ``"symplectic-euler"`` or ``"exact"`` (needs ``toi="both"``), as in the simulator.
+
+    Returns
+    -------
+    casadi.SX or casadi.MX
+        The state after one step of length ``scene.dt``.
+    """
+    if toi not in _TOI_MODES:
+        raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(_TOI_MODES)}")
+    if integrator not in ("symplectic-euler", "exact"):
+        raise SceneError(f"unknown integrator {integrator!r}; choose symplectic-euler or exact")
+    exact = integrator == "exact"
+    if exact and toi != "both":
+        raise SceneError("integrator 'exact' needs toi='both'")
+    n = scene.n_discs
+    dt = scene.dt
+    e = scene.restitution
+    m = [d.mass for d in scene.discs]
+    p = [s[2 * i : 2 * i + 2] for i in range(n)]
+    v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
+    a = []
+    k = 0
+    for i, d in enumerate(scene.discs):
+        if d.actuated:
+            a.append(u[k : k + 2] / m[i])
+            k += 2
+        else:
+            a.append(ca.DM.zeros(2))
+    v_hat = [v[i] + a[i] * dt for i in range(n)]
+    if exact:
+        p_hat = [p[i] + (v[i] + 0.5 * a[i] * dt) * dt for i in range(n)]
+    else:
+        p_hat = [p[i] + v_hat[i] * dt for i in range(n)]
+    dv = [0] * n
+    dp = [0] * n
+    use_bar = toi in ("velocity", "both")
+    use_pos = toi in ("position", "both")
+
+    contacts: list[tuple[int, int | None, Any, Any]] = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            contacts.append((i, j, None, None))
+    for i in range(n):
+        for w in scene.walls:
+            contacts.append((i, None, ca.DM(w.point), ca.DM(w.normal)))
+
+    def rel(x: list[Any], i: int, j: int | None) -> Any:
+        return x[i] - x[j] if j is not None else x[i]
+
+    def gap_normal(r: Any, i: int, j: int | None, point: Any, normal: Any) -> tuple[Any, Any]:
+        if j is not None:
+            dist = ca.norm_2(r)
+            return dist - (scene.discs[i].radius + scene.discs[j].radius), r / dist
+        return ca.dot(r - point, normal) - scene.discs[i].radius, normal
+
+    for i, j, point, normal in contacts:
+        rp_hat, rv_hat = rel(p_hat, i, j), rel(v_hat, i, j)
+        d_hat, n_hat = gap_normal(rp_hat, i, j, point, normal)
+        w_hat = ca.dot(rv_hat, n_hat)
+        active = ca.logic_and(d_hat < 0, w_hat < 0)
+        # safe denominator so that the unused branch has finite derivatives
+        w_safe = ca.if_else(active, w_hat, -1.0)
+        toi_c = ca.if_else(active, ca.fmin(ca.fmax(d_hat / w_safe, 0.0), dt), 0.0)
+        if exact:
+            rp, rv, ra = rel(p, i, j), rel(v, i, j), rel(a, i, j)
+            tau = dt - toi_c
+            for _ in range(NEWTON_ITERATIONS):
+                D = rp + (rv + 0.5 * ra * tau) * tau
+                dD = rv + ra * tau
+                if j is not None:
+                    R = scene.discs[i].radius + scene.discs[j].radius
+                    g, dg = ca.sumsqr(D) - R**2, 2 * ca.dot(D, dD)
+                else:
+                    g = ca.dot(D - point, normal) - scene.discs[i].radius
+                    dg = ca.dot(dD, normal)
+                ok = ca.logic_and(active, dg < 0)
+                dg = ca.if_else(ok, dg, -1.0)
+                tau = ca.if_else(ok, ca.fmin(ca.fmax(tau - g / dg, 0.0), dt), tau)
+            toi_c = ca.if_else(active, dt - tau, 0.0)
+            _, nrm = gap_normal(rp + (rv + 0.5 * ra * tau) * tau, i, j, point, normal)
+            w = ca.dot(rv + ra * tau, nrm)
+        elif use_bar:
+            tau = dt - toi_c
+            rp_bar = rel(p, i, j) + tau * rv_hat
+            rv_bar = rel(v, i, j) + tau * rel(a, i, j)
+            _, nrm = gap_normal(rp_bar, i, j, point, normal)
+            w = ca.dot(rv_bar, nrm)
+        else:
+            nrm, w = n_hat, w_hat
+        W_cc = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
+        lam = ca.if_else(ca.logic_and(active, w < 0), -(1.0 + e) * w / W_cc, 0.0)
+        dvi = lam / m[i] * nrm
+        dv[i] = dv[i] + dvi
+        if use_pos:
+            dp[i] = dp[i] + toi_c * dvi
+        if j is not None:
+            dvj = -lam / m[j] * nrm
+            dv[j] = dv[j] + dvj
+            if use_pos:
+                dp[j] = dp[j] + toi_c * dvj
+    p_next = [p_hat[i] + dp[i] for i in range(n)]
+    v_next = [v_hat[i] + dv[i] for i in range(n)]
+    return ca.vertcat(*p_next, *v_next)
+
+
+def make_step(
+    scene: Any, impulse: str = "direct", toi: str = "both", integrator: str = "symplectic-euler"
+) -> ca.Function:
+    """The discrete step ``s_next = step(s, u)`` of a scene as a CasADi ``Function``.
+
+    Parameters
+    ----------
+    scene
+        A :class:`~hybridoc.problems.Scene`, a built-in name or a TOML path.
+    impulse
+        Only ``"direct"`` is available symbolically (the LCP and convex solvers are torch only).
+    toi
+        Time-of-impact correction: ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``.
+    integrator
+        ``"symplectic-euler"`` (default, the paper's) or ``"exact"``.
+
+    Returns
+    -------
+    casadi.Function
+        ``Function('step', [s, u], [s_next])`` with ``SX`` inside, equal to one step of
+        :class:`hybridoc.solvers.simulator.Simulator` with the same settings.
+    """
+    from hybridoc.problems import load_scene
+
+    scene = load_scene(scene)
+    if impulse != "direct":
+        raise SceneError(
+            f"impulse solver {impulse!r} has no CasADi form; only 'direct' does (use the torch "
+            "Simulator for 'lcp' and 'convex')"
+        )
+    s = ca.SX.sym("s", 4 * scene.n_discs)
+    u = ca.SX.sym("u", scene.n_controls)
+    return ca.Function(
+        "step", [s, u], [step_expression(scene, s, u, toi, integrator)], ["s", "u"], ["s_next"]
+    )

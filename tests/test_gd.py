@@ -1,0 +1,114 @@
+"""Gradient-descent optimal control through the simulator (hybridoc.solvers.gd) and its CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import hybridoc
+from hybridoc.cli import main
+from hybridoc.errors import ControlsError, SceneError
+from hybridoc.solvers.gd import solve_gd
+from hybridoc.solvers.simulator import Simulator
+
+
+def test_plain_gd_history_and_final_loss() -> None:
+    sc = hybridoc.load_scene("single-collision")
+    sol = solve_gd(sc, optimizer="gd", iters=5)
+    hist = sol.arrays["loss_history"]
+    assert len(hist) == 6 and sol.info["iterations"] == 5
+    sim = Simulator(sc)
+    assert hist[0] == pytest.approx(sim.loss(torch.tensor(sc.initial_controls())).item(), rel=1e-12)
+    assert sol.info["loss"] == pytest.approx(sim.loss(torch.tensor(sol.controls)).item(), rel=1e-12)
+    assert hist[-1] < hist[0]
+    # the reported cost is the evaluator's cost of the returned controls
+    ev = hybridoc.evaluate(sc, sol.controls)
+    assert sol.cost == ev.cost and sol.method == "gd"
+
+
+def test_compiled_and_torch_paths_agree() -> None:
+    a = solve_gd("multiple-collision", optimizer="gd", iters=4, path="compiled")
+    b = solve_gd("multiple-collision", optimizer="gd", iters=4, path="torch")
+    np.testing.assert_allclose(a.controls, b.controls, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.arrays["loss_history"], b.arrays["loss_history"], rtol=1e-12)
+    assert a.settings["path"] == "compiled" and b.settings["path"] == "torch"
+
+
+def test_nan_stops_early_and_keeps_best() -> None:
+    with pytest.warns(RuntimeWarning, match="best iterate"):
+        sol = solve_gd("single-collision", optimizer="gd", lr=1e200, iters=20)
+    assert sol.info["nan_stop"] is True
+    assert "stopped early" in sol.info["message"]
+    assert np.isfinite(sol.controls).all() and np.isfinite(sol.cost)
+    assert sol.info["loss"] == pytest.approx(min(sol.arrays["loss_history"]))
+
+
+def test_callback_can_stop() -> None:
+    seen = []
+
+    def cb(k: int, loss: float, u: np.ndarray) -> bool:
+        seen.append((k, loss, u.shape))
+        return k >= 3
+
+    sol = solve_gd("head-on", optimizer="adam", iters=50, callback=cb)
+    assert [s[0] for s in seen] == [1, 2, 3] and seen[0][2] == (240, 2)
+    assert sol.info["iterations"] == 3 and sol.info["message"] == "stopped by the callback"
+
+
+def test_lbfgs_single_collision() -> None:
+    sol = solve_gd("single-collision")  # direct + both, L-BFGS with the smoothing continuation
+    assert [st["mu"] for st in sol.info["stages"]] == [1e-4, 1e-5, 1e-6]
+    # The reference optimum is 0.311417; the paper's plain gd ends at 0.3151 (its Table 1).
+    assert sol.info["loss"] < 0.3140
+    assert 0.3114 < sol.cost < 0.3140
+    assert [e["kind"] for e in sol.events] == ["disc-disc"]
+
+
+@pytest.mark.slow
+def test_exact_integrator_lbfgs_within_quarter_percent() -> None:
+    # exact flow + exact time of impact + continuation: within 0.25% of the reference optimum
+    reference_optimum = 0.31141687035847165  # hybridoc.reference.solve_reference
+    sol = solve_gd("single-collision", integrator="exact")
+    assert sol.info["loss"] == pytest.approx(sol.cost, rel=1e-12)
+    assert reference_optimum <= sol.cost < 1.0025 * reference_optimum
+
+
+def test_exact_integrator_loss_is_the_continuous_cost() -> None:
+    sol = solve_gd("head-on", integrator="exact", optimizer="gd", iters=3)
+    assert sol.info["loss"] == pytest.approx(sol.cost, rel=1e-12, abs=1e-12)
+
+
+def test_non_impulse_contact_runs_in_torch() -> None:
+    sol = solve_gd("head-on", contact="pbd", optimizer="adam", iters=3)
+    assert sol.settings["path"] == "torch" and sol.settings["contact"] == "pbd"
+    with pytest.raises(SceneError, match="compiled"):
+        solve_gd("head-on", contact="compliant", path="compiled", iters=1)
+
+
+def test_bad_arguments() -> None:
+    with pytest.raises(SceneError, match="optimizer"):
+        solve_gd("head-on", optimizer="newton")
+    with pytest.raises(SceneError, match="lr"):
+        solve_gd("head-on", lr=-1.0)
+    with pytest.raises(ControlsError, match="initial controls"):
+        solve_gd("head-on", initial_controls=np.zeros((3, 2)))
+
+
+def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["solve", "head-on", "--optimizer", "gd", "--iters", "3", "--json"])
+    out = capsys.readouterr()
+    assert rc == 0
+    data = json.loads(out.out)
+    for key in ("loss", "cost", "iterations", "time_s", "loss_history", "events"):
+        assert key in data
+    assert data["iterations"] == 3 and len(data["loss_history"]) == 4
+    assert "gd/gd" in out.err  # the progress bar goes to stderr
+
+
+def test_cli_solve_user_error(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["solve", "no-such-scene"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("hybridoc: error:") and len(err.strip().splitlines()) == 1
