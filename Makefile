@@ -10,8 +10,11 @@ PKG_DIRS := hybridoc reference solvers problems problems/scenes
 
 .PHONY: run test lint format docs bench install clean
 
+# The main job: cross-validation of reference, transcription and gradient descent on both
+# of the paper's problems; tables on stdout, figures and JSON reports in ./out.
 run: $(STAMP)
-	$(BIN)/hybridoc demo --out out
+	$(BIN)/hybridoc crossval single-collision --out out
+	$(BIN)/hybridoc crossval multiple-collision --out out
 
 test: $(STAMP)
 	$(BIN)/pytest -q -p no:cacheprovider

@@ -148,3 +148,21 @@ def test_crossval_cli_json(tmp_path):
     )
     for name in ("controls", "trajectories", "learning_curve"):
         assert (tmp_path / f"{SCENE}_crossval_{name}.png").exists()
+
+
+def test_crossval_multiple_collision_local_and_global_gaps():
+    """gd (exact flow, lbfgs) from the paper's guess lands in the two-event basin: within 0.25%
+    of that sequence's HMP extremal, and about 4.9% above the three-event reference."""
+    from hybridoc.validation import crossval
+
+    report, _ = crossval("multiple-collision", gd_options={"integrator": "exact"})
+    ref, dt, gd = report["reference"], report["dt"], report["gd"]
+    assert len(ref["events"]) == 3
+    assert abs(dt["cost_gap_relative"]) < 1e-6 and dt["sequence_matches"]
+    assert gd["local_reference_sequence"] == ["ball1|ball2", "ball2|wall"]
+    assert gd["local_reference_cost"] == pytest.approx(0.373636350232, rel=1e-9)
+    assert 0 <= gd["cost_gap_local_relative"] < 2.5e-3
+    assert gd["cost_gap_relative"] == pytest.approx(
+        (gd["cost"] - ref["cost"]) / ref["cost"], rel=1e-12
+    )
+    assert gd["cost_gap_relative"] > 0.04
