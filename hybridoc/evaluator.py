@@ -94,6 +94,11 @@ class Event:
     state_before: np.ndarray = field(repr=False)
     state_after: np.ndarray = field(repr=False)
 
+    def __post_init__(self) -> None:
+        # plain floats, so reprs and JSON read the same whatever produced them
+        object.__setattr__(self, "time", float(self.time))
+        object.__setattr__(self, "approach_speed", float(self.approach_speed))
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready ``{"time", "kind", "bodies"}``."""
         return {"time": float(self.time), "kind": self.kind, "bodies": list(self.bodies)}
