@@ -5,27 +5,50 @@ time-of-impact corrections as :class:`hybridoc.solvers.simulator.Simulator` (see
 for the equations and for how several contacts in one step are handled) in CasADi ``SX``
 symbols, with ``if_else`` for the contact branches. The direct transcription and the compiled
 rollout (:mod:`hybridoc.solvers.compiled`) are built from it, so all three agree with the torch
-simulator to rounding.
+simulator to rounding. :func:`step_parts` also gives the contact tests, gaps and normal
+speeds, and with frozen contact branches the smooth step that
+:mod:`hybridoc.solvers.discrete_transcription` optimises over.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import casadi as ca
 
 from hybridoc.errors import SceneError
 
-__all__ = ["make_step", "step_expression"]
+__all__ = ["StepParts", "make_step", "step_expression", "step_parts"]
 
 _TOI_MODES = ("none", "position", "velocity", "both")
 NEWTON_ITERATIONS = 4  # as hybridoc.solvers.simulator.NEWTON_ITERATIONS
 
 
-def step_expression(
-    scene: Any, s: Any, u: Any, toi: str = "both", integrator: str = "symplectic-euler"
-) -> Any:
-    """The next state of one ``direct``-impulse step as a CasADi expression.
+class StepParts(NamedTuple):
+    """The pieces of one ``direct``-impulse step (see :func:`step_parts`)."""
+
+    s_next: Any
+    """The state after the step."""
+    applied: Any
+    """Per contact, 1 where the true step applies an impulse, else 0."""
+    gaps: Any
+    """Per contact, the predicted gap ``d^`` after the smooth update."""
+    speeds: Any
+    """Per contact, the predicted normal speed ``w^`` after the smooth update."""
+
+
+def step_parts(
+    scene: Any,
+    s: Any,
+    u: Any,
+    toi: str = "both",
+    integrator: str = "symplectic-euler",
+    flags: Any = None,
+) -> StepParts:
+    """One ``direct``-impulse step with its contact tests, optionally with frozen branches.
+
+    Contacts are in the simulator's order: disc pairs (``i < j``, scene order), then
+    disc-wall (disc-major).
 
     Parameters
     ----------
@@ -36,12 +59,18 @@ def step_expression(
     toi
         ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``.
     integrator
-        ``"symplectic-euler"`` or ``"exact"`` (needs ``toi="both"``), as in the simulator.
+        ``"symplectic-euler"`` or ``"exact"`` (needs ``toi="both"`` and no ``flags``), as in
+        the simulator.
+    flags
+        ``None`` (default): the true step, each contact's impulse applied where its test holds
+        (``if_else``). Otherwise one 0/1 per contact fixing the branches: the impulse is
+        applied where the flag is 1, with the smooth, unclamped time of impact ``d^ / w^``;
+        the step is then smooth in ``(s, u)``.
 
     Returns
     -------
-    casadi.SX or casadi.MX
-        The state after one step of length ``scene.dt``.
+    StepParts
+        The next state, the true branch tests, and the gaps ``d^`` and normal speeds ``w^``.
     """
     if toi not in _TOI_MODES:
         raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(_TOI_MODES)}")
@@ -50,6 +79,8 @@ def step_expression(
     exact = integrator == "exact"
     if exact and toi != "both":
         raise SceneError("integrator 'exact' needs toi='both'")
+    if exact and flags is not None:
+        raise SceneError("frozen contact flags need integrator 'symplectic-euler'")
     n = scene.n_discs
     dt = scene.dt
     e = scene.restitution
@@ -69,8 +100,8 @@ def step_expression(
         p_hat = [p[i] + (v[i] + 0.5 * a[i] * dt) * dt for i in range(n)]
     else:
         p_hat = [p[i] + v_hat[i] * dt for i in range(n)]
-    dv = [0] * n
-    dp = [0] * n
+    dv: list[Any] = [0] * n
+    dp: list[Any] = [0] * n
     use_bar = toi in ("velocity", "both")
     use_pos = toi in ("position", "both")
 
@@ -91,7 +122,17 @@ def step_expression(
             return dist - (scene.discs[i].radius + scene.discs[j].radius), r / dist
         return ca.dot(r - point, normal) - scene.discs[i].radius, normal
 
-    for i, j, point, normal in contacts:
+    def at_impact(toi_c: Any, rels: tuple[Any, ...], contact: tuple[Any, ...]) -> tuple[Any, Any]:
+        # normal and normal speed at the time of impact (the velocity correction)
+        rp, rv, ra, rv_hat = rels
+        tau = dt - toi_c
+        _, nrm = gap_normal(rp + tau * rv_hat, *contact)
+        return nrm, ca.dot(rv + tau * ra, nrm)
+
+    tests, gaps, speeds = [], [], []
+    for c, contact in enumerate(contacts):
+        i, j, point, normal = contact
+        rp, rv, ra = rel(p, i, j), rel(v, i, j), rel(a, i, j)
         rp_hat, rv_hat = rel(p_hat, i, j), rel(v_hat, i, j)
         d_hat, n_hat = gap_normal(rp_hat, i, j, point, normal)
         w_hat = ca.dot(rv_hat, n_hat)
@@ -100,7 +141,6 @@ def step_expression(
         w_safe = ca.if_else(active, w_hat, -1.0)
         toi_c = ca.if_else(active, ca.fmin(ca.fmax(d_hat / w_safe, 0.0), dt), 0.0)
         if exact:
-            rp, rv, ra = rel(p, i, j), rel(v, i, j), rel(a, i, j)
             tau = dt - toi_c
             for _ in range(NEWTON_ITERATIONS):
                 D = rp + (rv + 0.5 * ra * tau) * tau
@@ -118,15 +158,23 @@ def step_expression(
             _, nrm = gap_normal(rp + (rv + 0.5 * ra * tau) * tau, i, j, point, normal)
             w = ca.dot(rv + ra * tau, nrm)
         elif use_bar:
-            tau = dt - toi_c
-            rp_bar = rel(p, i, j) + tau * rv_hat
-            rv_bar = rel(v, i, j) + tau * rel(a, i, j)
-            _, nrm = gap_normal(rp_bar, i, j, point, normal)
-            w = ca.dot(rv_bar, nrm)
+            nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), contact)
         else:
             nrm, w = n_hat, w_hat
+        hit = ca.logic_and(active, w < 0)
+        tests.append(hit)
+        gaps.append(d_hat)
+        speeds.append(w_hat)
         W_cc = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
-        lam = ca.if_else(ca.logic_and(active, w < 0), -(1.0 + e) * w / W_cc, 0.0)
+        if flags is None:
+            lam = ca.if_else(hit, -(1.0 + e) * w / W_cc, 0.0)
+        else:
+            # frozen: the time of impact of an applied contact is d^ / w^ (unclamped, smooth)
+            w_frozen = ca.if_else(flags[c] > 0.5, w_hat, -1.0)
+            toi_c = flags[c] * d_hat / w_frozen
+            if use_bar:
+                nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), contact)
+            lam = flags[c] * (-(1.0 + e) * w / W_cc)
         dvi = lam / m[i] * nrm
         dv[i] = dv[i] + dvi
         if use_pos:
@@ -138,7 +186,24 @@ def step_expression(
                 dp[j] = dp[j] + toi_c * dvj
     p_next = [p_hat[i] + dp[i] for i in range(n)]
     v_next = [v_hat[i] + dv[i] for i in range(n)]
-    return ca.vertcat(*p_next, *v_next)
+    return StepParts(
+        ca.vertcat(*p_next, *v_next), ca.vertcat(*tests), ca.vertcat(*gaps), ca.vertcat(*speeds)
+    )
+
+
+def step_expression(
+    scene: Any, s: Any, u: Any, toi: str = "both", integrator: str = "symplectic-euler"
+) -> Any:
+    """The next state of one ``direct``-impulse step as a CasADi expression.
+
+    The ``s_next`` of :func:`step_parts` with the same arguments (the true branches).
+
+    Returns
+    -------
+    casadi.SX or casadi.MX
+        The state after one step of length ``scene.dt``.
+    """
+    return step_parts(scene, s, u, toi, integrator).s_next
 
 
 def make_step(

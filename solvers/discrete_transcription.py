@@ -52,106 +52,24 @@ def _terminal(scene: Any, s: Any) -> Any:
     return out
 
 
-def _contacts(scene: Any) -> list[tuple[int, int | None, Any, Any]]:
-    """Contacts in the simulator's order: disc pairs, then disc-wall (disc-major)."""
-    out: list[tuple[int, int | None, Any, Any]] = []
-    n = scene.n_discs
-    for i in range(n):
-        for j in range(i + 1, n):
-            out.append((i, j, None, None))
-    for i in range(n):
-        for w in scene.walls:
-            out.append((i, None, ca.DM(w.point), ca.DM(w.normal)))
-    return out
-
-
 def _frozen_step(scene: Any, toi: str) -> tuple[ca.Function, ca.Function]:
     """The ``direct`` step with its contact branches fixed by flags, and the branch tests.
 
-    Mirrors :func:`hybridoc.solvers.casadi_step.step_expression` (checked in the tests:
-    with the flags of the true branches it reproduces ``make_step`` to rounding). Returns
-    ``step(s, u, flags) -> s_next`` with ``flags`` one 0/1 per contact (impulse applied or
-    not), the predicted gaps and normal speeds ``d^``, ``w^``, and ``tests(s, u) -> (flags,
-    d^, w^)`` of the true step.
+    Both come from :func:`hybridoc.solvers.casadi_step.step_parts` (with the flags of the
+    true branches the frozen step reproduces ``make_step`` to rounding; checked in the tests).
+    Returns ``step(s, u, flags) -> (s_next, d^, w^)`` with ``flags`` one 0/1 per contact
+    (impulse applied or not) and the predicted gaps and normal speeds ``d^``, ``w^``, and
+    ``tests(s, u) -> (flags, d^, w^)`` of the true step.
     """
-    n = scene.n_discs
-    dt = scene.dt
-    e = scene.restitution
-    m = [d.mass for d in scene.discs]
-    s = ca.SX.sym("s", 4 * n)
+    from hybridoc.solvers.casadi_step import step_parts
+
+    s = ca.SX.sym("s", 4 * scene.n_discs)
     u = ca.SX.sym("u", scene.n_controls)
-    contacts = _contacts(scene)
-    flags = ca.SX.sym("flags", len(contacts))
-    p = [s[2 * i : 2 * i + 2] for i in range(n)]
-    v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
-    a = []
-    k = 0
-    for i, d in enumerate(scene.discs):
-        if d.actuated:
-            a.append(u[k : k + 2] / m[i])
-            k += 2
-        else:
-            a.append(ca.DM.zeros(2))
-    v_hat = [v[i] + a[i] * dt for i in range(n)]
-    p_hat = [p[i] + v_hat[i] * dt for i in range(n)]
-    dv: list[Any] = [0] * n
-    dp: list[Any] = [0] * n
-    use_bar = toi in ("velocity", "both")
-    use_pos = toi in ("position", "both")
-
-    def rel(x: list[Any], i: int, j: int | None) -> Any:
-        return x[i] - x[j] if j is not None else x[i]
-
-    def gap_normal(r: Any, i: int, j: int | None, point: Any, normal: Any) -> tuple[Any, Any]:
-        if j is not None:
-            dist = ca.norm_2(r)
-            return dist - (scene.discs[i].radius + scene.discs[j].radius), r / dist
-        return ca.dot(r - point, normal) - scene.discs[i].radius, normal
-
-    tests = []
-    gaps = []
-    speeds = []
-    for c, (i, j, point, normal) in enumerate(contacts):
-        rp_hat, rv_hat = rel(p_hat, i, j), rel(v_hat, i, j)
-        d_hat, n_hat = gap_normal(rp_hat, i, j, point, normal)
-        w_hat = ca.dot(rv_hat, n_hat)
-        active = ca.logic_and(d_hat < 0, w_hat < 0)
-        w_safe = ca.if_else(active, w_hat, -1.0)
-        toi_true = ca.if_else(active, ca.fmin(ca.fmax(d_hat / w_safe, 0.0), dt), 0.0)
-        # frozen: the time of impact of an applied contact is d / w (unclamped, smooth)
-        w_frozen = ca.if_else(flags[c] > 0.5, w_hat, -1.0)
-        toi_c = flags[c] * d_hat / w_frozen
-        if use_bar:
-            for which, tc in (("frozen", toi_c), ("true", toi_true)):
-                tau = dt - tc
-                rp_bar = rel(p, i, j) + tau * rv_hat
-                rv_bar = rel(v, i, j) + tau * rel(a, i, j)
-                _, nrm_ = gap_normal(rp_bar, i, j, point, normal)
-                if which == "frozen":
-                    nrm, w = nrm_, ca.dot(rv_bar, nrm_)
-                else:
-                    w_true = ca.dot(rv_bar, nrm_)
-        else:
-            nrm, w, w_true = n_hat, w_hat, w_hat
-        tests.append(ca.logic_and(active, w_true < 0))
-        gaps.append(d_hat)
-        speeds.append(w_hat)
-        W_cc = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
-        lam = flags[c] * (-(1.0 + e) * w / W_cc)
-        dvi = lam / m[i] * nrm
-        dv[i] = dv[i] + dvi
-        if use_pos:
-            dp[i] = dp[i] + toi_c * dvi
-        if j is not None:
-            dvj = -lam / m[j] * nrm
-            dv[j] = dv[j] + dvj
-            if use_pos:
-                dp[j] = dp[j] + toi_c * dvj
-    out = ca.vertcat(*[p_hat[i] + dp[i] for i in range(n)], *[v_hat[i] + dv[i] for i in range(n)])
-    step = ca.Function("frozen_step", [s, u, flags], [out, ca.vertcat(*gaps), ca.vertcat(*speeds)])
-    test = ca.Function(
-        "contact_flags", [s, u], [ca.vertcat(*tests), ca.vertcat(*gaps), ca.vertcat(*speeds)]
-    )
+    true = step_parts(scene, s, u, toi)
+    flags = ca.SX.sym("flags", true.applied.size1())
+    frozen = step_parts(scene, s, u, toi, flags=flags)
+    step = ca.Function("frozen_step", [s, u, flags], [frozen.s_next, frozen.gaps, frozen.speeds])
+    test = ca.Function("contact_flags", [s, u], [true.applied, true.gaps, true.speeds])
     return step, test
 
 
