@@ -1,6 +1,6 @@
 """The exact N-step problem that gradient descent minimises, solved by IPOPT.
 
-Gradient descent (:mod:`hybridoc.solvers.gd`) minimises the discrete loss
+Gradient descent (:mod:`hybridoc.solvers.gd`) minimises the discrete loss::
 
     phi(s_N) + sum_n eps |u_n|^2 dt,    s_{n+1} = step(s_n, u_n)
 
