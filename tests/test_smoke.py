@@ -1,4 +1,3 @@
-
 def test_import_subpackages():
     import hybridoc.problems
     import hybridoc.reference
