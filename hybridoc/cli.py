@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.cli_util import (
+    HybridocArgumentParser,
     add_controls_arg,
     add_json_out,
     emit_json,
@@ -389,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser with the core subcommands and every available plugin."""
     from hybridoc import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = HybridocArgumentParser(
         prog="hybridoc",
         description="Optimal control of hybrid systems (rigid discs with impacts): scenes, "
         "an event-exact evaluator with exact gradients, and solvers.",

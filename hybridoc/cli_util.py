@@ -22,6 +22,7 @@ import numpy as np
 from hybridoc.errors import HybridocError
 
 __all__ = [
+    "HybridocArgumentParser",
     "add_controls_arg",
     "add_json_out",
     "emit_json",
@@ -29,11 +30,53 @@ __all__ = [
     "fmt",
     "format_table",
     "load_controls_arg",
+    "nonnegative_int",
+    "positive_float",
+    "positive_int",
     "resolve_scene",
     "say",
     "scene_arg",
     "to_jsonable",
 ]
+
+
+class HybridocArgumentParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line, like every other user error.
+
+    ``hybridoc: error: <command>: <message> (see 'hybridoc <command> --help')`` on stderr and
+    exit code 2, instead of argparse's usage block followed by the message.
+    """
+
+    def error(self, message: str) -> Any:
+        command = self.prog.removeprefix("hybridoc").strip()
+        where = f"{command}: " if command else ""
+        message = " ".join(message.split())
+        self.exit(2, f"hybridoc: error: {where}{message} (see '{self.prog} --help')\n")
+
+
+def _number(text: str, kind: type, test: Any, what: str) -> Any:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not test(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    return _number(text, float, lambda x: math.isfinite(x) and x > 0, "a finite number > 0")
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    return _number(text, int, lambda n: n >= 1, "an integer >= 1")
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _number(text, int, lambda n: n >= 0, "an integer >= 0")
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -110,6 +110,16 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
         raise ControlsError(f"{where} does not exist")
     if p.suffix.lower() == ".npy":
         try:
+            with open(p, "rb") as fh:
+                magic = fh.read(6)
+        except OSError as exc:
+            raise ControlsError(f"{where} cannot be read: {exc.strerror or exc}") from None
+        if magic != b"\x93NUMPY":
+            # numpy's own message for this case talks about pickles, which misleads
+            raise ControlsError(
+                f"{where} is not a readable .npy file: no NumPy header (write it with numpy.save)"
+            )
+        try:
             raw = np.load(p, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
             raise ControlsError(f"{where} is not a readable .npy array: {exc}") from None

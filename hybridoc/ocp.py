@@ -32,7 +32,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from hybridoc.errors import ControlsError
+from hybridoc.errors import ControlsError, SceneError
 
 __all__ = ["Guard", "HybridOCP"]
 
@@ -239,6 +239,35 @@ class HybridOCP:
             bad = np.argwhere(~np.isfinite(arr))[0]
             raise ControlsError(f"{what}: non-finite value at row {bad[0]}, column {bad[1]}")
         return arr
+
+    def check_sequence(self, sequence: Any, *, what: str = "sequence") -> list[str]:
+        """Validate an event sequence and return it as a list of guard names.
+
+        ``sequence`` is a list of guard names in event order or one comma-separated string
+        (``"ball1|ball2,ball2|wall"``); an empty list or a blank string means no event.
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            For an empty name inside a non-empty sequence (``"a,,b"``), a name that is not a
+            guard of this problem, or a value that is neither a string nor a list of strings.
+        """
+        if isinstance(sequence, str):
+            items = [] if not sequence.strip() else [s.strip() for s in sequence.split(",")]
+        elif isinstance(sequence, Sequence) and all(isinstance(s, str) for s in sequence):
+            items = [s.strip() for s in sequence]
+        else:
+            raise SceneError(
+                f"{what}: expected guard names (a list of strings or one comma-separated "
+                f"string), got {sequence!r}"
+            )
+        names = [g.name for g in self.guards]
+        if any(not s for s in items):
+            raise SceneError(f"{what}: empty event name in {sequence!r}; the guards are {names}")
+        bad = [s for s in items if s not in names]
+        if bad:
+            raise SceneError(f"{what}: unknown guard(s) {bad}; the guards are {names}")
+        return items
 
 
 def _casadi_name(name: str) -> str:

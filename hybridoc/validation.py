@@ -19,12 +19,14 @@ Control errors are taken on the N-grid (cell averages for continuous-time contro
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
+from hybridoc.errors import SceneError
 from hybridoc.evaluator import Evaluation, evaluate
 
 __all__ = [
@@ -188,6 +190,8 @@ def validation_figure(scene: Any, controls: np.ndarray, reference: Any, *, label
 
 def _trajectory_overlay(scene: Any, evals: dict[str, Evaluation], *, title: str):
     """The scene drawn with the first evaluation, the others' disc paths overlaid."""
+    from matplotlib.lines import Line2D
+
     from hybridoc.plotting import _path_states, plot_scene
 
     names = list(evals)
@@ -207,16 +211,24 @@ def _trajectory_overlay(scene: Any, evals: dict[str, Evaluation], *, title: str)
                 alpha=0.8,
                 label=f"{name} paths" if i == 0 else None,
             )
+    # one legend: plot_scene's entries, then the overlay's. A second legend added with
+    # add_artist is invisible to the constrained layout and gets clipped at the right edge.
+    handles: list[Any] = []
+    labels: list[str] = []
     old = ax.get_legend()
     if old is not None:
-        ax.add_artist(old)  # keep plot_scene's legend; the overlay gets its own below it
-    handles = [ax.plot([], [], color="0.3", lw=1.5)[0]]
-    labels = [f"{names[0]} paths (solid)"]
+        handles += list(old.legend_handles)
+        labels += [t.get_text() for t in old.get_texts()]
+        old.remove()
+    handles.append(Line2D([], [], color="0.3", lw=1.5))
+    labels.append(f"{names[0]} paths (solid)")
     h2, l2 = ax.get_legend_handles_labels()
     keep = [(h, lab) for h, lab in zip(h2, l2, strict=True) if lab.endswith(" paths")]
     handles += [h for h, _ in keep]
     labels += [lab for _, lab in keep]
-    ax.legend(handles, labels, fontsize=7, loc="lower left", bbox_to_anchor=(1.01, 0.0))
+    ax.legend(
+        handles, labels, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
+    )
     return fig
 
 
@@ -387,6 +399,11 @@ def convergence(
     from hybridoc.solvers.transcription import resample_controls, solve_dt
 
     scene = _scene(scene)
+    steps = tuple(steps)
+    if not steps or not all(
+        isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 1 for n in steps
+    ):
+        raise SceneError(f"steps must be a non-empty list of integers >= 1, got {steps!r}")
     ref = solve_reference(scene)
     dt_sol = solve_dt(scene, initial=ref)
 

@@ -17,6 +17,7 @@ from hybridoc.cli_util import (
     ensure_dir,
     fmt,
     format_table,
+    positive_int,
     resolve_scene,
     say,
     scene_arg,
@@ -50,11 +51,11 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     from hybridoc.validation import crossval, crossval_figures
 
     scene = resolve_scene(args.scene)
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
     say(args, f"{scene.name}: solving with reference, dt and gd ({args.gd_integrator}) ...")
     report, sols = crossval(scene, gd_options={"integrator": args.gd_integrator})
     written: list[Path] = []
-    if args.out is not None:
-        out = ensure_dir(args.out)
+    if out is not None:
         for name, fig in crossval_figures(scene, sols).items():
             written.append(_save(fig, out / f"{scene.name}_crossval_{name}.png"))
         written.append(_write_json(out, f"{scene.name}_crossval.json", report))
@@ -108,12 +109,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
     scene = resolve_scene(args.scene)
     u = load_controls(args.controls, scene)  # ControlsError -> exit 2 in main()
+    out = None if args.out is None else ensure_dir(args.out)
     ref = solve_reference(scene)
     report = validate_controls(scene, u, reference=ref)
     report["controls_file"] = str(args.controls)
     written: list[Path] = []
-    if args.out is not None:
-        out = ensure_dir(args.out)
+    if out is not None:
         fig_u, fig_x = validation_figure(scene, u, ref, label=Path(args.controls).stem)
         written.append(_save(fig_u, out / f"{scene.name}_validate_controls.png"))
         written.append(_save(fig_x, out / f"{scene.name}_validate_trajectory.png"))
@@ -146,11 +147,11 @@ def cmd_convergence(args: argparse.Namespace) -> int:
 
     scene = resolve_scene(args.scene)
     steps = tuple(args.steps) if args.steps else DEFAULT_STEPS
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
     say(args, f"{scene.name}: convergence study, N = {', '.join(map(str, steps))} ...")
     report = convergence(scene, steps=steps, include_gd=not args.no_gd)
     written: list[Path] = []
-    if args.out is not None:
-        out = ensure_dir(args.out)
+    if out is not None:
         written.append(_save(convergence_figure(report), out / f"{scene.name}_convergence.png"))
         written.append(_write_json(out, f"{scene.name}_convergence.json", report))
     if args.json:
@@ -176,7 +177,15 @@ def cmd_convergence(args: argparse.Namespace) -> int:
             rows.append(row)
         say(args, format_table(headers, rows))
         say(args, "dt: the transcription's continuous optimum averaged on the N-grid and judged")
-        say(args, "piecewise constant; gd: gradient descent re-run at N, true continuous cost.")
+        say(
+            args,
+            "piecewise constant"
+            + (
+                "; gd: gradient descent re-run at N, true continuous cost."
+                if "gd" in report
+                else "."
+            ),
+        )
     for p in written:
         say(args, f"wrote {p}")
     return 0
@@ -222,7 +231,11 @@ def register(subparsers: Any) -> None:
     )
     scene_arg(p)
     p.add_argument(
-        "--steps", type=int, nargs="+", default=None, help="grid sizes (default 60 ... 960)"
+        "--steps",
+        type=positive_int,
+        nargs="+",
+        default=None,
+        help="grid sizes (default 60 ... 960)",
     )
     p.add_argument("--no-gd", action="store_true", help="skip gradient descent (fast)")
     add_json_out(p, out_help="write the log-log figure and the JSON report to DIR")

@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     scene = resolve_scene(args.scene)
     initial = _load_initial(args.initial, scene) if args.initial is not None else None
+    out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve_reference(scene, sequence=args.sequence, initial=initial, verbose=args.verbose)
     out = {
         "scene": scene.name,
@@ -81,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
         "solve_time_s": sol.timings["solve_time_s"],
     }
     files: list[Path] = []
-    if args.out is not None:
-        files = write_outputs(scene, sol, ensure_dir(args.out))
+    if out_dir is not None:
+        files = write_outputs(scene, sol, out_dir)
         out["files"] = [str(f) for f in files]
     if args.json:
         emit_json(out)
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         say(args, "  no events")
     for f in files:
-        say(args, f"  wrote {f}")
+        say(args, f"wrote {f}")
     return 0
 
 

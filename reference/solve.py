@@ -15,6 +15,8 @@ Otherwise a :class:`~hybridoc.errors.ConvergenceError` says what failed and what
 
 from __future__ import annotations
 
+import math
+import numbers
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -24,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.callable_eval import evaluate_callable
-from hybridoc.errors import ConvergenceError, EvaluationError
+from hybridoc.errors import ConvergenceError, EvaluationError, SceneError
 from hybridoc.evaluator import Evaluation, as_ocp, evaluate, gradient
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.shooting import (
@@ -545,12 +547,6 @@ def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
     return ocp.check_controls(controls, what="initial"), True
 
 
-def _parse_sequence(sequence: Any) -> list[str]:
-    if isinstance(sequence, str):
-        return [s.strip() for s in sequence.split(",") if s.strip()]
-    return [str(s) for s in sequence]
-
-
 def solve_reference(
     problem: Any,
     *,
@@ -591,6 +587,9 @@ def solve_reference(
 
     Raises
     ------
+    SceneError
+        ``sequence`` names an event that is not a guard of the problem, or ``tol`` is not a
+        positive number.
     ConvergenceError
         No candidate sequence satisfies the conditions and re-simulates to its own events.
     """
@@ -600,14 +599,12 @@ def solve_reference(
 
         problem = load_scene(problem)
     ocp = as_ocp(problem)
+    seq = None if sequence is None else ocp.check_sequence(sequence)
+    if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
+        raise SceneError(f"tol must be a positive finite number, got {tol!r}")
     u0, given = _initial_controls(ocp, initial)
     ev, grad = _guess_evaluation(ocp, u0, want_costate=not is_disc_scene(ocp))
-    if sequence is not None:
-        seq = _parse_sequence(sequence)
-        names = [g.name for g in ocp.guards]
-        bad = [s for s in seq if s not in names]
-        if bad:
-            raise ConvergenceError(f"unknown event name(s) {bad}; the guards are {names}")
+    if seq is not None:
         queue = [list(zip(seq, _guess_times(ocp, seq, ev), strict=True))]
     else:
         queue = _candidates(ocp, ev)
@@ -674,7 +671,7 @@ def solve_reference(
             "candidates": [{"sequence": list(k), "result": v} for k, v in tried.items()],
         },
     )
-    sol.settings = {"tol": tol, "sequence": None if sequence is None else _parse_sequence(sequence)}
+    sol.settings = {"tol": tol, "sequence": seq}
     sol.timings = {"solve_time_s": time.perf_counter() - t_start, **sol.timings}
     return sol
 

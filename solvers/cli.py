@@ -21,6 +21,8 @@ from hybridoc.cli_util import (
     ensure_dir,
     fmt,
     format_table,
+    nonnegative_int,
+    positive_float,
     resolve_scene,
     say,
     scene_arg,
@@ -126,6 +128,17 @@ def cmd_solve(args: argparse.Namespace) -> int:
     ``--method dt`` runs the direct transcription.
     """
     if args.method == "dt":
+        gd_only = [
+            f"--{name}"
+            for name in ("contact", "toi", "integrator", "optimizer", "smoothing", "iters", "lr")
+            if getattr(args, name) is not None
+        ]
+        if gd_only:
+            verb = "applies" if len(gd_only) == 1 else "apply"
+            raise HybridocError(
+                f"{', '.join(gd_only)} {verb} only to --method gd (the transcription has no "
+                "contact model, optimizer or iterations)"
+            )
         try:
             from hybridoc.solvers.transcription import cli_solve_dt
         except ImportError:
@@ -137,6 +150,11 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from hybridoc.solvers.gd import solve_gd
 
     scene = resolve_scene(args.scene)
+    args.toi = args.toi or "both"
+    args.optimizer = args.optimizer or "lbfgs"
+    args.integrator = args.integrator or "symplectic-euler"
+    smoothing = _smoothing_arg(args.smoothing)
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solve, not after
     t0 = time.perf_counter()
     sol = solve_gd(
         scene,
@@ -145,7 +163,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         iters=args.iters,
         lr=args.lr,
         integrator=args.integrator,
-        smoothing=_smoothing_arg(args.smoothing),
+        smoothing=smoothing,
         progress=True,
         **_contact_kwargs(args.contact),
     )
@@ -168,8 +186,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         "events": sol.events,
     }
     written: list[Path] = []
-    if args.out is not None:
-        out = ensure_dir(args.out)
+    if out is not None:
         npz, js = sol.save(out / "solution")
         written += [npz, js]
         written += _write_solution_figures(scene, sol, out, "gd", f"gd ({args.optimizer})")
@@ -243,13 +260,13 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     single-collision, 50 x 1500 on multiple-collision), direct impulses. Prints the final
     discrete loss beside the paper's and the true continuous cost of the learned controls.
     """
+    out = None if args.out is None else ensure_dir(args.out)  # fail before minutes of work
     res = run_ablation(progress=True)
     rows = res["rows"]
     written: list[Path] = []
-    if args.out is not None:
+    if out is not None:
         from hybridoc.plotting import plot_controls, save_figure
 
-        out = ensure_dir(args.out)
         for name in ("single-collision", "multiple-collision"):
             curves = {
                 _TOI_LABEL[r["toi"]]: np.asarray(r["loss_history"])
@@ -317,19 +334,22 @@ def register(subparsers: Any) -> None:
         default=None,
         help="contact model of the simulator (default direct)",
     )
+    # gd-only options default to None so that --method dt can reject them
     p.add_argument(
         "--toi",
         choices=TOI_CHOICES,
-        default="both",
+        default=None,
         help="time-of-impact correction (default both)",
     )
     p.add_argument(
         "--integrator",
         choices=("symplectic-euler", "exact"),
-        default="symplectic-euler",
+        default=None,
         help="symplectic-euler (the paper's, default) or exact (exact flow and time of impact)",
     )
-    p.add_argument("--optimizer", choices=OPTIMIZER_CHOICES, default="lbfgs", help="default lbfgs")
+    p.add_argument(
+        "--optimizer", choices=OPTIMIZER_CHOICES, default=None, help="optimizer (default lbfgs)"
+    )
     p.add_argument(
         "--smoothing",
         default=None,
@@ -337,8 +357,16 @@ def register(subparsers: Any) -> None:
         help="continuation weights of the control-smoothness penalty, or 'none' "
         "(default: 1e-4,1e-5,1e-6 for lbfgs, none otherwise)",
     )
-    p.add_argument("--iters", type=int, default=None, help="iterations (default: per optimizer)")
-    p.add_argument("--lr", type=float, default=None, help="learning rate (default: per optimizer)")
+    p.add_argument(
+        "--iters",
+        type=nonnegative_int,
+        default=None,
+        help="iterations (default: per optimizer); with lbfgs's smoothing continuation, "
+        "per stage, so the total is (stages + 1) x ITERS",
+    )
+    p.add_argument(
+        "--lr", type=positive_float, default=None, help="learning rate (default: per optimizer)"
+    )
     add_json_out(p, out_help="write DIR/solution.npz + .json and figures")
     p.set_defaults(func=cmd_solve)
 

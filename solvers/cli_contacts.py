@@ -28,6 +28,8 @@ from hybridoc.cli_util import (
     ensure_dir,
     fmt,
     format_table,
+    nonnegative_int,
+    positive_float,
     resolve_scene,
     say,
     scene_arg,
@@ -196,9 +198,11 @@ def _int_list(text: str) -> list[int]:
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise SceneError(f"expected a comma-separated list of integers, got {text!r}") from None
+        raise SceneError(
+            f"--gd-iters: expected a comma-separated list of integers, got {text!r}"
+        ) from None
     if any(v < 0 for v in values):
-        raise SceneError(f"iteration counts must be >= 0, got {text!r}")
+        raise SceneError(f"--gd-iters: iteration counts must be >= 0, got {text!r}")
     return values
 
 
@@ -213,9 +217,10 @@ def cmd_gradcheck(args: argparse.Namespace) -> int:
 
     scene = resolve_scene(args.scene)
     models = _models(args.models)
+    gd_iters = _int_list(args.gd_iters)
     t0 = time.perf_counter()
     say(args, f"gradcheck {scene.name}: finding the points (plain gd, direct/both) ...")
-    points = gradcheck_points(scene, _int_list(args.gd_iters))
+    points = gradcheck_points(scene, gd_iters)
     entries = []
     for label, u in points:
         try:
@@ -341,18 +346,16 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
     """
     scene = resolve_scene(args.scene)
     models = _models(args.models)
-    if args.iters is not None and args.iters < 0:
-        raise SceneError(f"--iters must be >= 0, got {args.iters}")
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
     lr, iters = paper_gd_settings(scene)
     lr = lr if args.lr is None else args.lr
     iters = iters if args.iters is None else args.iters
     say(args, f"compare-contacts {scene.name}: plain gd, lr {lr:g}, {iters} iterations")
     sols = compare_contacts(scene, models=models, iters=iters, lr=lr, progress=True)
     figures: list[str] = []
-    if args.out is not None:
+    if out is not None:
         from hybridoc.plotting import plot_controls, save_figure
 
-        out = ensure_dir(args.out)
         for name, sol in sols.items():
             sol.save(out / f"gd_{name.replace('/', '_')}")
         figures.append(str(save_figure(_learning_curves(scene, sols), out / "learning_curves.png")))
@@ -431,7 +434,11 @@ def register(subparsers: Any) -> None:
         p,
         out_help="write each model's Solution, learning_curves.png and learned_controls.png",
     )
-    p.add_argument("--iters", type=int, default=None, help="iterations (default: the paper's)")
-    p.add_argument("--lr", type=float, default=None, help="learning rate (default: the paper's)")
+    p.add_argument(
+        "--iters", type=nonnegative_int, default=None, help="iterations (default: the paper's)"
+    )
+    p.add_argument(
+        "--lr", type=positive_float, default=None, help="learning rate (default: the paper's)"
+    )
     p.add_argument("--models", default=None, metavar="M,M", help=f"subset of: {names}")
     p.set_defaults(func=cmd_compare_contacts)

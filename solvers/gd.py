@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import sys
 import time
 import tomllib
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,11 @@ PAPER_SETTINGS: dict[str, tuple[float, int]] = {
 
 DEFAULT_SMOOTHING = (1e-4, 1e-5, 1e-6)
 """Default continuation weights of ``lbfgs`` (see ``smoothing`` in :func:`solve_gd`)."""
+
+
+def _positive(x: Any) -> bool:
+    """``x`` is a real number, finite and > 0 (not a string, not a bool)."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x) and x > 0
 
 
 class _NonFinite(Exception):
@@ -180,6 +186,15 @@ def solve_gd(
         :func:`hybridoc.evaluate`; ``info["loss"]`` is the discrete objective of the returned
         controls, ``info["iterations"]`` the iterations done; ``arrays["loss_history"]`` the
         discrete objective at the start of every iteration followed by the final one.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        An unknown scene, contact model, optimizer, integrator or path; ``iters`` not an
+        integer >= 0; ``lr`` or ``max_step`` not a positive finite number; negative or
+        non-finite smoothing weights.
+    hybridoc.errors.ControlsError
+        ``initial_controls`` of the wrong shape or not finite.
     """
     import hybridoc
     from hybridoc.problems import load_scene
@@ -189,24 +204,38 @@ def solve_gd(
     if optimizer not in OPTIMIZERS:
         raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     lr0, it0 = default_settings(scene, optimizer)
-    lr = lr0 if lr is None else float(lr)
-    iters = it0 if iters is None else int(iters)
-    if iters < 0 or not math.isfinite(lr) or lr <= 0:
-        raise SceneError(f"need iters >= 0 and lr > 0, got iters={iters}, lr={lr}")
+    lr = lr0 if lr is None else lr
+    iters = it0 if iters is None else iters
+    # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
+    if isinstance(iters, bool) or not isinstance(iters, numbers.Integral) or iters < 0:
+        raise SceneError(f"iters must be an integer >= 0, got {iters!r}")
+    if not _positive(lr):
+        raise SceneError(f"lr must be a positive finite number, got {lr!r}")
+    if max_step is not None and not _positive(max_step):
+        raise SceneError(f"max_step must be a positive finite number or None, got {max_step!r}")
+    iters, lr = int(iters), float(lr)
     t_start = time.perf_counter()
     loss_obj, used_path = _make_loss(scene, impulse, toi, contact, path, integrator)
 
     u0 = scene.initial_controls() if initial_controls is None else initial_controls
-    u0 = np.array(u0, dtype=float)
+    try:
+        u0 = np.array(u0, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ControlsError(f"initial controls: not a numeric array ({exc})") from None
     if u0.shape != (scene.steps, scene.n_controls) or not np.isfinite(u0).all():
         raise ControlsError(
             f"initial controls must be finite with shape ({scene.steps}, {scene.n_controls})"
         )
     if smoothing is None:
         smoothing = DEFAULT_SMOOTHING if optimizer == "lbfgs" and not _penalty else ()
-    smoothing = tuple(float(m) for m in smoothing)
-    if any(not math.isfinite(m) or m < 0 for m in smoothing):
-        raise SceneError(f"smoothing weights must be finite and >= 0, got {smoothing}")
+    weights = tuple(smoothing) if isinstance(smoothing, Iterable | np.ndarray) else None
+    if (
+        isinstance(smoothing, str)
+        or weights is None
+        or not all(isinstance(m, numbers.Real) and math.isfinite(m) and m >= 0 for m in weights)
+    ):
+        raise SceneError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
+    smoothing = tuple(float(m) for m in weights)
     if smoothing:
         kwargs = dict(
             impulse=impulse, toi=toi, contact=contact, optimizer=optimizer, iters=iters, lr=lr,
@@ -282,7 +311,8 @@ def solve_gd(
     opt = make_optimizer()
     history: list[float] = []
     message = "finished the requested iterations"
-    bar = _Progress(iters, f"gd/{optimizer}") if progress else None
+    label = f"gd/{optimizer}" + (f" (smoothing stage, mu {_penalty:g})" if _penalty else "")
+    bar = _Progress(iters, label) if progress else None
     k = 0
     fresh, restarts = True, 0
     t_loop = time.perf_counter()

@@ -391,8 +391,15 @@ class Simulator(torch.nn.Module):
     def _initial(self, x0: Any, batch: int) -> torch.Tensor:
         x = self.x0 if x0 is None else torch.as_tensor(x0, dtype=self.dtype, device=self.device)
         if x.shape[-1] != self.nx or x.ndim not in (1, 2):
-            raise ControlsError(f"x0 must have shape ({self.nx},) or (B, {self.nx})")
-        return x.expand(batch, self.nx) if x.ndim == 1 else x
+            raise ControlsError(
+                f"x0 must have shape ({self.nx},) or (B, {self.nx}), got {tuple(x.shape)}"
+            )
+        if x.ndim == 2 and x.shape[0] not in (1, batch):
+            raise ControlsError(
+                f"x0 has batch size {x.shape[0]} but the controls have {batch}: give one x0 "
+                f"({self.nx},) for all, or one row per batch entry"
+            )
+        return x.expand(batch, self.nx)
 
     def rollout(self, controls: Any, x0: Any = None) -> torch.Tensor:
         """Simulate the N steps.

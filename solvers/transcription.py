@@ -426,11 +426,7 @@ def solve_dt_sequence(
         IPOPT did not converge.
     """
     names = [g.name for g in ocp.guards]
-    try:
-        guards = [names.index(s) for s in sequence]
-    except ValueError:
-        bad = [s for s in sequence if s not in names]
-        raise HybridocError(f"unknown guard(s) {bad}; the guards are {names}") from None
+    guards = [names.index(s) for s in ocp.check_sequence(sequence)]
     if degree < 1:
         raise ValueError("degree must be >= 1")
     P = len(guards) + 1
@@ -571,9 +567,11 @@ def solve_dt(
     Parameters
     ----------
     problem
-        A :class:`~hybridoc.HybridOCP` or a :class:`~hybridoc.problems.Scene`.
+        A :class:`~hybridoc.HybridOCP`, a :class:`~hybridoc.problems.Scene` or a built-in
+        scene name.
     sequence
-        Event sequence as guard names, e.g. ``["ball1|ball2", "ball2|wall"]``. Default:
+        Event sequence as guard names, e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
+        ``"ball1|ball2,ball2|wall"`` (``[]``: no event). Default:
         discovered from ``initial``: its simulated events and every sequence with one of them
         dropped are solved, and the lowest-cost one whose control, re-simulated by the
         event-exact evaluator, produces exactly the modelled events is kept.
@@ -601,6 +599,8 @@ def solve_dt(
 
     Raises
     ------
+    SceneError
+        ``sequence`` names an event that is not a guard of the problem.
     ConvergenceError
         No candidate sequence converged to a solution whose re-simulation reproduces its
         modelled events.
@@ -609,8 +609,14 @@ def solve_dt(
 
     from hybridoc.solution import Solution
 
+    if isinstance(problem, str):
+        from hybridoc.problems import load_scene
+
+        problem = load_scene(problem)
     ocp = as_ocp(problem)
     t_start = time.perf_counter()
+    if sequence is not None:
+        sequence = ocp.check_sequence(sequence)
     u0, seq_from_initial = _initial_controls(ocp, initial)
     guess = evaluate(ocp, u0)
     if sequence is not None:

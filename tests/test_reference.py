@@ -20,7 +20,7 @@ import pytest
 from scipy.optimize import minimize, minimize_scalar
 
 import hybridoc
-from hybridoc import ConvergenceError, Disc, Scene
+from hybridoc import ConvergenceError, Disc, Scene, SceneError
 from hybridoc.reference import reference_control, solve_reference
 
 EPS, R, T = 0.01, 0.2, 1.0
@@ -368,7 +368,7 @@ def test_explicit_impossible_sequence_fails():
     # ball2 is passive and at rest: it cannot reach the wall without being struck first
     with pytest.raises(ConvergenceError, match="hint"):
         solve_reference(scene, sequence=["ball2|wall"])
-    with pytest.raises(ConvergenceError, match="unknown event"):
+    with pytest.raises(SceneError, match="unknown guard"):
         solve_reference(scene, sequence="ball1|nothing")
 
 
