@@ -389,14 +389,16 @@ def solve_sequence(
 ) -> tuple[ReferenceResult | None, str]:
     """Solve the HMP system of one sequence; ``(result, "")`` or ``(None, reason)``.
 
-    With ``estimate`` (a good initial control), Newton starts from the adjoint costate of
+    With ``estimate`` (a given initial control), Newton starts from the adjoint costate of
     the guess: for disc scenes of its linear-in-time fit per phase, otherwise the
-    evaluator's adjoint ``grad``. Then disc scenes fall back to IPOPT on the NLP in event
-    times and phase controls, other problems to an IPOPT feasibility solve.
+    evaluator's adjoint ``grad``. Disc scenes also solve the NLP in event times and phase
+    controls with IPOPT and polish it by Newton, and the cheaper converged point is kept;
+    other problems fall back to an IPOPT feasibility solve when the estimate fails.
     """
     S = shooting_system(ocp, list(sequence))
     gamma0 = np.asarray(gamma0, dtype=float)
     reasons = []
+    found: list[ReferenceResult] = []
     if estimate and (S.disc or grad is not None):
         if S.disc:  # adjoint of the guess fitted by linear phase laws: exact jump rule
             z0 = S.z_from_controls(gamma0, _fit_coeffs(ocp, u_guess, gamma0))
@@ -404,22 +406,33 @@ def solve_sequence(
             z0 = _z_from_gradient(S, grad, gamma0)
         nr = newton(S, z0, tol=tol, verbose=verbose)
         if nr.converged:
-            return _result(S, nr, "costate-estimate"), ""
-        reasons.append(f"Newton from the costate estimate: residual {nr.residual:.2e}")
+            found.append(_result(S, nr, "costate-estimate"))
+        else:
+            reasons.append(f"Newton from the costate estimate: residual {nr.residual:.2e}")
     if S.disc:
+        # Also after a converged estimate: from a poor guess Newton can land on a worse
+        # stationary point of the same sequence, while the NLP minimises over it.
         z0, ok = S.solve_nlp(gamma0, _fit_coeffs(ocp, u_guess, gamma0))
         nr = newton(S, z0, tol=tol, verbose=verbose)
         if nr.converged:
-            return _result(S, nr, "nlp"), ""
-        reasons.append(
-            f"IPOPT ({'converged' if ok else 'failed'}) then Newton: residual {nr.residual:.2e}"
-        )
-    elif grad is not None:
+            found.append(_result(S, nr, "nlp"))
+        else:
+            reasons.append(
+                f"IPOPT ({'converged' if ok else 'failed'}) then Newton: residual {nr.residual:.2e}"
+            )
+    elif grad is not None and not found:
         z0, ok = S.solve_feasibility(_z_from_gradient(S, grad, gamma0))
         nr = newton(S, z0, tol=tol, verbose=verbose)
         if nr.converged:
-            return _result(S, nr, "feasibility"), ""
-        reasons.append(f"IPOPT feasibility then Newton: residual {nr.residual:.2e}")
+            found.append(_result(S, nr, "feasibility"))
+        else:
+            reasons.append(f"IPOPT feasibility then Newton: residual {nr.residual:.2e}")
+    if found:  # the first (the estimate's) unless another is cheaper beyond rounding
+        best = found[0]
+        for r in found[1:]:
+            if r.cost < best.cost - 1e-12 * abs(best.cost):
+                best = r
+        return best, ""
     return None, "; ".join(reasons)
 
 

@@ -472,3 +472,12 @@ def test_inelastic_bounce_of_actuated_disc_closed_form():
     u, _ = reference_control(sol)
     g = sol.info["event_times"][0]
     assert np.linalg.norm(u(g) - u(g - 1e-12)) > 0.1
+
+
+def test_given_initial_guess_does_not_stop_at_a_worse_stationary_point():
+    """From the paper's constant guess Newton alone converges to a worse HMP point of the
+    ball1|ball2 sequence (cost 2.05); the NLP path must still find the optimum."""
+    scene = hybridoc.load_scene("single-collision")
+    sol = solve_reference(scene, initial=scene.initial_controls())
+    assert sol.info["sequence"] == ["ball1|ball2"]
+    assert sol.cost == pytest.approx(0.311416870358472, rel=1e-10)
