@@ -15,21 +15,12 @@ Run: ``.venv/bin/python benchmarks/bench_reference.py [--runs 20] [SCENE ...]``.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
+
+from _timing import median_ms
 
 import hybridoc
 from hybridoc.cli_util import format_table
 from hybridoc.reference import solve_reference
-
-
-def _median_ms(fn, runs: int) -> float:
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
 
 
 def main() -> None:
@@ -43,13 +34,13 @@ def main() -> None:
         scene = hybridoc.load_scene(name)
         sol = solve_reference(scene)  # warm-up, discovery
         seq = sol.info["sequence"]
-        shoot = _median_ms(
+        shoot = median_ms(
             lambda sc=scene, sq=seq: solve_reference(sc, sequence=sq, verify=False), args.runs
         )
-        verified = _median_ms(
+        verified = median_ms(
             lambda sc=scene, sq=seq: solve_reference(sc, sequence=sq), max(3, args.runs // 4)
         )
-        discover = _median_ms(lambda sc=scene: solve_reference(sc), args.discover_runs)
+        discover = median_ms(lambda sc=scene: solve_reference(sc), args.discover_runs)
         rows.append(
             [
                 name,

@@ -15,22 +15,14 @@ Target (issue 5): under 2 s per solve on the paper problems. Run:
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
+
+from _timing import median_ms
 
 from hybridoc.cli_util import format_table
 from hybridoc.problems import load_scene
 from hybridoc.reference import solve_reference
 from hybridoc.solvers.transcription import solve_dt
-
-
-def _median_ms(fn, runs: int) -> float:
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
 
 
 def main() -> None:
@@ -53,8 +45,8 @@ def main() -> None:
             ),
             default=0.0,
         )
-        t_seq = _median_ms(lambda sc=scene, sq=seq: solve_dt(sc, sequence=sq), args.runs)
-        t_disc = _median_ms(lambda sc=scene: solve_dt(sc), args.runs)
+        t_seq = median_ms(lambda sc=scene, sq=seq: solve_dt(sc, sequence=sq), args.runs)
+        t_disc = median_ms(lambda sc=scene: solve_dt(sc), args.runs)
         row = [name, " ".join(seq) or "-", f"{sol.cost:.10f}", f"{gap:+.1e}", f"{dte:.1e}"]
         row += [f"{t_seq:.0f}", f"{t_disc:.0f}"]
         if args.discrete:
