@@ -1,11 +1,17 @@
 """hybridoc: optimal control of hybrid systems.
 
-The core package holds the problem model (:class:`HybridOCP`), the event-exact evaluator
+The core package holds the problem model (:class:`HybridOCP`), the event-exact judge
 (:func:`evaluate`, :func:`gradient`), the shared :class:`Solution` type, plotting and the
-CLI. Scenes live in :mod:`hybridoc.problems`, the HMP reference in
-:mod:`hybridoc.reference`, the solvers in :mod:`hybridoc.solvers`.
+CLI. Scenes and the library of classic problems live in :mod:`hybridoc.problems`, the HMP
+reference in :mod:`hybridoc.reference`, the solvers (and :func:`solve`, which runs any of
+them) in :mod:`hybridoc.solvers`.
 """
 
+from __future__ import annotations
+
+from typing import Any
+
+from hybridoc import _layout  # noqa: F401  (running from a source checkout)
 from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import (
     ControlsError,
@@ -13,13 +19,17 @@ from hybridoc.errors import (
     EvaluationError,
     HybridocError,
     SceneError,
+    SimultaneousEventError,
 )
-from hybridoc.evaluator import Evaluation, Event, Gradient, evaluate, gradient
+from hybridoc.evaluation import Evaluation, Gradient
+from hybridoc.evaluator import evaluate, gradient
+from hybridoc.events import Event
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problem import as_ocp
 from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
-from hybridoc.solution import Solution
+from hybridoc.solution import Solution, Status
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "ControlsError",
@@ -34,11 +44,25 @@ __all__ = [
     "HybridocError",
     "Scene",
     "SceneError",
+    "SimultaneousEventError",
     "Solution",
+    "Status",
     "Wall",
+    "as_ocp",
     "builtin_names",
+    "crossval",
     "evaluate",
     "evaluate_callable",
     "gradient",
     "load_scene",
+    "solve",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    # the solvers import torch lazily; ``hybridoc.solve`` is theirs, re-exported on demand
+    if name in ("solve", "crossval"):
+        from hybridoc.solvers import registry
+
+        return getattr(registry, name) if name == "solve" else registry.crossval
+    raise AttributeError(f"module 'hybridoc' has no attribute {name!r}")

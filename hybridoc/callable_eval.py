@@ -1,19 +1,20 @@
-"""Evaluation of a control given as a function of continuous time, ``u(t)``.
+"""Evaluation of a control given as a function of continuous time, ``u(t)``, or of a
+feedback policy evaluated continuously, ``u = pi(t, s(t))``.
 
 Used to judge controls that are not piecewise constant on the grid, such as the reference's
-optimal control. The flow is integrated by SciPy's DOP853 at ``rtol = atol = 1e-12`` with the
-guards as terminal events (located by SciPy's root finder on the dense output), the same
-jump rule as :func:`hybridoc.evaluate` (approach speed below the grazing threshold,
-simultaneous crossings in guard order), and integration restarted after every jump and at
-every breakpoint where ``u`` may be discontinuous.
+optimal control or a transcription's polynomial control. The flow is integrated by SciPy's
+DOP853 (``rtol = atol = 1e-12``) one step at a time. On every step each guard's detector
+is sampled along the step's dense output (a degree-7 polynomial) at 17 Chebyshev-Lobatto
+nodes and searched by :class:`hybridoc.rootfind.CrossingSearch`, the judge's search that
+bounds the detector over the whole step: a guard that dips below zero and comes back within
+one step is found. (For the squared distances of disc scenes the detector along the dense
+output is a polynomial of degree 14, so its interpolant is exact.) The jump rule is the
+judge's (:mod:`hybridoc.events`), and integration restarts after every jump and at every
+breakpoint where ``u`` may be discontinuous.
 
 Between two breakpoints ``a < b`` the control is evaluated at times clamped a few ulps inside
 ``[a, b]``, so that a piecewise-constant ``u`` with breakpoints at its jumps is seen as
 constant on each piece even by the Runge-Kutta stages that fall exactly on ``a`` or ``b``.
-
-A guard that stops the integration without jumping (a graze) is disarmed until it rises
-above ``penetration_tol`` again; while disarmed, falling below ``-penetration_tol`` means
-sustained contact and raises :class:`~hybridoc.errors.EvaluationError`.
 """
 
 from __future__ import annotations
@@ -22,15 +23,20 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from hybridoc.errors import ControlsError, EvaluationError
-from hybridoc.evaluator import Evaluation, Event, _approaching, _compiled
-from hybridoc.ocp import HybridOCP
+from hybridoc.evaluation import Evaluation
+from hybridoc.events import Event, EventResolver, approaching
+from hybridoc.kernels import UNKNOWN_DEGREE, kernels
+from hybridoc.ocp import HybridOCP, as_float_array
+from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.rootfind import Chebyshev, CrossingSearch
 
 __all__ = ["evaluate_callable"]
 
-_MAX_STOPS_AT_ONE_TIME = 200
+_CHEB = Chebyshev(UNKNOWN_DEGREE)
+_ZENO_WINDOW = 100
+_MAX_STEPS = 10**7
 
 
 def _inside(a: float, b: float) -> tuple[float, float]:
@@ -43,25 +49,29 @@ def _inside(a: float, b: float) -> tuple[float, float]:
 
 
 def evaluate_callable(
-    ocp: HybridOCP,
-    control: Callable[[float], Any],
+    problem: ProblemLike,
+    control: Callable[[float], Any] | None = None,
     *,
     breakpoints: Sequence[float] = (),
+    state_feedback: Callable[[float, np.ndarray], Any] | None = None,
     graze_tol: float = 1e-10,
     rtol: float = 1e-12,
     atol: float = 1e-12,
     penetration_tol: float = 1e-9,
+    max_events: int = 10**6,
 ) -> Evaluation:
-    """Simulate under a control ``u(t)`` given as a callable.
+    """Simulate under a control ``u(t)`` (or a continuous feedback ``u = pi(t, s)``).
 
     Parameters
     ----------
-    ocp
-        The problem.
+    problem
+        The problem (anything :func:`hybridoc.evaluate` accepts).
     control
         ``u(t) -> array of shape (nu,)``, smooth between ``breakpoints`` and events.
     breakpoints
         Times where ``u`` may jump or kink; integration restarts there.
+    state_feedback
+        Instead of ``control``: ``pi(t, s) -> u``, evaluated on the integrator's stages.
     graze_tol
         As in :func:`hybridoc.evaluate`.
     rtol, atol
@@ -69,141 +79,110 @@ def evaluate_callable(
     penetration_tol
         As in :func:`hybridoc.evaluate`: how far a non-jumping (grazing or resting) contact
         may penetrate before the motion counts as sustained contact, an error.
+    max_events
+        More events than this raise :class:`~hybridoc.errors.EvaluationError`.
 
     Returns
     -------
     Evaluation
-        ``controls`` holds ``u`` sampled at the grid-interval midpoints (for reports).
+        ``controls`` holds ``u`` at the grid-interval midpoints (for reports).
     """
-    c = _compiled(ocp)
-    num = c.numeric()
+    from scipy.integrate import DOP853  # 0.35 s to import: only where it is used
+
+    ocp = as_ocp(problem)
+    if (control is None) == (state_feedback is None):
+        raise ControlsError("give exactly one of control (u(t)) and state_feedback (pi(t, s))")
+    k = kernels(ocp)
+    num = k.numeric()
     nx, G, T = ocp.nx, len(ocp.guards), ocp.horizon
+    resolver = EventResolver(ocp, num, graze_tol)
+    # the integrator's error adds to the rounding of every detector value
+    integ_factor = 1.0 + rtol / np.finfo(float).eps
 
-    def u_at(t: float) -> np.ndarray:
-        val = np.asarray(control(t), dtype=float).ravel()
-        if val.shape != (ocp.nu,) or not np.all(np.isfinite(val)):
-            raise ControlsError(f"u({t:.6g}) must be {ocp.nu} finite numbers, got {val}")
-        return val
-
-    psi_cache: dict[str, Any] = {"t": None, "y": None, "psi": None}
-
-    def psi_at(t: float, y: np.ndarray) -> np.ndarray:
-        # SciPy calls every event function at the same (t, y): evaluate the guards once
-        if psi_cache["t"] != t or not np.array_equal(psi_cache["y"], y[:nx]):
-            psi_cache["t"], psi_cache["y"] = t, y[:nx].copy()
-            psi_cache["psi"] = num.guards_psi(y[:nx])[0]
-        return psi_cache["psi"]
-
-    def crossing(j: int) -> Callable[[float, np.ndarray], float]:
-        def ev(t: float, z: np.ndarray) -> float:
-            return float(psi_at(t, z)[j])
-
-        ev.terminal = True  # type: ignore[attr-defined]
-        ev.direction = -1  # type: ignore[attr-defined]
-        return ev
-
-    def rearm(j: int) -> Callable[[float, np.ndarray], float]:
-        def ev(t: float, z: np.ndarray) -> float:
-            return float(psi_at(t, z)[j]) - penetration_tol
-
-        ev.terminal = True  # type: ignore[attr-defined]
-        ev.direction = 1  # type: ignore[attr-defined]
-        return ev
-
-    def penetration(j: int) -> Callable[[float, np.ndarray], float]:
-        def ev(t: float, z: np.ndarray) -> float:
-            return float(psi_at(t, z)[j]) + penetration_tol
-
-        ev.terminal = True  # type: ignore[attr-defined]
-        ev.direction = -1  # type: ignore[attr-defined]
-        return ev
-
-    crossings = [crossing(j) for j in range(G)]
-    rearms = [rearm(j) for j in range(G)]
-    penetrations = [penetration(j) for j in range(G)]
+    def u_at(t: float, s: np.ndarray) -> np.ndarray:
+        if state_feedback is not None:
+            val = state_feedback(t, s)
+        else:
+            assert control is not None
+            val = control(t)
+        arr = as_float_array(val, f"u({t:.6g})", error=ControlsError).ravel()
+        if arr.shape != (ocp.nu,) or not np.all(np.isfinite(arr)):
+            raise ControlsError(f"u({t:.6g}) must be {ocp.nu} finite numbers, got {arr}")
+        return arr
 
     stops = sorted({float(b) for b in breakpoints if 0 < b < T} | {T})
     z = np.concatenate([ocp.x0, [0.0]])
     t = 0.0
-    times, states, events = [0.0], [ocp.x0.copy()], []
-    disarmed: set[int] = set()
+    times, states = [0.0], [ocp.x0.copy()]
+    events: list[Event] = []
+    pieces: list[tuple[float, float, Any, float, float]] = []  # (t0, t1, dense, lo, hi)
     a = 0.0
+    n_steps = 0
     for b in stops:
         lo, hi = _inside(a, b)
 
-        def u_piece(tt: float, lo: float = lo, hi: float = hi) -> np.ndarray:
-            return u_at(min(max(tt, lo), hi))
+        def u_piece(tt: float, s: np.ndarray, lo: float = lo, hi: float = hi) -> np.ndarray:
+            return u_at(min(max(tt, lo), hi), s)
 
         def rhs(tt: float, zz: np.ndarray, u_piece: Any = u_piece) -> np.ndarray:
-            fs, Ls = num.fL(zz[:nx], u_piece(tt))
+            fs, Ls = num.fL(zz[:nx], u_piece(tt, zz[:nx]))
             return np.concatenate([fs, Ls])
 
-        stalls = 0
         while t < b:
-            # (kind, guard) of each event function passed to the integrator
-            kinds = [("cross", j) for j in range(G) if j not in disarmed]
-            kinds += [(k, j) for j in sorted(disarmed) for k in ("rearm", "penetrate")]
-            table = {"cross": crossings, "rearm": rearms, "penetrate": penetrations}
-            fns = [table[k][j] for k, j in kinds]
-            sol = solve_ivp(rhs, (t, b), z, method="DOP853", rtol=rtol, atol=atol, events=fns)
-            if sol.status == -1:
-                raise EvaluationError(f"integration failed at t = {t:.6g}: {sol.message}")
-            times.extend(sol.t[1:].tolist())
-            states.extend(sol.y[:nx, 1:].T)
-            z = sol.y[:, -1].copy()
-            t_new = float(sol.t[-1])
-            stalls = stalls + 1 if t_new == t else 0
-            if stalls > _MAX_STOPS_AT_ONE_TIME:
-                raise EvaluationError(
-                    f"the integration stops again and again at t = {t:.6g}: an accumulation "
-                    "of events (Zeno behaviour) that the impulsive model does not resolve"
+            solver = DOP853(rhs, t, z, b, rtol=rtol, atol=atol)
+            restart = False
+            while solver.status == "running":
+                msg = solver.step()
+                n_steps += 1
+                if solver.status == "failed":
+                    raise EvaluationError(f"integration failed at t = {solver.t:.6g}: {msg}")
+                if n_steps > _MAX_STEPS:
+                    raise EvaluationError(f"more than {_MAX_STEPS} integrator steps by t = {t:.6g}")
+                t0, t1 = float(solver.t_old), float(solver.t)
+                dense = solver.dense_output()
+                hit = (
+                    _search_step(num, k, dense, u_piece, t0, t1, graze_tol, integ_factor)
+                    if G
+                    else None
                 )
-            t = t_new
-            if sol.status != 1:
+                if hit is None:
+                    pieces.append((t0, t1, dense, lo, hi))
+                    t, z = t1, solver.y.copy()
+                    times.append(t)
+                    states.append(z[:nx].copy())
+                    _check_penetration(ocp, num, z[:nx], u_piece(t, z[:nx]), t, penetration_tol)
+                    continue
+                tau, j = hit
+                t_ev = t0 + tau
+                z_ev = np.asarray(dense(t_ev), dtype=float)
+                pieces.append((t0, t_ev, dense, lo, hi))
+                s_ev = z_ev[:nx]
+                u_ev = u_piece(t_ev, s_ev)
+                times.append(t_ev)
+                states.append(s_ev.copy())
+                s_new, evs = resolver.resolve(t_ev, s_ev, u_ev, {j})
+                t, z = t_ev, z_ev.copy()
+                if evs:
+                    events.extend(evs)
+                    _check_events(events, max_events, T)
+                    z[:nx] = s_new
+                    times.append(t)
+                    states.append(s_new.copy())
+                restart = True
                 break
-            hit = [kinds[k] for k, te in enumerate(sol.t_events) if te.size]
-            for kind, j in hit:
-                if kind == "penetrate":
-                    g = ocp.guards[j]
-                    raise EvaluationError(
-                        f"guard {g.name!r} is violated by more than {penetration_tol:.3g} at "
-                        f"t = {t:.6g} without an impact: the bodies stay in contact (e.g. "
-                        "restitution 0 with a force pushing into the contact), which the "
-                        "impulsive model does not represent"
-                    )
-                if kind == "rearm":
-                    disarmed.discard(j)
-            crossed = {j for kind, j in hit if kind == "cross"}
-            if not crossed:
-                continue
-            s = z[:nx]
-            u = u_piece(t)
-            fired: set[int] = set()
-            n_fired = 0
-            while True:
-                psi, rate, accel = num.contact(s, u)
-                appr = _approaching(rate, accel, s, graze_tol)
-                cand = [j for j in range(G) if appr[j] and (j in crossed or abs(psi[j]) <= 1e-9)]
-                if not cand:
-                    break
-                j = min(cand)
-                crossed.discard(j)
-                s_new = num.reset(j)(s)[0]
-                g = ocp.guards[j]
-                events.append(Event(t, g.kind, g.bodies, j, float(rate[j]), s.copy(), s_new))
-                fired.add(j)
-                s = s_new
-                n_fired += 1
-                if n_fired > _MAX_STOPS_AT_ONE_TIME:
-                    raise EvaluationError(f"accumulation of events near t = {t:.6g}")
-            disarmed |= crossed - fired  # grazes: no jump, and no second stop right here
-            z[:nx] = s
-            times.append(t)
-            states.append(s.copy())
+            if not restart:
+                t = b
         a = b
     s = z[:nx]
     terminal = float(num.phi_grad(s)[0][0])
     mids = (np.arange(ocp.steps) + 0.5) * ocp.dt
+    controls = _controls_at(mids, pieces, u_at, nx)
+    bound = ocp.bound_violation(controls)
+    path = 0.0
+    if num.path is not None:
+        for tt, ss in zip(times, states, strict=True):
+            uu = _control_at(tt, pieces, u_at, nx, ss)
+            path = max(path, float(np.max(-num.path(ss, uu)[0], initial=0.0)))
     return Evaluation(
         cost=terminal + float(z[nx]),
         terminal_cost=terminal,
@@ -211,7 +190,90 @@ def evaluate_callable(
         times=np.array(times),
         states=np.array(states),
         events=events,
-        controls=np.array([u_at(tm) for tm in mids]),
+        controls=controls,
         final_state=s.copy(),
         ocp=ocp,
+        bound_violation=bound,
+        path_violation=path,
     )
+
+
+def _search_step(
+    num: Any,
+    k: Any,
+    dense: Any,
+    u_piece: Callable[[float, np.ndarray], np.ndarray],
+    t0: float,
+    t1: float,
+    graze_tol: float,
+    integ_factor: float,
+) -> tuple[float, int] | None:
+    """Earliest crossing inside one integrator step ``[t0, t1]`` (times relative to t0)."""
+    nx, G = k.nx, k.G
+    D = _CHEB.D
+
+    def window(a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+        ts = t0 + _CHEB.nodes(a, b)
+        Z = np.asarray(dense(ts), dtype=float)[:nx]  # (nx, D + 1)
+        S, Nz = num.det_nodes(Z.T.ravel())
+        return S.reshape(D + 1, G).T, integ_factor * Nz.reshape(D + 1, G).T
+
+    def value(j: int, tau: float) -> tuple[float, float, float]:
+        s = np.asarray(dense(t0 + tau), dtype=float)[:nx]
+        det, rate, nz = num.det_rate(s, u_piece(t0 + tau, s))
+        return float(det[j]), float(rate[j]), integ_factor * float(nz[j])
+
+    def appr(j: int, tau: float) -> bool:
+        s = np.asarray(dense(t0 + tau), dtype=float)[:nx]
+        u = u_piece(t0 + tau, s)
+        _, rate, accel, _ = num.contact(s, u)
+        return bool(approaching(rate[j : j + 1], accel[j : j + 1], s, graze_tol)[0])
+
+    exact = np.zeros(G, dtype=bool)
+    return CrossingSearch(_CHEB, exact, window, value, appr).run(t1 - t0)
+
+
+def _check_penetration(
+    ocp: HybridOCP, num: Any, s: np.ndarray, u: np.ndarray, t: float, tol: float
+) -> None:
+    psi, _, _, noise = num.contact(s, u)
+    lim = np.maximum(tol, 4 * noise)
+    bad = np.flatnonzero(psi < -lim)
+    if bad.size:
+        j = int(bad[np.argmin(psi[bad])])
+        raise EvaluationError(
+            f"guard {ocp.guards[j].name!r} is violated by {-psi[j]:.3g} at t = {t:.6g} without "
+            "an impact: the bodies stay in contact (e.g. restitution 0 with a force pushing "
+            "into the contact), which the impulsive model does not represent"
+        )
+
+
+def _check_events(events: list[Event], max_events: int, T: float) -> None:
+    n = len(events)
+    if n > max_events:
+        raise EvaluationError(f"more than {max_events} events by t = {events[-1].time:.6g}")
+    if n >= _ZENO_WINDOW and events[-1].time - events[n - _ZENO_WINDOW].time < 1e-9 * T:
+        raise EvaluationError(
+            f"{_ZENO_WINDOW} events within a vanishing time near t = {events[-1].time:.9g}: "
+            "an accumulation of impacts (Zeno behaviour) that the impulsive model does not "
+            "resolve"
+        )
+
+
+def _control_at(
+    t: float, pieces: list[tuple[float, float, Any, float, float]], u_at: Any, nx: int, s: Any
+) -> np.ndarray:
+    """``u(t)`` on the simulated trajectory (``s``: the state there, when known)."""
+    if not pieces:
+        return u_at(t, s if s is not None else np.zeros(nx))
+    starts = np.array([p[0] for p in pieces])
+    i = min(max(int(np.searchsorted(starts, t, side="right")) - 1, 0), len(pieces) - 1)
+    _, _, dense, lo, hi = pieces[i]
+    ss = np.asarray(dense(t), dtype=float)[:nx] if s is None else s
+    return u_at(min(max(t, lo), hi), ss)
+
+
+def _controls_at(
+    mids: np.ndarray, pieces: list[tuple[float, float, Any, float, float]], u_at: Any, nx: int
+) -> np.ndarray:
+    return np.array([_control_at(float(tm), pieces, u_at, nx, None) for tm in mids])

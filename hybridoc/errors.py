@@ -30,3 +30,20 @@ class EvaluationError(HybridocError, RuntimeError):
 
 class ConvergenceError(HybridocError, RuntimeError):
     """A solver did not converge to a point satisfying its optimality conditions."""
+
+
+class SimultaneousEventError(EvaluationError):
+    """Two guards fire at the same instant and their jumps do not commute.
+
+    Attributes
+    ----------
+    guards
+        The names of the two guards.
+    time
+        The event time.
+    """
+
+    def __init__(self, message: str, *, guards: tuple[str, str] = ("", ""), time: float = 0.0):
+        super().__init__(message)
+        self.guards = guards
+        self.time = time

@@ -2,7 +2,9 @@
 
 A controls file holds the ``(N, nu)`` piecewise-constant values of a problem: one row per grid
 interval, one column per control component, in the order of the problem's control labels
-(for a scene: ``disc.ux, disc.uy`` for each actuated disc in scene order).
+(for a scene: ``disc.ux, disc.uy`` for each actuated disc in scene order). A saved
+:class:`~hybridoc.solution.Solution` (``.npz`` + ``.json``, either name) is read as its
+controls.
 
 CSV layout: comma separated, one optional header line (skipped when it is not numeric), then
 ``N`` rows of ``nu`` numbers::
@@ -25,11 +27,11 @@ from hybridoc.errors import ControlsError
 
 __all__ = ["load_controls", "save_controls"]
 
-_SUFFIXES = (".npy", ".csv")
+_SUFFIXES = (".npy", ".csv", ".npz", ".json")
 
 
 def _ocp_of(problem: Any) -> Any:
-    from hybridoc.evaluator import as_ocp
+    from hybridoc.problem import as_ocp
 
     return as_ocp(problem)
 
@@ -82,9 +84,9 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
     Parameters
     ----------
     path
-        The file.
+        A ``.npy`` or ``.csv`` file, or a saved Solution (``.npz`` or ``.json``).
     problem
-        A :class:`~hybridoc.HybridOCP` or a Scene; it fixes the expected shape ``(N, nu)``.
+        Any problem; it fixes the expected shape ``(N, nu)``.
 
     Returns
     -------
@@ -105,10 +107,21 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
     expect = f"expected shape ({n}, {nu}): {n} rows (grid intervals), one column per control"
     expect += f" component ({', '.join(labels)})" if labels else ""
     if p.suffix.lower() not in _SUFFIXES:
-        raise ControlsError(f"{where}: unsupported file type {p.suffix!r}; use .npy or .csv")
+        raise ControlsError(
+            f"{where}: unsupported file type {p.suffix!r}; use .npy, .csv or a saved Solution "
+            "(.npz/.json)"
+        )
     if not p.is_file():
         raise ControlsError(f"{where} does not exist")
-    if p.suffix.lower() == ".npy":
+    if p.suffix.lower() in (".npz", ".json"):
+        from hybridoc.errors import HybridocError
+        from hybridoc.solution import Solution
+
+        try:
+            arr = np.asarray(Solution.load(p).controls, dtype=np.float64)
+        except HybridocError as exc:
+            raise ControlsError(str(exc)) from None
+    elif p.suffix.lower() == ".npy":
         try:
             with open(p, "rb") as fh:
                 magic = fh.read(6)

@@ -1,12 +1,14 @@
 """The generic hybrid optimal control problem.
 
-A :class:`HybridOCP` is the one model that the reference, the solvers and the evaluator
+A :class:`HybridOCP` is the one model that the reference, the solvers and the judge
 consume::
 
     minimise   phi(s(T)) + integral_0^T L(s, u) dt
     subject to ds/dt = f(s, u)                  between events
                psi_k(s(gamma-)) = 0             guard k fires when psi_k crosses 0 from above
                s(gamma+) = g_k(s(gamma-))       reset of guard k
+               u_min <= u(t) <= u_max           optional control bounds
+               c(s(t), u(t)) >= 0               optional path constraints
 
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
@@ -21,10 +23,18 @@ bouncing under gravity::
         guards=[Guard.from_expressions("ground", s, s[0], ca.vertcat(s[0], -0.9 * s[1]),
                                        degree=2)],
         x0=[1.0, 0.0], horizon=2.0, steps=200)
+
+Data and structure
+    The functions (``f``, ``L``, ``phi``, guards, flow map, constraints) are the problem's
+    *structure*; ``x0``, ``horizon``, ``steps``, the initial guess, bounds, labels and name
+    are *data*. Compiled artefacts (the evaluator's functions, shooting systems, NLPs) depend
+    on the structure only: :meth:`HybridOCP.replace` returns a problem with other data that
+    reuses them, which is what a sweep over initial states wants.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +44,7 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
 
-__all__ = ["Guard", "HybridOCP"]
+__all__ = ["Guard", "HybridOCP", "Structure", "as_float_array"]
 
 
 @dataclass(frozen=True)
@@ -98,7 +108,34 @@ class Guard:
         )
 
 
-@dataclass
+class Structure:
+    """Identity of a problem's functions, shared by the copies :meth:`HybridOCP.replace`
+    makes. Modules key their compiled artefacts on it (weakly)."""
+
+    __slots__ = ("__weakref__", "integrator_flow")
+
+    def __init__(self, integrator_flow: bool) -> None:
+        self.integrator_flow = integrator_flow
+
+
+# fields that do not change the structure (compiled functions stay valid)
+_DATA_FIELDS = frozenset(
+    {
+        "x0",
+        "horizon",
+        "steps",
+        "u_guess",
+        "u_min",
+        "u_max",
+        "state_labels",
+        "control_labels",
+        "name",
+        "meta",
+    }
+)
+
+
+@dataclass(eq=False)
 class HybridOCP:
     """A hybrid optimal control problem with autonomous state jumps.
 
@@ -111,7 +148,8 @@ class HybridOCP:
     phi
         Terminal cost, ``s -> scalar``.
     guards
-        The guards with their resets, in the order used to resolve simultaneous events.
+        The guards with their resets. Their order is the order in which events that happen
+        at the same instant are reported.
     x0
         Initial state, shape ``(nx,)``.
     horizon
@@ -119,11 +157,17 @@ class HybridOCP:
     steps
         ``N``, the grid for discrete solvers and piecewise-constant controls.
     u_guess
-        Initial guess of the controls, ``(N, nu)``; default zeros.
+        Initial guess of the controls, ``(N, nu)``; default zeros (clipped to the bounds).
     flow_map
         Optional CasADi Function ``(s, u, h) -> (s(h), integral_0^h L dt)`` for a constant
         control. Supply it when the flow has a closed form (disc scenes do); otherwise it is
         built from CasADi's CVODES integrator at tight tolerances.
+    u_min, u_max
+        Optional control bounds, ``(nu,)`` each (``-inf`` / ``inf`` for none). Every method
+        honours them or says that it cannot; the judge reports violations.
+    path
+        Optional path constraints, CasADi Function ``(s, u) -> (m,)``, required ``>= 0``
+        along the trajectory.
     state_labels, control_labels
         Names of the components (plots, reports).
     name
@@ -141,37 +185,75 @@ class HybridOCP:
     steps: int
     u_guess: np.ndarray | None = None
     flow_map: ca.Function | None = None
+    u_min: np.ndarray | None = None
+    u_max: np.ndarray | None = None
+    path: ca.Function | None = None
     state_labels: list[str] | None = None
     control_labels: list[str] | None = None
     name: str = "ocp"
     meta: dict[str, Any] = field(default_factory=dict)
-    _cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False)
+    structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        self.x0 = np.asarray(self.x0, dtype=float).ravel()
-        self.horizon = float(self.horizon)
+        for attr in ("f", "L", "phi"):
+            if not isinstance(getattr(self, attr), ca.Function):
+                raise SceneError(f"{attr} must be a casadi.Function")
+        self.x0 = as_float_array(self.x0, "x0").ravel()
+        try:
+            self.horizon = float(self.horizon)
+        except (TypeError, ValueError):
+            raise SceneError(f"horizon must be a number, got {self.horizon!r}") from None
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int | np.integer):
+            raise SceneError(f"steps must be an integer >= 1, got {self.steps!r}")
         self.steps = int(self.steps)
         if self.horizon <= 0 or not np.isfinite(self.horizon):
-            raise ValueError(f"horizon must be positive and finite, got {self.horizon}")
+            raise SceneError(f"horizon must be positive and finite, got {self.horizon}")
         if self.steps < 1:
-            raise ValueError(f"steps must be >= 1, got {self.steps}")
+            raise SceneError(f"steps must be >= 1, got {self.steps}")
+        if not np.all(np.isfinite(self.x0)):
+            raise SceneError("x0 must be finite")
         if self.f.n_in() != 2 or self.f.size1_in(0) != self.x0.size:
-            raise ValueError("f must be a Function (s, u) -> ds/dt with s of the size of x0")
-        if self.u_guess is None:
-            self.u_guess = np.zeros((self.steps, self.nu))
-        else:
-            self.u_guess = self.check_controls(self.u_guess, what="u_guess")
+            raise SceneError(
+                f"f must be a Function (s, u) -> ds/dt with s of the size of x0 ({self.x0.size})"
+            )
+        self.guards = list(self.guards)
+        for g in self.guards:
+            if not isinstance(g, Guard):
+                raise SceneError(f"guards must be Guard objects, got {g!r}")
         names = [g.name for g in self.guards]
         if len(set(names)) != len(names):
-            raise ValueError(f"guard names must be unique: {names}")
+            raise SceneError(f"guard names must be unique: {names}")
+        self.u_min = self._bound(self.u_min, -np.inf, "u_min")
+        self.u_max = self._bound(self.u_max, np.inf, "u_max")
+        if np.any(self.u_min > self.u_max):
+            raise SceneError("u_min must not exceed u_max")
+        if self.path is not None:
+            p = self.path
+            if not isinstance(p, ca.Function) or p.n_in() != 2 or p.n_out() != 1:
+                raise SceneError("path must be a casadi.Function (s, u) -> (m,) constraints")
+        if self.u_guess is None:
+            self.u_guess = np.clip(np.zeros((self.steps, self.nu)), self.u_min, self.u_max)
+        else:
+            self.u_guess = self.check_controls(self.u_guess, what="u_guess", bounds=False)
         if self.state_labels is None:
             self.state_labels = [f"s{i}" for i in range(self.nx)]
         if self.control_labels is None:
             self.control_labels = [f"u{i}" for i in range(self.nu)]
-        if self.flow_map is None:
-            self.flow_map = _integrator_flow_map(self.f, self.L)
-            # tells the evaluator it may sample the flow with one gridded integrator call
-            self._cache["integrator_flow"] = True
+        if self.structure is None:
+            integrator = self.flow_map is None
+            if integrator:
+                self.flow_map = _integrator_flow_map(self.f, self.L)
+            self.structure = Structure(integrator_flow=integrator)
+
+    def _bound(self, value: Any, default: float, what: str) -> np.ndarray:
+        if value is None:
+            return np.full(self.nu, default)
+        arr = as_float_array(value, what).ravel()
+        if arr.size == 1:
+            arr = np.full(self.nu, float(arr[0]))
+        if arr.shape != (self.nu,) or np.any(np.isnan(arr)):
+            raise SceneError(f"{what} must be {self.nu} numbers (inf for no bound), got {value!r}")
+        return arr
 
     @classmethod
     def from_expressions(
@@ -186,9 +268,14 @@ class HybridOCP:
         x0: Sequence[float] | np.ndarray,
         horizon: float,
         steps: int,
+        path: ca.SX | ca.MX | None = None,
         **kwargs: Any,
     ) -> HybridOCP:
-        """Build a problem from symbolic expressions in the state ``s`` and control ``u``."""
+        """Build a problem from symbolic expressions in the state ``s`` and control ``u``.
+
+        ``path``, if given, is an expression in ``s`` and ``u`` whose entries must stay
+        ``>= 0``; the other keyword arguments are those of :class:`HybridOCP`.
+        """
         return cls(
             f=ca.Function("f", [s, u], [f]),
             L=ca.Function("L", [s, u], [L]),
@@ -197,8 +284,35 @@ class HybridOCP:
             x0=np.asarray(x0, dtype=float),
             horizon=horizon,
             steps=steps,
+            path=None if path is None else ca.Function("path", [s, u], [path]),
             **kwargs,
         )
+
+    def replace(self, **changes: Any) -> HybridOCP:
+        """A copy with some fields changed.
+
+        Changing only data (``x0``, ``horizon``, ``steps``, ``u_guess``, bounds, labels,
+        ``name``, ``meta``) keeps the structure, so compiled functions are reused. A new
+        ``steps`` without a new ``u_guess`` resamples the guess at the new cell midpoints.
+        """
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise TypeError(f"unknown HybridOCP field(s): {sorted(unknown)}")
+        if "steps" in changes and "u_guess" not in changes:
+            n_new = int(changes["steps"])
+            mids = (np.arange(n_new) + 0.5) / n_new
+            assert self.u_guess is not None
+            changes["u_guess"] = self.u_guess[
+                np.minimum((mids * self.steps).astype(int), -1 + self.steps)
+            ]
+        if set(changes) <= _DATA_FIELDS:
+            changes.setdefault("structure", self.structure)
+        else:
+            changes["structure"] = None
+            if "flow_map" not in changes and self.structure.integrator_flow:
+                changes["flow_map"] = None
+        changes.setdefault("meta", dict(self.meta))
+        return dataclasses.replace(self, **changes)
 
     @property
     def nx(self) -> int:
@@ -215,19 +329,30 @@ class HybridOCP:
         """Grid step ``T / N``."""
         return self.horizon / self.steps
 
+    @property
+    def has_bounds(self) -> bool:
+        """Whether some control bound is finite."""
+        assert self.u_min is not None and self.u_max is not None
+        return bool(np.any(np.isfinite(self.u_min)) or np.any(np.isfinite(self.u_max)))
+
+    @property
+    def has_closed_form_flow(self) -> bool:
+        """Whether the flow map is exact (given) rather than CVODES's integration."""
+        return not self.structure.integrator_flow
+
     def time_grid(self) -> np.ndarray:
         """The ``N + 1`` grid times."""
         return np.linspace(0.0, self.horizon, self.steps + 1)
 
-    def check_controls(self, u: Any, *, what: str = "controls") -> np.ndarray:
+    def check_controls(self, u: Any, *, what: str = "controls", bounds: bool = False) -> np.ndarray:
         """Validate a piecewise-constant control array and return it as float64 ``(N, nu)``.
 
-        A 1-D array is accepted when ``nu == 1``.
+        Accepts anything array-like of real numbers (a 1-D array when ``nu == 1``; torch
+        tensors are detached). Complex, boolean, object or string arrays, wrong shapes and
+        non-finite values raise :class:`~hybridoc.errors.ControlsError`; with ``bounds``, so
+        do values outside ``[u_min, u_max]``.
         """
-        try:
-            arr = np.array(u, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ControlsError(f"{what}: not a numeric array ({exc})") from None
+        arr = as_float_array(u, what, error=ControlsError)
         if arr.ndim == 1 and self.nu == 1:
             arr = arr[:, None]
         if arr.shape != (self.steps, self.nu):
@@ -238,7 +363,18 @@ class HybridOCP:
         if not np.all(np.isfinite(arr)):
             bad = np.argwhere(~np.isfinite(arr))[0]
             raise ControlsError(f"{what}: non-finite value at row {bad[0]}, column {bad[1]}")
+        if bounds:
+            viol = self.bound_violation(arr)
+            if viol > 0:
+                raise ControlsError(f"{what}: violates the control bounds by {viol:.3g}")
         return arr
+
+    def bound_violation(self, u: np.ndarray) -> float:
+        """Largest violation of the control bounds by ``(N, nu)`` controls (0 if none)."""
+        assert self.u_min is not None and self.u_max is not None
+        low = np.max(self.u_min - u, initial=0.0)
+        high = np.max(u - self.u_max, initial=0.0)
+        return float(max(low, high, 0.0))
 
     def check_sequence(self, sequence: Any, *, what: str = "sequence") -> list[str]:
         """Validate an event sequence and return it as a list of guard names.
@@ -269,6 +405,41 @@ class HybridOCP:
             raise SceneError(f"{what}: unknown guard(s) {bad}; the guards are {names}")
         return items
 
+    def guard_index(self, name: str) -> int:
+        """Index of the guard called ``name``."""
+        for k, g in enumerate(self.guards):
+            if g.name == name:
+                return k
+        raise SceneError(f"unknown guard {name!r}; the guards are {[g.name for g in self.guards]}")
+
+
+def as_float_array(value: Any, what: str, *, error: type[Exception] = SceneError) -> np.ndarray:
+    """``value`` as a float64 array; only real numbers are accepted.
+
+    Torch tensors (also ones that require grad) are detached and copied to the CPU. Complex,
+    boolean, string and object data raise ``error`` with a message naming ``what``.
+    """
+    if hasattr(value, "detach") and hasattr(value, "cpu"):  # a torch tensor, without torch
+        value = value.detach().cpu().numpy()
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise error(f"{what}: not a numeric array ({exc})") from None
+    if raw.dtype.kind == "O":
+        try:
+            raw = np.array(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise error(f"{what}: not a numeric array ({exc})") from None
+    if raw.dtype.kind == "b":
+        raise error(f"{what}: expected real numbers, got a boolean array")
+    if raw.dtype.kind == "c":
+        raise error(f"{what}: expected real numbers, got complex values")
+    if raw.dtype.kind in "USV":
+        raise error(f"{what}: not a numeric array (got text)")
+    if raw.dtype.kind not in "iuf":
+        raise error(f"{what}: not a numeric array (data of type {raw.dtype})")
+    return np.array(raw, dtype=np.float64)
+
 
 def _casadi_name(name: str) -> str:
     """A valid CasADi function-name suffix derived from any guard name."""
@@ -280,10 +451,10 @@ def _casadi_name(name: str) -> str:
 
 def _integrator_flow_map(f: ca.Function, L: ca.Function) -> ca.Function:
     """Flow map ``(s, u, h) -> (s(h), cost)`` from CVODES at tight tolerances."""
-    return _integrator_flow_samples(f, L, [1.0], name="flow_map")
+    return integrator_flow_samples(f, L, [1.0], name="flow_map")
 
 
-def _integrator_flow_samples(
+def integrator_flow_samples(
     f: ca.Function, L: ca.Function, fractions: Sequence[float], *, name: str = "flow_samples"
 ) -> ca.Function:
     """``(s, u, h) -> (s(h * fractions), cost(h * fractions))`` by one CVODES call.
@@ -299,7 +470,7 @@ def _integrator_flow_samples(
     us, hs = ps[:nu], ps[nu]
     # time scaled to [0, 1] so that h is a parameter (and h = 0 is allowed)
     dae = {"x": xs, "p": ps, "ode": hs * f(xs, us), "quad": hs * L(xs, us)}
-    opts = {"abstol": 1e-13, "reltol": 1e-13, "max_num_steps": 100000}
+    opts = {"abstol": 1e-13, "reltol": 1e-13, "max_num_steps": 100000, "show_eval_warnings": False}
     grid = [float(x) for x in fractions]
     integ = ca.integrator(f"{name}_int", "cvodes", dae, 0.0, grid, opts)
     res = integ(x0=s, p=ca.vertcat(u, h))

@@ -17,7 +17,14 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
-__all__ = ["plot_scene", "plot_controls", "plot_costates", "save_figure"]
+__all__ = [
+    "plot_controls",
+    "plot_costates",
+    "plot_scene",
+    "plot_states",
+    "plot_trajectories",
+    "save_figure",
+]
 
 _POINTS_PER_INTERVAL = 10
 
@@ -387,6 +394,128 @@ def plot_costates(
     if title:
         fig.suptitle(title)
     return fig
+
+
+def _scene_overlay(scene: Any, evals: Mapping[str, Any], *, title: str) -> Figure:
+    """The scene drawn with the first evaluation, the others' disc paths overlaid."""
+    names = list(evals)
+    fig = plot_scene(scene, evals[names[0]], title=title)
+    ax = fig.axes[0]
+    styles = ["--", ":", "-."]
+    n = scene.n_discs
+    for k, name in enumerate(names[1:]):
+        states = _path_states(evals[name])
+        for i in range(n):
+            ax.plot(
+                states[:, 2 * i],
+                states[:, 2 * i + 1],
+                ls=styles[k % len(styles)],
+                color="k",
+                lw=1.1,
+                alpha=0.8,
+                label=f"{name} paths" if i == 0 else None,
+            )
+    # one legend: plot_scene's entries, then the overlay's. A second legend added with
+    # add_artist is invisible to the constrained layout and gets clipped at the right edge.
+    handles: list[Any] = []
+    labels: list[str] = []
+    old = ax.get_legend()
+    if old is not None:
+        handles += list(old.legend_handles)
+        labels += [t.get_text() for t in old.get_texts()]
+        old.remove()
+    handles.append(Line2D([], [], color="0.3", lw=1.5))
+    labels.append(f"{names[0]} paths (solid)")
+    h2, l2 = ax.get_legend_handles_labels()
+    keep = [(h, lab) for h, lab in zip(h2, l2, strict=True) if lab.endswith(" paths")]
+    handles += [h for h, _ in keep]
+    labels += [lab for _, lab in keep]
+    ax.legend(
+        handles, labels, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
+    )
+    return fig
+
+
+# ---------------------------------------------------------------------------- crossval
+
+
+def plot_states(
+    evaluations: Mapping[str, Any],
+    labels: Sequence[str],
+    *,
+    title: str | None = None,
+) -> Figure:
+    """State components against time for one or more evaluations, jumps left open.
+
+    Parameters
+    ----------
+    evaluations
+        ``{name: Evaluation}``; trajectories are sampled densely on piecewise-constant
+        evaluations.
+    labels
+        The ``nx`` state-component names.
+    title
+        Figure title.
+    """
+    nx = len(labels)
+    ncols = 2 if nx > 1 else 1
+    nrows = (nx + ncols - 1) // ncols
+    fig = Figure(figsize=(9.0, 0.8 + 1.7 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
+    flat = axes.ravel()
+    colors = dict(zip(evaluations, _colors(len(evaluations)), strict=True))
+    styles = ["-", "--", ":", "-."]
+    for m, (name, ev) in enumerate(evaluations.items()):
+        t, X = _dense_path(ev)
+        cuts = np.flatnonzero(np.diff(t) == 0) + 1
+        for k in range(nx):
+            for q, idx in enumerate(np.split(np.arange(t.size), cuts)):
+                flat[k].plot(
+                    t[idx], X[idx, k], color=colors[name], ls=styles[m % len(styles)], lw=1.4,
+                    label=name if q == 0 else None,
+                )  # fmt: skip
+    all_events = sorted({e.time for ev in evaluations.values() for e in ev.events})
+    for k in range(nx):
+        flat[k].set_ylabel(labels[k])
+        flat[k].grid(True, lw=0.4, alpha=0.5)
+        flat[k].ticklabel_format(axis="y", useOffset=False)
+        for te in all_events:
+            flat[k].axvline(te, color="0.5", ls=":", lw=0.8)
+    for a in flat[nx:]:
+        a.set_visible(False)
+    for a in axes[-1]:
+        a.set_xlabel("t")
+    flat[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def _dense_path(ev: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Times and states along an evaluation: dense samples plus both sides of every jump."""
+    t = np.asarray(ev.times, dtype=float)
+    X = np.asarray(ev.states, dtype=float)
+    if getattr(ev, "segments", None):
+        ocp = ev.ocp
+        ts = np.linspace(0.0, ocp.horizon, _POINTS_PER_INTERVAL * ocp.steps + 1)
+        ts = np.setdiff1d(ts, t)
+        Xs = ev.sample(ts)
+        t_all = np.concatenate([t, ts])
+        X_all = np.concatenate([X, Xs])
+        order = np.argsort(t_all, kind="stable")
+        return t_all[order], X_all[order]
+    return t, X
+
+
+def plot_trajectories(
+    ocp: Any, evaluations: Mapping[str, Any], *, title: str | None = None
+) -> Figure:
+    """The trajectories of one or more evaluations: a disc scene drawn to scale with the
+    paths overlaid, any other problem as states against time."""
+    scene = ocp.meta.get("scene")
+    if scene is not None:
+        return _scene_overlay(scene, evaluations, title=title or ocp.name)
+    return plot_states(evaluations, list(ocp.state_labels), title=title)
 
 
 def save_figure(fig: Figure, path: str | Path) -> Path:

@@ -18,6 +18,7 @@ import sys
 import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
+from enum import StrEnum
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
@@ -27,10 +28,48 @@ import numpy as np
 
 from hybridoc.errors import HybridocError
 
-__all__ = ["Solution", "package_versions"]
+__all__ = ["Solution", "Status", "package_versions"]
 
 _FORMAT = "hybridoc-solution"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
+
+
+class Status(StrEnum):
+    """What a solver's result is, judged by the event-exact evaluator.
+
+    ``SUCCESS``
+        The method met its own convergence test and the judge confirms what it modelled
+        (its events, its cost).
+    ``NOT_OPTIMAL``
+        A cheaper control is known (the initial guess, another method's solution): the
+        result is not the optimum it would claim to be.
+    ``EVENTS_DIFFER``
+        Re-simulated by the judge, the control produces other events than the method
+        modelled.
+    ``INFEASIBLE``
+        The control violates the problem's control bounds or path constraints.
+    ``NOT_CONVERGED``
+        The method stopped without meeting its convergence test (iteration limit, NaN).
+    ``DISAGREE``
+        Methods that should agree (a cross-validation) do not.
+    """
+
+    SUCCESS = "success"
+    NOT_OPTIMAL = "not-optimal"
+    EVENTS_DIFFER = "events-differ"
+    INFEASIBLE = "infeasible"
+    NOT_CONVERGED = "not-converged"
+    DISAGREE = "disagree"
+
+    @property
+    def exit_code(self) -> int:
+        """The CLI's exit code: 0 success, 2 not converged, 1 any other finding."""
+        if self is Status.SUCCESS:
+            return 0
+        return 2 if self is Status.NOT_CONVERGED else 1
+
+
 _ARRAY_PREFIX = "arrays/"
 # Array fields that are stored in the .npz (required ones first).
 _REQUIRED_ARRAYS = ("controls", "time_grid")
@@ -152,6 +191,11 @@ class Solution:
         Method-specific JSON-able scalars and lists (residual, iterations, ...).
     arrays
         Method-specific arrays (loss history, ...).
+    status
+        A :class:`Status` (or its string value): what the result is, judged by the
+        evaluator. :attr:`success` is ``status == "success"``.
+    message
+        One line saying why the status is what it is (empty for a plain success).
     """
 
     method: str
@@ -171,12 +215,22 @@ class Solution:
     versions: dict[str, Any] = field(default_factory=package_versions)
     info: dict[str, Any] = field(default_factory=dict)
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    status: Status | str = Status.SUCCESS
+    message: str = ""
 
     __hash__ = None  # type: ignore[assignment]  # mutable
 
     def __post_init__(self) -> None:
         if not isinstance(self.method, str) or not isinstance(self.scene, str):
             raise TypeError("method and scene must be strings")
+        try:
+            self.status = Status(self.status)
+        except ValueError:
+            raise ValueError(
+                f"status must be one of {[s.value for s in Status]}, got {self.status!r}"
+            ) from None
+        if not isinstance(self.message, str):
+            raise TypeError("message must be a string")
         self.controls = np.asarray(self.controls)
         self.time_grid = np.asarray(self.time_grid)
         if self.controls.ndim != 2:
@@ -212,6 +266,22 @@ class Solution:
                 raise TypeError(f"arrays[{k!r}]: dtype {arr.dtype} cannot be saved")
             arrays[k] = arr
         self.arrays = arrays
+
+    @property
+    def success(self) -> bool:
+        """Whether :attr:`status` is :attr:`Status.SUCCESS`."""
+        return self.status is Status.SUCCESS
+
+    @property
+    def sequence(self) -> list[str]:
+        """The guard names of :attr:`events` (``"a|b"`` for events stored without a name)."""
+        return [str(e.get("guard") or "|".join(e.get("bodies", []))) for e in self.events]
+
+    def set_status(self, status: Status | str, message: str = "") -> Solution:
+        """Set :attr:`status` and :attr:`message`; returns ``self``."""
+        self.status = Status(status)
+        self.message = str(message)
+        return self
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -322,6 +392,8 @@ class Solution:
             "versions": self.versions,
             "info": self.info,
             "stored_arrays": list(stored),
+            "status": Status(self.status).value,
+            "message": self.message,
         }
         text = json.dumps(meta, indent=2)
         stem.parent.mkdir(parents=True, exist_ok=True)
@@ -339,10 +411,18 @@ class Solution:
         hybridoc.errors.HybridocError
             If a file is missing, unreadable or inconsistent.
         """
+        given = Path(path)
         stem = _stem(path)
         npz_path, json_path = _with(stem, ".npz"), _with(stem, ".json")
-        for p in (json_path, npz_path):
+        # the file the user named first, then its partner
+        order = (npz_path, json_path) if given.suffix != ".json" else (json_path, npz_path)
+        for p in order:
             if not p.is_file():
+                if p != order[0]:
+                    raise HybridocError(
+                        f"solution file {str(p)!r} does not exist (a Solution is the pair "
+                        f"{npz_path.name} + {json_path.name})"
+                    )
                 raise HybridocError(f"solution file {str(p)!r} does not exist")
         try:
             meta = json.loads(json_path.read_text(encoding="utf-8"))
@@ -352,7 +432,7 @@ class Solution:
             ) from None
         if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
             raise HybridocError(f"{str(json_path)!r} is not a hybridoc solution file")
-        if meta.get("format_version") != _FORMAT_VERSION:
+        if meta.get("format_version") not in _READABLE_VERSIONS:
             raise HybridocError(
                 f"{str(json_path)!r}: unsupported solution format version "
                 f"{meta.get('format_version')!r} (this hybridoc reads {_FORMAT_VERSION})"
@@ -375,6 +455,8 @@ class Solution:
             kwargs[key] = meta[key]
         for key in _DICT_FIELDS:
             kwargs[key] = meta.get(key, {})
+        kwargs["status"] = meta.get("status", "success")
+        kwargs["message"] = meta.get("message", "")
         for name in _REQUIRED_ARRAYS + _OPTIONAL_ARRAYS:
             kwargs[name] = arrays.get(name)
         kwargs["arrays"] = {
@@ -393,6 +475,7 @@ class Solution:
         n, nu = self.controls.shape
         lines = [
             f"{self.method} solution of {self.scene!r}: N = {n}, {nu} control components",
+            f"  status {Status(self.status).value}" + (f": {self.message}" if self.message else ""),
             f"  cost {self.cost:.12g} (terminal {self.terminal_cost:.12g}, "
             f"running {self.running_cost:.12g})",
             f"  events: {len(self.events)}",

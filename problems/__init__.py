@@ -1,14 +1,23 @@
-"""Scenes: built-in problems and the TOML scene format (installed as ``hybridoc.problems``)."""
+"""Problems: disc scenes (the TOML format), the built-in scenes and the library of classic
+hybrid OCPs (installed as ``hybridoc.problems``).
+
+:func:`load_problem` resolves every way a problem can be named (see
+:func:`hybridoc.problem.as_ocp`): a built-in scene, a library problem, a ``.toml`` file or
+``path/to/file.py:function``.
+"""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 from hybridoc.errors import SceneError
 from hybridoc.problems.scene import Disc, Scene, Wall
 
-__all__ = ["Disc", "Wall", "Scene", "builtin_names", "load_scene"]
+__all__ = ["Disc", "Wall", "Scene", "builtin_names", "library_names", "load_problem", "load_scene"]
 
 
 def _builtin_dir() -> Path:
@@ -16,17 +25,21 @@ def _builtin_dir() -> Path:
 
 
 def builtin_names() -> list[str]:
-    """Names of the built-in scenes, sorted."""
+    """Names of the built-in disc scenes, sorted."""
     return sorted(p.stem for p in _builtin_dir().glob("*.toml"))
 
 
-def load_scene(scene: str | Path | Scene) -> Scene:
-    """Load a scene from a built-in name, a TOML path, or pass a :class:`Scene` through.
+def library_names() -> list[str]:
+    """Names of the built-in non-disc problems (:mod:`hybridoc.problems.library`), sorted."""
+    try:
+        from hybridoc.problems.library import LIBRARY
+    except ImportError:  # pragma: no cover - a partial installation
+        return []
+    return sorted(LIBRARY)
 
-    Parameters
-    ----------
-    scene
-        A built-in name (see :func:`builtin_names`), a path to a ``.toml`` file, or a Scene.
+
+def load_scene(scene: str | Path | Scene) -> Scene:
+    """Load a disc scene from a built-in name, a TOML path, or pass a :class:`Scene` through.
 
     Raises
     ------
@@ -35,6 +48,10 @@ def load_scene(scene: str | Path | Scene) -> Scene:
     """
     if isinstance(scene, Scene):
         return scene
+    if not isinstance(scene, str | Path):
+        raise SceneError(
+            f"expected a scene name, a .toml path or a Scene, got {type(scene).__name__}"
+        )
     text = str(scene)
     if text in builtin_names():
         return Scene.from_toml(_builtin_dir() / f"{text}.toml")
@@ -42,8 +59,88 @@ def load_scene(scene: str | Path | Scene) -> Scene:
     if path.suffix == ".toml" or path.exists():
         if not path.exists():
             raise SceneError(f"scene file {text!r} does not exist")
+        if path.is_dir():
+            raise SceneError(f"scene path {text!r} is a directory, not a .toml file")
         return Scene.from_toml(path)
     raise SceneError(
         f"unknown scene {text!r}: not a built-in ({', '.join(builtin_names())}) "
         "and not a path to a .toml file"
     )
+
+
+def load_problem(problem: str | Path | Any) -> Any:
+    """A :class:`Scene` or :class:`~hybridoc.HybridOCP` from any name of a problem.
+
+    Parameters
+    ----------
+    problem
+        A built-in scene name, a library problem name (:func:`library_names`), a path to a
+        ``.toml`` scene, ``path/to/file.py:function`` (the function takes no arguments and
+        returns a HybridOCP or a Scene), or ``path/to/file.py`` with a function ``problem``.
+        Scenes and HybridOCPs pass through.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        One line naming what is wrong.
+    """
+    if not isinstance(problem, str | Path):
+        return problem
+    text = str(problem)
+    if text in builtin_names():
+        return load_scene(text)
+    if text in library_names():
+        from hybridoc.problems.library import LIBRARY
+
+        return LIBRARY[text]()
+    path_part, _, func = (
+        text.partition(":") if ".py:" in text or text.endswith(".py") else (text, "", "")
+    )
+    if path_part.endswith(".py"):
+        return _from_python(Path(path_part), func or "problem", explicit=bool(func))
+    try:
+        return load_scene(text)
+    except SceneError as exc:
+        if text.endswith(".toml") or Path(text).exists():
+            raise
+        names = builtin_names() + library_names()
+        raise SceneError(
+            f"unknown problem {text!r}: not a built-in ({', '.join(names)}), not a .toml file "
+            "and not path/to/file.py:function"
+        ) from exc
+
+
+def _from_python(path: Path, func: str, *, explicit: bool) -> Any:
+    from hybridoc.ocp import HybridOCP
+
+    where = f"{str(path)}:{func}"
+    if not path.is_file():
+        raise SceneError(f"problem file {str(path)!r} does not exist")
+    name = f"_hybridoc_problem_{abs(hash(str(path.resolve())))}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise SceneError(f"cannot import {str(path)!r}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except SceneError:
+        raise
+    except Exception as exc:
+        del sys.modules[name]
+        raise SceneError(f"importing {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+    fn = getattr(module, func, None)
+    if fn is None:
+        hint = "" if explicit else " (name one as file.py:function)"
+        raise SceneError(f"{str(path)!r} has no function {func!r}{hint}")
+    if not callable(fn):
+        raise SceneError(f"{where} is not a function")
+    try:
+        out = fn()
+    except SceneError:
+        raise
+    except Exception as exc:
+        raise SceneError(f"{where}() raised {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, HybridOCP | Scene):
+        raise SceneError(f"{where}() returned {type(out).__name__}, not a HybridOCP or a Scene")
+    return out

@@ -1,9 +1,9 @@
 """Compile a :class:`~hybridoc.problems.Scene` to a :class:`~hybridoc.HybridOCP`.
 
 State layout ``s = [x_1, y_1, ..., x_n, y_n, vx_1, vy_1, ..., vx_n, vy_n]``; controls are the
-forces of the actuated discs in scene order. Guards: one per disc pair (in scene order
-``(i, j)``, ``i < j``), then one per disc and wall (disc-major). That order is the order in
-which simultaneous events are resolved.
+forces of the actuated discs in scene order. Guards: one per contact of
+:func:`hybridoc.problems.physics.contacts` (disc pairs, then disc-wall, disc-major), with the
+gaps, normals and impulses of :mod:`hybridoc.problems.physics`.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problems import physics as ph
 from hybridoc.problems.scene import Scene
 
 __all__ = ["scene_to_ocp"]
@@ -19,33 +20,31 @@ __all__ = ["scene_to_ocp"]
 
 def scene_to_ocp(scene: Scene) -> HybridOCP:
     """Build the hybrid OCP of a disc scene (exact polynomial flow map, impulse resets)."""
+    ops = ph.CASADI
     n = scene.n_discs
     nx = 4 * n
     s = ca.SX.sym("s", nx)
     u = ca.SX.sym("u", scene.n_controls)
-    p = ca.reshape(s[: 2 * n], 2, n)  # column i: position of disc i
-    v = ca.reshape(s[2 * n :], 2, n)
+    p = [s[2 * i : 2 * i + 2] for i in range(n)]
+    v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
     masses = [d.mass for d in scene.discs]
-    eps = scene.control_weight
     e = scene.restitution
 
-    # accelerations: B u / m, as a 2 x n matrix
-    acc_cols = []
+    acc = []
     k = 0
     for i, d in enumerate(scene.discs):
         if d.actuated:
-            acc_cols.append(u[k : k + 2] / masses[i])
+            acc.append(u[k : k + 2] / masses[i])
             k += 2
         else:
-            acc_cols.append(ca.SX.zeros(2))
-    a = ca.horzcat(*acc_cols)
-    a_flat = ca.reshape(a, 2 * n, 1)
+            acc.append(ca.SX.zeros(2))
+    a_flat = ca.vertcat(*acc)
     f = ca.vertcat(s[2 * n :], a_flat)
-    L = eps * ca.sumsqr(u)
+    L = scene.control_weight * ca.sumsqr(u)
     phi = ca.SX(0)
     for i, d in enumerate(scene.discs):
         if d.target is not None:
-            phi += ca.sumsqr(p[:, i] - ca.DM(d.target))
+            phi += ca.sumsqr(p[i] - ca.DM(d.target))
 
     h = ca.SX.sym("h")
     p_end = s[: 2 * n] + s[2 * n :] * h + 0.5 * a_flat * h**2
@@ -55,58 +54,38 @@ def scene_to_ocp(scene: Scene) -> HybridOCP:
     )
 
     guards: list[Guard] = []
-    for i in range(n):
-        for j in range(i + 1, n):
-            di, dj = scene.discs[i], scene.discs[j]
-            dp = p[:, i] - p[:, j]
-            dist = ca.norm_2(dp)
+    for c in ph.contacts(n, len(scene.walls)):
+        i = c.i
+        di = scene.discs[i]
+        new_v = list(v)
+        if c.is_pair:
+            assert c.j is not None
+            j = c.j
+            dj = scene.discs[j]
+            dp = p[i] - p[j]
             R = di.radius + dj.radius
-            nrm = dp / dist
-            w = ca.dot(v[:, i] - v[:, j], nrm)
-            J = -(1 + e) * w / (1 / masses[i] + 1 / masses[j])
-            vnew = ca.horzcat(
-                *[
-                    v[:, m] + J / masses[i] * nrm
-                    if m == i
-                    else v[:, m] - J / masses[j] * nrm
-                    if m == j
-                    else v[:, m]
-                    for m in range(n)
-                ]
-            )
-            reset = ca.vertcat(s[: 2 * n], ca.reshape(vnew, 2 * n, 1))
-            guards.append(
-                Guard.from_expressions(
-                    f"{di.name}|{dj.name}",
-                    s,
-                    dist - R,
-                    reset,
-                    kind="disc-disc",
-                    bodies=(di.name, dj.name),
-                    detector=ca.sumsqr(dp) - R**2,
-                    degree=4,
-                )
-            )
-    for i, d in enumerate(scene.discs):
-        for wall in scene.walls:
+            psi, nrm = ph.pair_gap(dp, R, ops)
+            w = ph.normal_speed(v[i] - v[j], nrm, ops)
+            J = ph.impulse(w, 1 / masses[i] + 1 / masses[j], e)
+            new_v[i] = v[i] + J / masses[i] * nrm
+            new_v[j] = v[j] - J / masses[j] * nrm
+            name, kind, bodies = f"{di.name}|{dj.name}", "disc-disc", (di.name, dj.name)
+            detector, degree = ph.pair_detector(dp, R, ops), 4
+        else:
+            assert c.wall is not None
+            wall = scene.walls[c.wall]
             nw = ca.DM(wall.normal)
-            psi = ca.dot(p[:, i] - ca.DM(wall.point), nw) - d.radius
-            w = ca.dot(v[:, i], nw)
-            vnew = ca.horzcat(
-                *[v[:, m] - (1 + e) * w * nw if m == i else v[:, m] for m in range(n)]
+            psi = ph.wall_gap(p[i], ca.DM(wall.point), nw, di.radius, ops)
+            w = ph.normal_speed(v[i], nw, ops)
+            new_v[i] = v[i] + ph.impulse(w, 1 / masses[i], e) / masses[i] * nw
+            name, kind, bodies = f"{di.name}|{wall.name}", "disc-wall", (di.name, wall.name)
+            detector, degree = None, 2
+        reset = ca.vertcat(*p, *new_v)
+        guards.append(
+            Guard.from_expressions(
+                name, s, psi, reset, kind=kind, bodies=bodies, detector=detector, degree=degree
             )
-            reset = ca.vertcat(s[: 2 * n], ca.reshape(vnew, 2 * n, 1))
-            guards.append(
-                Guard.from_expressions(
-                    f"{d.name}|{wall.name}",
-                    s,
-                    psi,
-                    reset,
-                    kind="disc-wall",
-                    bodies=(d.name, wall.name),
-                    degree=2,
-                )
-            )
+        )
 
     labels = [f"{d.name}.{c}" for d in scene.discs for c in ("x", "y")]
     labels += [f"{d.name}.{c}" for d in scene.discs for c in ("vx", "vy")]
@@ -130,6 +109,6 @@ def scene_to_ocp(scene: Scene) -> HybridOCP:
             "masses": np.array(masses),
             "radii": np.array([d.radius for d in scene.discs]),
             "restitution": e,
-            "control_weight": eps,
+            "control_weight": scene.control_weight,
         },
     )

@@ -31,6 +31,7 @@ TOML layout::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -344,6 +345,23 @@ class Scene:
     def time_grid(self) -> np.ndarray:
         """The ``N + 1`` grid times ``0, dt, ..., T``."""
         return np.linspace(0.0, self.horizon, self.steps + 1)
+
+    def with_initial_state(self, state: Any) -> Scene:
+        """The same scene with the discs starting from ``state`` (the hybridoc layout
+        ``[p_1, ..., p_n, v_1, ..., v_n]``); validated like any scene (overlaps)."""
+        x = np.asarray(state, dtype=float).ravel()
+        n = self.n_discs
+        if x.shape != (4 * n,):
+            raise SceneError(f"state must have {4 * n} entries, got shape {x.shape}")
+        discs = tuple(
+            dataclasses.replace(
+                d,
+                position=(float(x[2 * i]), float(x[2 * i + 1])),
+                velocity=(float(x[2 * n + 2 * i]), float(x[2 * n + 2 * i + 1])),
+            )
+            for i, d in enumerate(self.discs)
+        )
+        return dataclasses.replace(self, discs=discs)
 
     def with_steps(self, steps: int) -> Scene:
         """The same scene on another grid (constant initial controls are kept)."""

@@ -31,6 +31,7 @@ Globalisation (disc scenes)
 from __future__ import annotations
 
 import sys
+import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +39,11 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import HybridOCP
+
+# compiled systems per problem (they bake in x0 and T) and sequence
+_SYSTEMS: weakref.WeakKeyDictionary[HybridOCP, dict[tuple[str, ...], Any]] = (
+    weakref.WeakKeyDictionary()
+)
 
 __all__ = ["NewtonResult", "ShootingSystem", "is_disc_scene", "newton", "shooting_system"]
 
@@ -384,7 +390,7 @@ class ShootingSystem:
 
 def shooting_system(ocp: HybridOCP, sequence: list[str]) -> ShootingSystem:
     """The compiled system for ``(ocp, sequence)``, cached on the problem."""
-    cache = ocp._cache.setdefault("reference", {})
+    cache = _SYSTEMS.setdefault(ocp, {})
     key = tuple(sequence)
     sys_ = cache.get(key)
     if sys_ is None:

@@ -19,6 +19,7 @@ import math
 import numbers
 import sys
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,8 +28,10 @@ import numpy as np
 
 from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import ConvergenceError, EvaluationError, SceneError
-from hybridoc.evaluator import Evaluation, as_ocp, evaluate, gradient
+from hybridoc.evaluation import Evaluation
+from hybridoc.evaluator import evaluate, gradient
 from hybridoc.ocp import HybridOCP
+from hybridoc.problem import as_ocp
 from hybridoc.reference.shooting import (
     NewtonResult,
     ShootingSystem,
@@ -44,6 +47,7 @@ GRAZE_FLAG = 1e-6
 #: relative agreement of the shooting cost and the re-simulated cost
 COST_RTOL = 1e-9
 _MAX_CANDIDATES = 12
+_GUESSES: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
 @dataclass
@@ -534,7 +538,7 @@ def _guess_times(ocp: HybridOCP, sequence: Sequence[str], ev: Evaluation) -> np.
 
 def _guess_evaluation(ocp: HybridOCP, u0: np.ndarray, *, want_costate: bool) -> tuple[Any, Any]:
     """Evaluation (and adjoint) of the initial guess, cached per problem and guess."""
-    cache = ocp._cache.setdefault("reference_guess", {})
+    cache = _GUESSES.setdefault(ocp, {})
     key = (u0.tobytes(), want_costate)
     hit = cache.get(key)
     if hit is not None:

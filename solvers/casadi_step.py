@@ -15,12 +15,14 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import casadi as ca
+import numpy as np
 
 from hybridoc.errors import SceneError
+from hybridoc.problems import physics as ph
+from hybridoc.solvers.contacts.base import TOI_MODES
 
 __all__ = ["StepParts", "make_step", "step_expression", "step_parts"]
 
-_TOI_MODES = ("none", "position", "velocity", "both")
 NEWTON_ITERATIONS = 4  # as hybridoc.solvers.simulator.NEWTON_ITERATIONS
 
 
@@ -72,8 +74,8 @@ def step_parts(
     StepParts
         The next state, the true branch tests, and the gaps ``d^`` and normal speeds ``w^``.
     """
-    if toi not in _TOI_MODES:
-        raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(_TOI_MODES)}")
+    if toi not in TOI_MODES:
+        raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(TOI_MODES)}")
     if integrator not in ("symplectic-euler", "exact"):
         raise SceneError(f"unknown integrator {integrator!r}; choose symplectic-euler or exact")
     exact = integrator == "exact"
@@ -81,6 +83,7 @@ def step_parts(
         raise SceneError("integrator 'exact' needs toi='both'")
     if exact and flags is not None:
         raise SceneError("frozen contact flags need integrator 'symplectic-euler'")
+    ops = ph.CASADI
     n = scene.n_discs
     dt = scene.dt
     e = scene.restitution
@@ -105,84 +108,78 @@ def step_parts(
     use_bar = toi in ("velocity", "both")
     use_pos = toi in ("position", "both")
 
-    contacts: list[tuple[int, int | None, Any, Any]] = []
-    for i in range(n):
-        for j in range(i + 1, n):
-            contacts.append((i, j, None, None))
-    for i in range(n):
-        for w in scene.walls:
-            contacts.append((i, None, ca.DM(w.point), ca.DM(w.normal)))
+    def rel(x: list[Any], c: ph.Contact) -> Any:
+        return x[c.i] - x[c.j] if c.j is not None else x[c.i]
 
-    def rel(x: list[Any], i: int, j: int | None) -> Any:
-        return x[i] - x[j] if j is not None else x[i]
+    def gap_normal(r: Any, c: ph.Contact) -> tuple[Any, Any]:
+        if c.j is not None:
+            R = scene.discs[c.i].radius + scene.discs[c.j].radius
+            return ph.pair_gap(r, R, ops)
+        assert c.wall is not None
+        wall = scene.walls[c.wall]
+        nw = ca.DM(wall.normal)
+        return ph.wall_gap(r, ca.DM(wall.point), nw, scene.discs[c.i].radius, ops), nw
 
-    def gap_normal(r: Any, i: int, j: int | None, point: Any, normal: Any) -> tuple[Any, Any]:
-        if j is not None:
-            dist = ca.norm_2(r)
-            return dist - (scene.discs[i].radius + scene.discs[j].radius), r / dist
-        return ca.dot(r - point, normal) - scene.discs[i].radius, normal
-
-    def at_impact(toi_c: Any, rels: tuple[Any, ...], contact: tuple[Any, ...]) -> tuple[Any, Any]:
+    def at_impact(toi_c: Any, rels: tuple[Any, ...], c: ph.Contact) -> tuple[Any, Any]:
         # normal and normal speed at the time of impact (the velocity correction)
         rp, rv, ra, rv_hat = rels
         tau = dt - toi_c
-        _, nrm = gap_normal(rp + tau * rv_hat, *contact)
-        return nrm, ca.dot(rv + tau * ra, nrm)
+        _, nrm = gap_normal(rp + tau * rv_hat, c)
+        return nrm, ph.normal_speed(rv + tau * ra, nrm, ops)
 
     tests, gaps, speeds = [], [], []
-    for c, contact in enumerate(contacts):
-        i, j, point, normal = contact
-        rp, rv, ra = rel(p, i, j), rel(v, i, j), rel(a, i, j)
-        rp_hat, rv_hat = rel(p_hat, i, j), rel(v_hat, i, j)
-        d_hat, n_hat = gap_normal(rp_hat, i, j, point, normal)
-        w_hat = ca.dot(rv_hat, n_hat)
+    for ci, c in enumerate(ph.contacts(n, len(scene.walls))):
+        i, j = c.i, c.j
+        rp, rv, ra = rel(p, c), rel(v, c), rel(a, c)
+        rp_hat, rv_hat = rel(p_hat, c), rel(v_hat, c)
+        d_hat, n_hat = gap_normal(rp_hat, c)
+        w_hat = ph.normal_speed(rv_hat, n_hat, ops)
         active = ca.logic_and(d_hat < 0, w_hat < 0)
-        # safe denominator so that the unused branch has finite derivatives
-        w_safe = ca.if_else(active, w_hat, -1.0)
-        toi_c = ca.if_else(active, ca.fmin(ca.fmax(d_hat / w_safe, 0.0), dt), 0.0)
+        toi_c = ph.toi_linear(d_hat, w_hat, dt, active, ops)
         if exact:
-            tau = dt - toi_c
-            for _ in range(NEWTON_ITERATIONS):
-                D = rp + (rv + 0.5 * ra * tau) * tau
-                dD = rv + ra * tau
-                if j is not None:
-                    R = scene.discs[i].radius + scene.discs[j].radius
-                    g, dg = ca.sumsqr(D) - R**2, 2 * ca.dot(D, dD)
-                else:
-                    g = ca.dot(D - point, normal) - scene.discs[i].radius
-                    dg = ca.dot(dD, normal)
-                ok = ca.logic_and(active, dg < 0)
-                dg = ca.if_else(ok, dg, -1.0)
-                tau = ca.if_else(ok, ca.fmin(ca.fmax(tau - g / dg, 0.0), dt), tau)
+            if c.is_pair:
+                R = scene.discs[i].radius + scene.discs[c.j].radius  # type: ignore[index]
+                tau = ph.refine_impact_time(
+                    rp, rv, ra, dt - toi_c, active, dt, ops, R=R, iterations=NEWTON_ITERATIONS
+                )
+            else:
+                assert c.wall is not None
+                wall = scene.walls[c.wall]
+                nw = ca.DM(wall.normal)
+                off = float(np.dot(wall.point, wall.normal)) + scene.discs[i].radius
+                tau = ph.refine_impact_time(
+                    rp, rv, ra, dt - toi_c, active, dt, ops, normal=nw, offset=off,
+                    iterations=NEWTON_ITERATIONS,
+                )  # fmt: skip
             toi_c = ca.if_else(active, dt - tau, 0.0)
-            _, nrm = gap_normal(rp + (rv + 0.5 * ra * tau) * tau, i, j, point, normal)
-            w = ca.dot(rv + ra * tau, nrm)
+            _, nrm = gap_normal(rp + (rv + 0.5 * ra * tau) * tau, c)
+            w = ph.normal_speed(rv + ra * tau, nrm, ops)
         elif use_bar:
-            nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), contact)
+            nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), c)
         else:
             nrm, w = n_hat, w_hat
         hit = ca.logic_and(active, w < 0)
         tests.append(hit)
         gaps.append(d_hat)
         speeds.append(w_hat)
-        W_cc = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
+        inv_mass_sum = 1.0 / m[i] + (1.0 / m[j] if j is not None else 0.0)
         if flags is None:
-            lam = ca.if_else(hit, -(1.0 + e) * w / W_cc, 0.0)
+            lam = ca.if_else(hit, ph.impulse(w, inv_mass_sum, e), 0.0)
         else:
             # frozen: the time of impact of an applied contact is d^ / w^ (unclamped, smooth)
-            w_frozen = ca.if_else(flags[c] > 0.5, w_hat, -1.0)
-            toi_c = flags[c] * d_hat / w_frozen
+            w_frozen = ca.if_else(flags[ci] > 0.5, w_hat, -1.0)
+            toi_c = flags[ci] * d_hat / w_frozen
             if use_bar:
-                nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), contact)
-            lam = flags[c] * (-(1.0 + e) * w / W_cc)
+                nrm, w = at_impact(toi_c, (rp, rv, ra, rv_hat), c)
+            lam = flags[ci] * ph.impulse(w, inv_mass_sum, e)
         dvi = lam / m[i] * nrm
         dv[i] = dv[i] + dvi
-        if use_pos:
+        if use_pos or exact:
             dp[i] = dp[i] + toi_c * dvi
         if j is not None:
             dvj = -lam / m[j] * nrm
             dv[j] = dv[j] + dvj
-            if use_pos:
+            if use_pos or exact:
                 dp[j] = dp[j] + toi_c * dvj
     p_next = [p_hat[i] + dp[i] for i in range(n)]
     v_next = [v_hat[i] + dv[i] for i in range(n)]
@@ -207,7 +204,7 @@ def step_expression(
 
 
 def make_step(
-    scene: Any, impulse: str = "direct", toi: str = "both", integrator: str = "symplectic-euler"
+    scene: Any, contact: str = "direct", toi: str = "both", integrator: str = "symplectic-euler"
 ) -> ca.Function:
     """The discrete step ``s_next = step(s, u)`` of a scene as a CasADi ``Function``.
 
@@ -215,8 +212,8 @@ def make_step(
     ----------
     scene
         A :class:`~hybridoc.problems.Scene`, a built-in name or a TOML path.
-    impulse
-        Only ``"direct"`` is available symbolically (the LCP and convex solvers are torch only).
+    contact
+        A contact model with a CasADi step (``compiled``); today ``"direct"``.
     toi
         Time-of-impact correction: ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``.
     integrator
@@ -228,13 +225,16 @@ def make_step(
         ``Function('step', [s, u], [s_next])`` with ``SX`` inside, equal to one step of
         :class:`hybridoc.solvers.simulator.Simulator` with the same settings.
     """
-    from hybridoc.problems import load_scene
+    from hybridoc.solvers.contacts import CONTACT_MODELS, contact_model
+    from hybridoc.solvers.simulator import disc_scene
 
-    scene = load_scene(scene)
-    if impulse != "direct":
+    scene = disc_scene(scene)
+    model = contact_model(contact, toi=toi)
+    if not model.compiled:
+        compiled = [name for name, cls in CONTACT_MODELS.items() if cls.compiled]
         raise SceneError(
-            f"impulse solver {impulse!r} has no CasADi form; only 'direct' does (use the torch "
-            "Simulator for 'lcp' and 'convex')"
+            f"contact model {model.name!r} has no CasADi form; {', '.join(compiled)} do (use "
+            "the torch Simulator for the others)"
         )
     s = ca.SX.sym("s", 4 * scene.n_discs)
     u = ca.SX.sym("u", scene.n_controls)

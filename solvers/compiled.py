@@ -1,103 +1,152 @@
-"""A compiled fast path for the rollout, the discrete objective and its gradient.
+"""The compiled fast path: one CasADi step iterated by ``mapaccum``, its loss and gradient.
 
-The N steps of :func:`hybridoc.solvers.casadi_step.make_step` are unrolled into one CasADi
-``SX`` expression graph; its reverse-mode gradient is formed symbolically once, and both are
-evaluated by CasADi's virtual machine after common-subexpression elimination. For the paper's
-problems (N = 480) this evaluates the loss and its full gradient in about a millisecond,
-against about 200 ms for an eager torch rollout with autograd (benchmarks/bench_gd.py).
-:class:`CompiledLoss` exposes it as a ``torch.autograd.Function`` so that it plugs into torch
-optimisers; it computes exactly what
-:meth:`hybridoc.solvers.simulator.Simulator.loss` computes (``direct`` impulses, float64), to
-rounding.
+A :class:`CompiledLoss` builds the discrete objective ``phi(s_N) + sum_n c_n`` of a problem
+from one step function ``(s, u) -> (s_next, c)``:
+
+* disc scenes: the simulator's step in CasADi (:func:`hybridoc.solvers.casadi_step.make_step`,
+  symplectic Euler or the exact flow, with the time-of-impact corrections) and the running
+  cost ``eps |u|^2 dt``;
+* any other problem (or a disc scene with ``simulation="generic"``): the generic
+  time-of-impact step of :func:`hybridoc.solvers.toi_sim.toi_step`.
+
+The step is iterated by CasADi's ``mapaccum`` (one small graph, whatever N: set-up time does
+not grow with N) and the reverse-mode gradient is formed on that graph once. Evaluation runs
+in CasADi's virtual machine; a batch of B controls (and initial states) is one call of the
+function mapped over B. :meth:`CompiledLoss.loss` exposes it to torch as an autograd function,
+so it plugs into torch optimisers.
 """
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import casadi as ca
 import numpy as np
-import torch
 
-from hybridoc.errors import ControlsError
+from hybridoc.errors import ControlsError, SceneError
 
-__all__ = ["CompiledLoss"]
+__all__ = ["CompiledLoss", "SIMULATIONS"]
+
+SIMULATIONS = ("auto", "disc", "generic")
+"""Which step :class:`CompiledLoss` compiles: ``auto`` (the disc step for disc scenes, the
+generic TOI step otherwise), ``disc`` or ``generic``."""
 
 
-class _LossFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx: Any, u: torch.Tensor, x0: torch.Tensor, owner: CompiledLoss) -> torch.Tensor:
-        values, gu, gx = owner._value_and_grad_batch(u, x0)
-        ctx.save_for_backward(gu, gx)
-        return values
-
-    @staticmethod
-    def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[Any, ...]:
-        gu, gx = ctx.saved_tensors
-        return grad_out[:, None, None] * gu, grad_out[:, None] * gx, None
+def _threads() -> int:
+    """CasADi map threads: the user's HYBRIDOC_THREADS, else the usable cores."""
+    env = os.environ.get("HYBRIDOC_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            pass
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 class CompiledLoss:
-    """The discrete objective of a scene and its exact gradient, compiled with CasADi.
+    """The discrete objective of a problem and its exact gradient, compiled with CasADi.
 
     Parameters
     ----------
-    scene
-        A :class:`~hybridoc.problems.Scene`, built-in name or TOML path.
+    problem
+        Any problem (:func:`hybridoc.problem.as_ocp`).
+    contact
+        Contact model of the disc step (must have a CasADi form: ``direct``).
     toi
-        Time-of-impact correction: ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``.
+        Time-of-impact correction of the disc step.
     integrator
-        ``"symplectic-euler"`` (default) or ``"exact"``, as in the simulator.
+        ``"symplectic-euler"`` (the paper's, the default of the disc step) or ``"exact"``;
+        the generic step is always ``"exact"`` (the closed-form flow, or RK4 sub-steps).
+    simulation
+        See :data:`SIMULATIONS`.
+    max_events
+        Events resolved per step by the generic step.
+    path_weight
+        Problems with path constraints ``c(s, u) >= 0``: the step cost gains
+        ``path_weight * dt * |min(c(s_n, u_n), 0)|^2`` (a quadratic penalty at the grid).
 
     Notes
     -----
-    Only the ``direct`` impulse solver is compiled; the scene parameters (radii, masses,
-    restitution, targets) are constants of the compiled graph. Use the torch
-    :class:`~hybridoc.solvers.simulator.Simulator` to differentiate with respect to them.
+    The problem's parameters are constants of the compiled graph. Use the torch
+    :class:`~hybridoc.solvers.simulator.Simulator` to differentiate with respect to disc radii,
+    masses or restitution.
     """
 
-    def __init__(self, scene: Any, toi: str = "both", integrator: str = "symplectic-euler") -> None:
-        from hybridoc.problems import load_scene
-        from hybridoc.solvers.casadi_step import make_step
+    def __init__(
+        self,
+        problem: Any,
+        contact: str = "direct",
+        toi: str = "both",
+        integrator: str | None = None,
+        *,
+        simulation: str = "auto",
+        max_events: int = 2,
+        path_weight: float = 1e4,
+    ) -> None:
+        from hybridoc.problem import as_ocp
+        from hybridoc.problems import Scene
 
-        scene = load_scene(scene)
-        self.scene = scene
-        self.toi = toi
-        self.steps = N = scene.steps
-        self.nx = nx = 4 * scene.n_discs
-        self.nu = nu = scene.n_controls
-        step = make_step(scene, "direct", toi, integrator)
-        x0 = ca.SX.sym("x0", nx)
-        U = ca.SX.sym("U", nu, N)
-        x = x0
-        xs = [x0]
-        for k in range(N):
-            x = step(x, U[:, k])
-            xs.append(x)
-        phi = ca.SX(0)
-        for i, d in enumerate(scene.discs):
-            if d.target is not None:
-                phi += ca.sumsqr(x[2 * i : 2 * i + 2] - ca.DM(d.target))
-        J = phi + scene.control_weight * scene.dt * ca.sumsqr(U)
-        gx, gU = ca.gradient(J, x0), ca.gradient(J, U)
-        self._grad_io = ([x0, U], [J, gx, gU])
-        self._value_grad_fn: ca.Function | None = None
-        self._value = ca.Function("loss", [x0, U], [J])
-        self._rollout = ca.Function("rollout", [x0, U], [ca.horzcat(*xs)])
-        self._x0 = scene.initial_state()
+        if simulation not in SIMULATIONS:
+            raise SceneError(
+                f"simulation must be one of {', '.join(SIMULATIONS)}, got {simulation!r}"
+            )
+        ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
+        is_disc = isinstance(ocp.meta.get("scene"), Scene)
+        if simulation == "disc" and not is_disc:
+            raise SceneError(f"{ocp.name!r} is not a disc scene: use simulation='generic'")
+        use_disc = is_disc and simulation != "generic"
+        self.ocp = ocp
+        self.steps = N = ocp.steps
+        self.nx = nx = ocp.nx
+        self.nu = nu = ocp.nu
+        self.simulation = "disc" if use_disc else "generic"
+        s = ca.SX.sym("s", nx)
+        u = ca.SX.sym("u", nu)
+        if use_disc:
+            from hybridoc.solvers.casadi_step import make_step
+            from hybridoc.solvers.simulator import disc_scene
 
-    @property
-    def _value_grad(self) -> ca.Function:
-        if self._value_grad_fn is None:
-            # common-subexpression elimination shrinks the unrolled graph by about 40% (the
-            # reverse sweep repeats forward subexpressions): ~1 s once, then ~1.7x faster calls
-            ins, outs = self._grad_io
-            self._value_grad_fn = ca.Function("loss_grad", ins, outs, {"cse": True})
-        return self._value_grad_fn
+            scene = disc_scene(ocp)
+            integrator = integrator or "symplectic-euler"
+            step = make_step(scene, contact, toi, integrator)
+            self.settings = {"contact": contact, "toi": toi, "integrator": integrator}
+            step_fn = ca.Function(
+                "step", [s, u], [step(s, u), scene.control_weight * scene.dt * ca.sumsqr(u)]
+            )
+        else:
+            if integrator not in (None, "exact"):
+                raise SceneError(
+                    f"integrator {integrator!r} applies to disc scenes only; the generic "
+                    "time-of-impact simulation integrates the flow exactly (or by RK4)"
+                )
+            from hybridoc.solvers.toi_sim import toi_step
+
+            step_fn = toi_step(ocp, ocp.dt, max_events=max_events)
+            self.settings = {"simulation": "generic", "integrator": "exact"}
+        if ocp.path is not None:
+            viol = ca.sumsqr(ca.fmin(ocp.path(s, u), 0))
+            s_next, c_step = step_fn(s, u)
+            step_fn = ca.Function(
+                "step", [s, u], [s_next, c_step + path_weight * ocp.dt * viol], ["s", "u"],
+                ["s_next", "cost"],
+            )  # fmt: skip
+        self.step = step_fn
+        self._value, self._value_grad, self._rollout = _rollout_functions(
+            step_fn, ocp.phi, nx, nu, N
+        )
+        self._maps: dict[int, ca.Function] = {}
+        self._x0 = ocp.x0.copy()
+        self.threads = _threads()
 
     # ------------------------------------------------------------------ numpy interface
     def _check(self, controls: Any) -> np.ndarray:
-        u = np.asarray(controls, dtype=float)
+        from hybridoc.ocp import as_float_array
+
+        u = as_float_array(controls, "controls", error=ControlsError)
         if u.shape != (self.steps, self.nu):
             raise ControlsError(
                 f"controls must have shape ({self.steps}, {self.nu}), got {u.shape}"
@@ -119,6 +168,35 @@ class CompiledLoss:
         J, gx, gU = self._value_grad(x, u.T)
         return float(J), np.asarray(gU).T.copy(), np.asarray(gx).ravel()
 
+    def value_and_grad_batch(
+        self, controls: np.ndarray, x0: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Objectives ``(B,)`` and gradients ``(B, N, nu)``, ``(B, nx)`` of a batch, in one
+        call of the mapped function (CasADi threads, :attr:`threads`)."""
+        u = np.asarray(controls, dtype=float)
+        B = u.shape[0]
+        if u.shape[1:] != (self.steps, self.nu):
+            raise ControlsError(
+                f"controls must have shape (B, {self.steps}, {self.nu}), got {u.shape}"
+            )
+        x = np.broadcast_to(self._x0 if x0 is None else np.asarray(x0, dtype=float), (B, self.nx))
+        fn = self._maps.get(B)
+        if fn is None:
+            mode = "thread" if self.threads > 1 and B > 1 else "serial"
+            fn = (
+                self._value_grad.map(B, mode, self.threads)
+                if mode == "thread"
+                else (self._value_grad.map(B))
+            )
+            self._maps[B] = fn
+        # map concatenates horizontally: x0 (nx, B), U (nu, N B)
+        U = u.transpose(2, 0, 1).reshape(self.nu, B * self.steps)
+        J, gx, gU = fn(x.T, U)
+        J = np.asarray(J).ravel()
+        gx = np.asarray(gx).T.copy()
+        gU = np.asarray(gU).reshape(self.nu, B, self.steps).transpose(1, 2, 0).copy()
+        return J, gU, gx
+
     def rollout_numpy(self, controls: Any, x0: Any = None) -> np.ndarray:
         """States ``(N + 1, nx)`` of the discrete rollout."""
         u = self._check(controls)
@@ -126,28 +204,13 @@ class CompiledLoss:
         return np.asarray(self._rollout(x, u.T)).T.copy()
 
     # ------------------------------------------------------------------ torch interface
-    def _value_and_grad_batch(
-        self, u: torch.Tensor, x0: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        un = u.detach().cpu().numpy()
-        xn = x0.detach().cpu().numpy()
-        vals, gus, gxs = [], [], []
-        for b in range(un.shape[0]):
-            J, gu, gx = self.value_and_grad(un[b], xn[b])
-            vals.append(J)
-            gus.append(gu)
-            gxs.append(gx)
-
-        def t(a: Any) -> torch.Tensor:
-            return torch.as_tensor(np.asarray(a), dtype=u.dtype, device=u.device)
-
-        return t(vals), t(np.stack(gus)), t(np.stack(gxs))
-
-    def loss(self, controls: torch.Tensor, x0: torch.Tensor | None = None) -> torch.Tensor:
+    def loss(self, controls: Any, x0: Any = None) -> Any:
         """Differentiable objective: ``(B,)`` for ``(B, N, nu)`` controls, scalar for ``(N, nu)``.
 
         Gradients flow to ``controls`` and ``x0`` (``(nx,)`` or ``(B, nx)``).
         """
+        import torch
+
         u = torch.as_tensor(controls)
         batched = u.ndim == 3
         if u.ndim == 2:
@@ -161,11 +224,13 @@ class CompiledLoss:
             x0 = torch.as_tensor(self._x0, dtype=u.dtype, device=u.device)
         x0 = torch.as_tensor(x0, dtype=u.dtype, device=u.device)
         x0 = x0.expand(u.shape[0], self.nx) if x0.ndim == 1 else x0
-        out = _LossFunction.apply(u, x0, self)
+        out = _loss_function().apply(u, x0, self)
         return out if batched else out[0]
 
-    def rollout(self, controls: torch.Tensor, x0: torch.Tensor | None = None) -> torch.Tensor:
+    def rollout(self, controls: Any, x0: Any = None) -> Any:
         """States ``(B, N + 1, nx)`` (no gradient; use the torch simulator for that)."""
+        import torch
+
         u = torch.as_tensor(controls)
         if u.ndim == 2:
             u = u.unsqueeze(0)
@@ -175,3 +240,73 @@ class CompiledLoss:
             for b in range(u.shape[0])
         ]
         return torch.as_tensor(np.stack(xs), dtype=u.dtype, device=u.device)
+
+
+def _rollout_functions(
+    step: ca.Function, phi: ca.Function, nx: int, nu: int, N: int
+) -> tuple[ca.Function, ca.Function, ca.Function]:
+    """Loss, loss with gradient, and rollout of ``N`` steps of ``step`` (``mapaccum``).
+
+    The gradient is the discrete adjoint: a backward ``mapaccum`` of the step's
+    vector-Jacobian products (SX), about twice as fast as CasADi's reverse mode of the
+    forward ``mapaccum``.
+    """
+    s, u, lam = ca.SX.sym("s", nx), ca.SX.sym("u", nu), ca.SX.sym("lam", nx)
+    s_next, c = step(s, u)
+    back_step = ca.Function(
+        "adjoint_step",
+        [lam, s, u],
+        [
+            ca.jtimes(s_next, s, lam, True) + ca.gradient(c, s),
+            ca.jtimes(s_next, u, lam, True) + ca.gradient(c, u),
+        ],
+    )
+    sf = ca.SX.sym("sf", nx)
+    phi_grad = ca.Function("phi_grad", [sf], [phi(sf), ca.gradient(phi(sf), sf)])
+    x0 = ca.MX.sym("x0", nx)
+    U = ca.MX.sym("U", nu, N)
+    X, C = step.mapaccum("rollout", N)(x0, U)
+    phi_N, lam_N = phi_grad(X[:, N - 1])
+    J = phi_N + ca.sum2(C)
+    X_prev = ca.horzcat(x0, X[:, : N - 1])
+    reverse = lambda M: ca.horzcat(*ca.horzsplit(M)[::-1])  # noqa: E731
+    lams, grads = back_step.mapaccum("adjoint", N)(lam_N, reverse(X_prev), reverse(U))
+    value = ca.Function("loss", [x0, U], [J])
+    value_grad = ca.Function("loss_grad", [x0, U], [J, lams[:, N - 1], reverse(grads)])
+    rollout = ca.Function("rollout", [x0, U], [ca.horzcat(x0, X)])
+    return value, value_grad, rollout
+
+
+_LOSS_FN: Any = None
+
+
+def _loss_function() -> Any:
+    """The torch autograd Function (built on first use: torch is imported lazily)."""
+    global _LOSS_FN
+    if _LOSS_FN is None:
+        import torch
+
+        class _Loss(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx: Any, u: Any, x0: Any, owner: CompiledLoss) -> Any:
+                un = u.detach().cpu().numpy().astype(float)
+                xn = x0.detach().cpu().numpy().astype(float)
+                if un.shape[0] == 1:
+                    J, gu, gx = owner.value_and_grad(un[0], xn[0])
+                    vals, gus, gxs = np.array([J]), gu[None], gx[None]
+                else:
+                    vals, gus, gxs = owner.value_and_grad_batch(un, xn)
+
+                def t(a: Any) -> Any:
+                    return torch.as_tensor(np.asarray(a), dtype=u.dtype, device=u.device)
+
+                ctx.save_for_backward(t(gus), t(gxs))
+                return t(vals)
+
+            @staticmethod
+            def backward(ctx: Any, grad_out: Any) -> tuple[Any, ...]:
+                gu, gx = ctx.saved_tensors
+                return grad_out[:, None, None] * gu, grad_out[:, None] * gx, None
+
+        _LOSS_FN = _Loss
+    return _LOSS_FN

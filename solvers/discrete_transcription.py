@@ -74,7 +74,7 @@ def _frozen_step(scene: Any, toi: str) -> tuple[ca.Function, ca.Function]:
 
 
 def discrete_loss(
-    scene: Any, controls: Any, *, impulse: str = "direct", toi: str = "both"
+    scene: Any, controls: Any, *, contact: str = "direct", toi: str = "both"
 ) -> float:
     """The discrete loss of ``(N, nu)`` controls under the CasADi step (float64).
 
@@ -84,7 +84,7 @@ def discrete_loss(
         A Scene, a built-in name or a TOML path.
     controls
         ``(N, nu)`` controls.
-    impulse, toi
+    contact, toi
         Simulator settings, as in :func:`hybridoc.solvers.casadi_step.make_step`.
 
     Returns
@@ -97,7 +97,7 @@ def discrete_loss(
     scene = _scene(scene)
     ocp = scene.to_ocp()
     u = ocp.check_controls(controls)
-    step = make_step(scene, impulse=impulse, toi=toi)
+    step = make_step(scene, contact=contact, toi=toi)
     roll = step.mapaccum("roll", scene.steps)
     states = np.asarray(roll(scene.initial_state(), u.T))
     s_N = states[:, -1]
@@ -108,7 +108,7 @@ def discrete_loss(
 def solve_discrete(
     scene: Any,
     *,
-    impulse: str = "direct",
+    contact: str = "direct",
     toi: str = "both",
     warm_start: Any = None,
     tol: float = 1e-12,
@@ -122,9 +122,8 @@ def solve_discrete(
     ----------
     scene
         A Scene, a built-in name or a TOML path (its ``steps`` is the N).
-    impulse, toi
-        Simulator settings (default: ``direct`` impulses with both TOI corrections, the
-        gradient-descent solver's default).
+    contact, toi
+        Simulator settings (default: ``direct`` impulses with both TOI corrections).
     warm_start
         ``None`` (the direct transcription's control, cell-averaged on the grid: usually in
         the optimum's branch pattern), ``"initial"`` (the scene's initial guess), an
@@ -167,9 +166,9 @@ def solve_discrete(
     else:
         u0 = ocp.check_controls(getattr(warm_start, "controls", warm_start), what="warm start")
     t0 = time.perf_counter()
-    if impulse != "direct":
-        make_step(scene, impulse=impulse, toi=toi)  # raises the clear error
-    true_step = make_step(scene, impulse=impulse, toi=toi)
+    if contact != "direct":
+        make_step(scene, contact=contact, toi=toi)  # raises the clear error
+    true_step = make_step(scene, contact=contact, toi=toi)
     roll = true_step.mapaccum("roll", N)
     fstep, ftest = _frozen_step(scene, toi)
     nc = ftest.size1_out(0)
@@ -313,8 +312,8 @@ def solve_discrete(
     u = best_u
     consistent = bool(np.array_equal(rollout(u)[1], fl))
     solve_time = time.perf_counter() - t0
-    loss = discrete_loss(scene, u, impulse=impulse, toi=toi)
-    loss0 = discrete_loss(scene, u0, impulse=impulse, toi=toi)
+    loss = discrete_loss(scene, u, contact=contact, toi=toi)
+    loss0 = discrete_loss(scene, u0, contact=contact, toi=toi)
     if loss > loss0 + 1e-12 * max(1.0, abs(loss0)):
         # the branch pattern changed along the way and IPOPT ended above its start
         raise ConvergenceError(
@@ -326,7 +325,7 @@ def solve_discrete(
         ev,
         method="discrete",
         scene=scene.name,
-        settings={"impulse": impulse, "toi": toi, "tol": tol, "steps": N},
+        settings={"contact": contact, "toi": toi, "tol": tol, "steps": N},
         timings={"solve_time_s": solve_time},
         info={
             "discrete_loss": loss,

@@ -1,31 +1,56 @@
-"""Optimal control by gradient descent through the differentiable simulator.
+"""Optimal control by gradient descent through a differentiable simulation.
 
-:func:`solve_gd` minimises the discrete objective of the paper's Eq. 8,
-``phi(s_N) + sum_n eps |u_n|^2 dt`` over the ``N x nu`` piecewise-constant controls, with the
-gradients of :class:`~hybridoc.solvers.simulator.Simulator` (or of its compiled twin
-:class:`~hybridoc.solvers.compiled.CompiledLoss` for the default ``direct`` contact model), and
-measures the result with the event-exact evaluator: the returned
-:class:`~hybridoc.solution.Solution` carries the *true* continuous cost of the controls.
+:func:`solve_gd` minimises the discrete objective ``phi(s_N) + sum_n c_n`` over the
+``N x nu`` piecewise-constant controls and measures the result with the event-exact judge:
+the returned :class:`~hybridoc.solution.Solution` carries the *true* continuous cost of the
+controls.
+
+Which simulation
+    Disc scenes use the disc simulator with a contact model of
+    :mod:`hybridoc.solvers.contacts` (the paper's Eq. 8 objective): the compiled CasADi path
+    (:class:`~hybridoc.solvers.compiled.CompiledLoss`) for models with a CasADi form, else the
+    torch :class:`~hybridoc.solvers.simulator.Simulator`. Every other problem uses the generic
+    time-of-impact simulation (:mod:`hybridoc.solvers.toi_sim`), compiled the same way.
+
+Integrator
+    ``"exact"`` (the default): the exact flow of the piecewise-constant control with
+    Newton-refined times of impact, whose loss is the continuous cost. ``"symplectic-euler"``:
+    the paper's scheme (``hybridoc ablation`` uses it to reproduce Table 1).
+
+Control bounds and path constraints
+    Bounds are honoured by projection (``gd``, ``adam``) or by SciPy's L-BFGS-B (``lbfgs``);
+    path constraints by a quadratic penalty in the objective, and the judge reports any
+    remaining violation (status ``infeasible``).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import numbers
 import sys
 import time
-import tomllib
-import warnings
+import weakref
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
-import torch
 
-from hybridoc.errors import ControlsError, SceneError
+from hybridoc.errors import SceneError
+from hybridoc.ocp import HybridOCP, Structure
+from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.solution import Solution, Status
 
-__all__ = ["solve_gd", "PAPER_SETTINGS", "OPTIMIZERS", "DEFAULT_SMOOTHING", "default_settings"]
+__all__ = [
+    "DEFAULT_SMOOTHING",
+    "INTEGRATORS",
+    "OPTIMIZERS",
+    "PAPER_SETTINGS",
+    "default_settings",
+    "make_loss",
+    "solve_gd",
+]
+
+INTEGRATORS = ("exact", "symplectic-euler")
 
 OPTIMIZERS = ("gd", "adam", "lbfgs")
 
@@ -48,7 +73,7 @@ class _NonFinite(Exception):
     """The loss or its gradient became NaN or infinite."""
 
 
-def default_settings(scene: Any, optimizer: str) -> tuple[float, int]:
+def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
     """Default ``(learning rate, iterations)`` of an optimiser on a scene.
 
     Plain ``gd`` uses the paper's settings on the paper's problems and otherwise a learning
@@ -58,7 +83,7 @@ def default_settings(scene: Any, optimizer: str) -> tuple[float, int]:
     leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
     """
     if optimizer == "gd":
-        return PAPER_SETTINGS.get(scene.name, (0.1 / scene.dt, 1000))
+        return PAPER_SETTINGS.get(problem.name, (0.1 / problem.dt, 1000))
     if optimizer == "adam":
         return 0.05, 1000
     if optimizer == "lbfgs":
@@ -88,83 +113,149 @@ class _Progress:
         sys.stderr.flush()
 
 
-@functools.lru_cache(maxsize=2)
-def _compiled_cached(scene_toml: str, toi: str, integrator: str) -> Any:
+_LOSSES: weakref.WeakKeyDictionary[Structure, dict[tuple[Any, ...], Any]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def make_loss(
+    ocp: HybridOCP,
+    contact: str,
+    toi: str,
+    integrator: str,
+    path: str = "auto",
+    path_weight: float = 1e4,
+) -> tuple[Any, str]:
+    """The differentiable objective of a problem: ``(loss object, "compiled" | "torch")``.
+
+    The loss object has ``loss(controls, x0=None)`` (torch, differentiable). Compiled losses
+    are kept per problem structure and settings: building one takes milliseconds, but
+    continuation stages and repeated solves reuse it.
+    """
     from hybridoc.problems import Scene
-    from hybridoc.solvers.compiled import CompiledLoss
+    from hybridoc.solvers.contacts import contact_model
 
-    return CompiledLoss(Scene.from_dict(tomllib.loads(scene_toml)), toi=toi, integrator=integrator)
-
-
-def _compiled_loss(scene: Any, toi: str, integrator: str) -> Any:
-    # building the compiled graph takes about a second: reuse it across continuation stages
-    # and repeated solves of the same scene
-    return _compiled_cached(scene.to_toml(), toi, integrator)
-
-
-def _make_loss(
-    scene: Any, impulse: str, toi: str, contact: str | None, path: str, integrator: str
-) -> Any:
-    from hybridoc.solvers.simulator import IMPULSE_METHODS, Simulator
-
-    if contact in IMPULSE_METHODS:
-        impulse, contact = contact, None
-    compilable = contact is None and impulse == "direct"
     if path not in ("auto", "compiled", "torch"):
         raise SceneError(f"unknown path {path!r}; choose auto, compiled or torch")
-    if path == "compiled" and not compilable:
-        raise SceneError("the compiled path exists only for the 'direct' impulse model")
-    if path == "compiled" or (path == "auto" and compilable):
-        return _compiled_loss(scene, toi, integrator), "compiled"
-    sim = Simulator(scene, impulse=impulse, toi=toi, contact=contact, integrator=integrator)
-    return sim, "torch"
+    is_disc = isinstance(ocp.meta.get("scene"), Scene)
+    if integrator not in INTEGRATORS:
+        raise SceneError(
+            f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
+        )
+    if is_disc:
+        model = contact_model(contact, toi=toi)
+        compilable = model.compiled
+        if path == "compiled" and not compilable:
+            raise SceneError(
+                f"the compiled path exists only for contact models with a CasADi form; "
+                f"{model.name!r} runs on the torch simulator (path='torch')"
+            )
+        use_compiled = path == "compiled" or (path == "auto" and compilable)
+    else:
+        if contact != "direct" or toi != "both":
+            raise SceneError(
+                f"contact models and TOI settings apply to disc scenes; {ocp.name!r} is "
+                "simulated by the generic time-of-impact method (contact='direct', toi='both')"
+            )
+        if integrator != "exact":
+            raise SceneError(
+                f"integrator {integrator!r} applies to disc scenes; the generic time-of-impact "
+                "simulation integrates the flow exactly"
+            )
+        if path == "torch":
+            raise SceneError("the torch simulator simulates disc scenes only; use path='compiled'")
+        use_compiled = True
+    if not use_compiled:
+        from hybridoc.solvers.simulator import Simulator
+
+        return Simulator(ocp, contact=contact, toi=toi, integrator=integrator), "torch"
+    from hybridoc.solvers.compiled import CompiledLoss
+
+    key = (ocp.steps, ocp.horizon, contact, toi, integrator, path_weight, tuple(ocp.x0.tolist()))
+    cache = _LOSSES.setdefault(ocp.structure, {})
+    loss = cache.get(key)
+    if loss is None:
+        if len(cache) > 8:
+            cache.clear()
+        loss = CompiledLoss(
+            ocp, contact, toi, integrator if is_disc else None, path_weight=path_weight
+        )
+        cache[key] = loss
+    return loss, "compiled"
+
+
+def default_integrator(ocp: HybridOCP, contact: str, toi: str) -> str:
+    """``"exact"`` where it exists (impulse models with both TOI corrections, generic
+    problems), else the paper's ``"symplectic-euler"``."""
+    if "scene" not in ocp.meta:
+        return "exact"
+    from hybridoc.solvers.contacts import contact_model
+
+    model = contact_model(contact, toi=toi)
+    return (
+        "exact"
+        if model.impulse_based and getattr(model, "toi", None) == "both"
+        else ("symplectic-euler")
+    )
+
+
+def _initial(ocp: HybridOCP, initial: Any) -> np.ndarray:
+    """The starting controls: the problem's guess, an ``(N, nu)`` array or a Solution's."""
+    if initial is None:
+        return np.array(ocp.u_guess, dtype=float)
+    controls = getattr(initial, "controls", initial)
+    return ocp.check_controls(controls, what="initial controls")
 
 
 def solve_gd(
-    scene: Any,
+    problem: ProblemLike,
     *,
-    impulse: str = "direct",
+    contact: str = "direct",
     toi: str = "both",
-    contact: str | None = None,
+    integrator: str | None = None,
     optimizer: str = "lbfgs",
     iters: int | None = None,
     lr: float | None = None,
+    initial: Any = None,
     callback: Callable[[int, float, np.ndarray], Any] | None = None,
     progress: bool = False,
     path: str = "auto",
-    initial_controls: Any = None,
-    integrator: str = "symplectic-euler",
     max_step: float | None = None,
     smoothing: Sequence[float] | None = None,
+    path_weight: float = 1e4,
     _penalty: float = 0.0,
-) -> Any:
-    """Minimise the discrete objective by gradient descent through the simulator.
+) -> Solution:
+    """Minimise the discrete objective by gradient descent through the simulation.
 
     Parameters
     ----------
-    scene
-        A :class:`~hybridoc.problems.Scene`, a built-in name or a TOML path.
-    impulse, toi, contact
-        The contact model, as in :class:`~hybridoc.solvers.simulator.Simulator`.
+    problem
+        Any problem (:func:`hybridoc.problem.as_ocp`): a built-in name, a Scene, a
+        HybridOCP, a ``.toml`` path or ``file.py:function``.
+    contact, toi
+        Disc scenes: the contact model (:data:`hybridoc.solvers.contacts.CONTACT_MODELS`)
+        and its time-of-impact correction.
+    integrator
+        ``"exact"`` or ``"symplectic-euler"`` (disc scenes only; the paper's). Default: exact
+        for impulse models with both TOI corrections and for generic problems, symplectic
+        Euler otherwise (the other settings have no exact form).
     optimizer
         ``"gd"`` (plain gradient descent, as in the paper), ``"adam"`` or ``"lbfgs"``
-        (``torch.optim.LBFGS`` with a strong-Wolfe line search; default).
+        (``torch.optim.LBFGS`` with a strong-Wolfe line search; SciPy's L-BFGS-B when the
+        problem has control bounds; default).
     iters, lr
         Iterations and learning rate; defaults from :func:`default_settings`.
+    initial
+        Starting controls: ``None`` (the problem's guess), an ``(N, nu)`` array or a
+        Solution.
     callback
         Called as ``callback(iteration, loss, controls)`` after every iteration; a true
         return value stops the optimisation.
     progress
         Show a progress bar on stderr (quiet by default).
     path
-        ``"auto"`` (the compiled CasADi path where it exists, i.e. for ``direct`` impulses,
-        else torch), ``"compiled"`` or ``"torch"``.
-    initial_controls
-        ``(N, nu)`` starting controls; default the scene's initial guess.
-    integrator
-        ``"symplectic-euler"`` (the paper's) or ``"exact"`` (exact flow and exact time of
-        impact: the discrete loss equals the continuous cost; see
-        :class:`~hybridoc.solvers.simulator.Simulator`).
+        ``"auto"`` (the compiled CasADi path where the model has one, else torch),
+        ``"compiled"`` or ``"torch"`` (disc scenes).
     max_step
         ``lbfgs`` only: the largest change of any control value in one iteration (longer
         steps are shortened and the curvature history is reset); default: no limit.
@@ -176,34 +267,25 @@ def solve_gd(
         crosses a grid time at which the control jumps, and gradient methods stall there; the
         penalty weakens those kinks so that the events first move to the right times.
         Default: :data:`DEFAULT_SMOOTHING` for ``lbfgs``, none for ``gd`` and ``adam``.
+    path_weight
+        Weight of the quadratic penalty on path-constraint violations (problems with
+        ``path`` constraints).
 
     Returns
     -------
     hybridoc.solution.Solution
         Method ``"gd"``; the controls of the last iterate (of the best iterate if the loss
-        became NaN or infinite, in which case a ``RuntimeWarning`` is issued and
-        ``info["message"]`` says so). ``cost`` and its parts are the true continuous cost from
-        :func:`hybridoc.evaluate`; ``info["loss"]`` is the discrete objective of the returned
-        controls, ``info["iterations"]`` the iterations done; ``arrays["loss_history"]`` the
-        discrete objective at the start of every iteration followed by the final one.
-
-    Raises
-    ------
-    hybridoc.errors.SceneError
-        An unknown scene, contact model, optimizer, integrator or path; ``iters`` not an
-        integer >= 0; ``lr`` or ``max_step`` not a positive finite number; negative or
-        non-finite smoothing weights.
-    hybridoc.errors.ControlsError
-        ``initial_controls`` of the wrong shape or not finite.
+        became non-finite); ``cost`` is the judge's continuous cost of those controls.
+        ``info`` holds the final discrete ``loss``, ``iterations``, ``message``; ``status``
+        is ``success``, ``not-converged`` (non-finite loss) or ``infeasible``.
     """
     import hybridoc
-    from hybridoc.problems import load_scene
     from hybridoc.solution import Solution
 
-    scene = load_scene(scene)
+    ocp = as_ocp(problem)
     if optimizer not in OPTIMIZERS:
         raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
-    lr0, it0 = default_settings(scene, optimizer)
+    lr0, it0 = default_settings(ocp, optimizer)
     lr = lr0 if lr is None else lr
     iters = it0 if iters is None else iters
     # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
@@ -214,18 +296,13 @@ def solve_gd(
     if max_step is not None and not _positive(max_step):
         raise SceneError(f"max_step must be a positive finite number or None, got {max_step!r}")
     iters, lr = int(iters), float(lr)
+    if integrator is None:
+        integrator = default_integrator(ocp, contact, toi)
     t_start = time.perf_counter()
-    loss_obj, used_path = _make_loss(scene, impulse, toi, contact, path, integrator)
-
-    u0 = scene.initial_controls() if initial_controls is None else initial_controls
-    try:
-        u0 = np.array(u0, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ControlsError(f"initial controls: not a numeric array ({exc})") from None
-    if u0.shape != (scene.steps, scene.n_controls) or not np.isfinite(u0).all():
-        raise ControlsError(
-            f"initial controls must be finite with shape ({scene.steps}, {scene.n_controls})"
-        )
+    loss_obj, used_path = make_loss(ocp, contact, toi, integrator, path, path_weight)
+    u0 = _initial(ocp, initial)
+    if ocp.has_bounds:
+        u0 = np.clip(u0, ocp.u_min, ocp.u_max)
     if smoothing is None:
         smoothing = DEFAULT_SMOOTHING if optimizer == "lbfgs" and not _penalty else ()
     weights = tuple(smoothing) if isinstance(smoothing, Iterable | np.ndarray) else None
@@ -236,173 +313,276 @@ def solve_gd(
     ):
         raise SceneError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
     smoothing = tuple(float(m) for m in weights)
+    settings = {
+        "contact": contact,
+        "toi": toi,
+        "integrator": integrator,
+        "optimizer": optimizer,
+        "iters": iters,
+        "lr": lr,
+        "path": used_path,
+        "simulation": "disc" if "scene" in ocp.meta else "generic",
+    }
     if smoothing:
         kwargs = dict(
-            impulse=impulse, toi=toi, contact=contact, optimizer=optimizer, iters=iters, lr=lr,
-            callback=callback, progress=progress, path=path, integrator=integrator,
-            max_step=max_step, smoothing=(),
+            contact=contact, toi=toi, integrator=integrator, optimizer=optimizer, iters=iters,
+            lr=lr, callback=callback, progress=progress, path=path, max_step=max_step,
+            smoothing=(), path_weight=path_weight,
         )  # fmt: skip
         histories, its, stages = [], 0, []
         for mu in smoothing:
-            stage = solve_gd(scene, initial_controls=u0, _penalty=mu, **kwargs)
+            stage = solve_gd(ocp, initial=u0, _penalty=mu, **kwargs)
             u0 = stage.controls
             histories.append(stage.arrays["loss_history"])
             its += stage.info["iterations"]
             stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost})
-        sol = solve_gd(scene, initial_controls=u0, **kwargs)
+            if stage.status is Status.NOT_CONVERGED:
+                break
+        sol = solve_gd(ocp, initial=u0, **kwargs)
         sol.settings["smoothing"] = list(smoothing)
         sol.info["iterations"] += its
         sol.info["stages"] = stages
         sol.arrays["loss_history"] = np.concatenate(histories + [sol.arrays["loss_history"]])
         sol.timings["solve_time_s"] = time.perf_counter() - t_start
         return sol
-    u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
-    best = {"loss": math.inf, "u": u0.copy()}
-    n_evals = 0
-
-    def evaluate_loss() -> torch.Tensor:
-        nonlocal n_evals
-        n_evals += 1
-        if not torch.isfinite(u).all():
-            raise _NonFinite("the controls became NaN or infinite")
-        value = loss_obj.loss(u)
-        if _penalty:
-            value = value + _penalty * ((u[1:] - u[:-1]) ** 2).sum() / scene.dt
-        val = float(value.detach())
-        if not math.isfinite(val):
-            raise _NonFinite(f"the loss became {val}")
-        if val < best["loss"]:
-            best["loss"], best["u"] = val, u.detach().numpy().copy()
-        return value
-
-    # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while the
-    # gradient with respect to one control value scales with dt: it sees the loss divided by dt.
-    scale = 1.0 / scene.dt if optimizer == "lbfgs" else 1.0
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        value = evaluate_loss() * scale
-        value.backward()
-        if not torch.isfinite(u.grad).all():
-            raise _NonFinite("the gradient became NaN or infinite")
-        return value
-
-    # A quasi-Newton step can leap into another contact sequence (on the multiple-collision
-    # problem with lr = 1 straight to u = 0, where nothing collides and the terminal cost is
-    # flat). Optionally, longer L-BFGS steps are cut back (inf-norm) and the history reset.
-    if max_step is None:
-        max_step = math.inf
-
-    def make_optimizer() -> torch.optim.Optimizer:
-        if optimizer == "gd":
-            return torch.optim.SGD([u], lr=lr)
-        if optimizer == "adam":
-            return torch.optim.Adam([u], lr=lr)
-        return torch.optim.LBFGS(
-            [u],
-            lr=lr,
-            max_iter=1,
-            history_size=50,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=1e-12,
-            tolerance_change=1e-15,
+    run = _Run(ocp, loss_obj, optimizer, lr, iters, max_step, _penalty, callback)
+    bar = _Progress(
+        iters, f"gd/{optimizer}" + (f" (smoothing, mu {_penalty:g})" if _penalty else "")
+    )
+    final_u, final_loss, k, message, nan_stop, history = run.optimise(u0, bar if progress else None)
+    t_opt = time.perf_counter() - run.t_loop
+    ev = hybridoc.evaluate(ocp, final_u)
+    status, status_message = Status.SUCCESS, ""
+    if nan_stop:
+        status, status_message = Status.NOT_CONVERGED, message
+    elif not ev.feasible:
+        status = Status.INFEASIBLE
+        status_message = (
+            f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
+            f"constraints by {ev.path_violation:.3g}"
         )
-
-    opt = make_optimizer()
-    history: list[float] = []
-    message = "finished the requested iterations"
-    label = f"gd/{optimizer}" + (f" (smoothing stage, mu {_penalty:g})" if _penalty else "")
-    bar = _Progress(iters, label) if progress else None
-    k = 0
-    fresh, restarts = True, 0
-    t_loop = time.perf_counter()
-    try:
-        for k in range(iters):
-            if optimizer == "lbfgs":
-                if not history:
-                    history.append(float(evaluate_loss().detach()))
-                before = u.detach().clone()
-                opt.step(closure)
-                jump = float((u.detach() - before).abs().max())
-                if jump > max_step:
-                    with torch.no_grad():
-                        u.copy_(before + (u - before) * (max_step / jump))
-                    opt, fresh, restarts = make_optimizer(), True, restarts + 1
-                    value = float(evaluate_loss().detach())
-                    if value > history[-1]:
-                        with torch.no_grad():
-                            u.copy_(before)
-                        value = history[-1]
-                    history.append(value)
-                elif torch.equal(before, u.detach()):
-                    # Kinks of the loss (a contact moving to another step) can spoil the
-                    # quasi-Newton model: restart from here with an empty history; stop when a
-                    # fresh start makes no progress either.
-                    history.append(history[-1])
-                    if fresh:
-                        message = "converged: L-BFGS made no further progress"
-                        k += 1
-                        break
-                    opt, fresh, restarts = make_optimizer(), True, restarts + 1
-                else:
-                    history.append(float(evaluate_loss().detach()))
-                    fresh = False
-            else:
-                history.append(float(closure().detach()))
-                opt.step()
-            if bar:
-                bar.update(k + 1, history[-1])
-            if callback is not None and callback(k + 1, history[-1], u.detach().numpy().copy()):
-                message = "stopped by the callback"
-                k += 1
-                break
-        else:
-            k = iters
-        if optimizer != "lbfgs" or not history:
-            history.append(float(evaluate_loss().detach()))
-        final_u = u.detach().numpy().copy()
-        final_loss = history[-1]
-        nan_stop = False
-    except _NonFinite as exc:
-        nan_stop = True
-        final_u, final_loss = best["u"], best["loss"]
-        message = (
-            f"stopped early at iteration {k}: {exc}; returning the best iterate "
-            f"(discrete loss {final_loss:.6g}); try a smaller learning rate"
-        )
-        warnings.warn(f"solve_gd: {message}", RuntimeWarning, stacklevel=2)
-    finally:
-        if bar:
-            bar.update(k, history[-1] if history else math.nan, force=True)
-            bar.close()
-    t_opt = time.perf_counter() - t_loop
-    ev = hybridoc.evaluate(scene, final_u)
-    t_total = time.perf_counter() - t_start
-    settings = {
-        "impulse": impulse,
-        "toi": toi,
-        "contact": contact,
-        "integrator": integrator,
-        "optimizer": optimizer,
-        "iters": iters,
-        "lr": lr,
-        "path": used_path,
-    }
     info = {
         "loss": float(final_loss),
         "iterations": int(k),
-        "loss_evaluations": int(n_evals),
+        "loss_evaluations": int(run.n_evals),
         "nan_stop": nan_stop,
         "message": message,
         "ms_per_iteration": 1e3 * t_opt / max(k, 1),
-        "restarts": restarts,
+        "restarts": run.restarts,
     }
-    return Solution.from_evaluation(
+    sol = Solution.from_evaluation(
         ev,
         method="gd",
-        scene=scene,
+        scene=ocp.name,
         settings=settings,
-        timings={"solve_time_s": t_total, "optimization_time_s": t_opt},
+        timings={"solve_time_s": time.perf_counter() - t_start, "optimization_time_s": t_opt},
         info=info,
         arrays={"loss_history": np.array(history, dtype=float)},
     )
+    return sol.set_status(status, status_message)
+
+
+class _Run:
+    """One optimisation of :func:`solve_gd` (no continuation)."""
+
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        loss_obj: Any,
+        optimizer: str,
+        lr: float,
+        iters: int,
+        max_step: float | None,
+        penalty: float,
+        callback: Callable[[int, float, np.ndarray], Any] | None,
+    ) -> None:
+        self.ocp = ocp
+        self.loss_obj = loss_obj
+        self.optimizer = optimizer
+        self.lr = lr
+        self.iters = iters
+        self.max_step = math.inf if max_step is None else max_step
+        self.penalty = penalty
+        self.callback = callback
+        self.n_evals = 0
+        self.restarts = 0
+        self.t_loop = time.perf_counter()
+
+    def value(self, u: Any) -> Any:
+        """The objective (with the smoothing and path penalties) of torch controls ``u``."""
+        import torch
+
+        self.n_evals += 1
+        if not bool(torch.isfinite(u).all()):
+            raise _NonFinite("the controls became NaN or infinite")
+        value = self.loss_obj.loss(u)
+        if self.penalty:
+            value = value + self.penalty * ((u[1:] - u[:-1]) ** 2).sum() / self.ocp.dt
+        val = float(value.detach())
+        if not math.isfinite(val):
+            raise _NonFinite(f"the loss became {val}")
+        return value
+
+    def optimise(
+        self, u0: np.ndarray, bar: _Progress | None
+    ) -> tuple[np.ndarray, float, int, str, bool, list[float]]:
+        """Run the optimiser; returns controls, loss, iterations, message, NaN stop, history."""
+        import torch
+
+        self.t_loop = time.perf_counter()
+        if self.optimizer == "lbfgs" and self.ocp.has_bounds:
+            return self._lbfgsb(u0, bar)
+        ocp = self.ocp
+        u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
+        best = {"loss": math.inf, "u": u0.copy()}
+
+        def evaluate_loss() -> Any:
+            value = self.value(u)
+            val = float(value.detach())
+            if val < best["loss"]:
+                best["loss"], best["u"] = val, u.detach().numpy().copy()
+            return value
+
+        # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
+        # the gradient with respect to one control value scales with dt: it sees loss / dt
+        scale = 1.0 / ocp.dt if self.optimizer == "lbfgs" else 1.0
+
+        def closure() -> Any:
+            opt.zero_grad()
+            value = evaluate_loss() * scale
+            value.backward()
+            if not bool(torch.isfinite(u.grad).all()):
+                raise _NonFinite("the gradient became NaN or infinite")
+            return value
+
+        def make_optimizer() -> Any:
+            if self.optimizer == "gd":
+                return torch.optim.SGD([u], lr=self.lr)
+            if self.optimizer == "adam":
+                return torch.optim.Adam([u], lr=self.lr)
+            return torch.optim.LBFGS(
+                [u],
+                lr=self.lr,
+                max_iter=1,
+                history_size=50,
+                line_search_fn="strong_wolfe",
+                tolerance_grad=1e-12,
+                tolerance_change=1e-15,
+            )
+
+        def project() -> None:
+            if ocp.has_bounds:
+                with torch.no_grad():
+                    u.copy_(torch.clamp(u, torch.as_tensor(ocp.u_min), torch.as_tensor(ocp.u_max)))
+
+        opt = make_optimizer()
+        history: list[float] = []
+        message = "finished the requested iterations"
+        k = 0
+        fresh = True
+        try:
+            for k in range(self.iters):
+                if self.optimizer == "lbfgs":
+                    if not history:
+                        history.append(float(evaluate_loss().detach()))
+                    before = u.detach().clone()
+                    opt.step(closure)
+                    jump = float((u.detach() - before).abs().max())
+                    if jump > self.max_step:
+                        # a quasi-Newton step can leap into another event sequence: cut it
+                        # back (inf-norm) and reset the curvature history
+                        with torch.no_grad():
+                            u.copy_(before + (u - before) * (self.max_step / jump))
+                        opt, fresh = make_optimizer(), True
+                        self.restarts += 1
+                        value = float(evaluate_loss().detach())
+                        if value > history[-1]:
+                            with torch.no_grad():
+                                u.copy_(before)
+                            value = history[-1]
+                        history.append(value)
+                    elif torch.equal(before, u.detach()):
+                        # kinks of the loss (a contact moving to another step) can spoil the
+                        # quasi-Newton model: restart from here with an empty history; stop
+                        # when a fresh start makes no progress either
+                        history.append(history[-1])
+                        if fresh:
+                            message = "converged: L-BFGS made no further progress"
+                            k += 1
+                            break
+                        opt, fresh = make_optimizer(), True
+                        self.restarts += 1
+                    else:
+                        history.append(float(evaluate_loss().detach()))
+                        fresh = False
+                else:
+                    history.append(float(closure().detach()))
+                    opt.step()
+                    project()
+                if bar:
+                    bar.update(k + 1, history[-1])
+                if self.callback is not None and self.callback(
+                    k + 1, history[-1], u.detach().numpy().copy()
+                ):
+                    message = "stopped by the callback"
+                    k += 1
+                    break
+            else:
+                k = self.iters
+            if self.optimizer != "lbfgs" or not history:
+                history.append(float(evaluate_loss().detach()))
+            return u.detach().numpy().copy(), history[-1], k, message, False, history
+        except _NonFinite as exc:
+            message = (
+                f"stopped early at iteration {k}: {exc}; returning the best iterate "
+                f"(discrete loss {best['loss']:.6g}); try a smaller learning rate"
+            )
+            return best["u"], best["loss"], k, message, True, history or [best["loss"]]
+        finally:
+            if bar:
+                bar.update(k, history[-1] if history else math.nan, force=True)
+                bar.close()
+
+    def _lbfgsb(
+        self, u0: np.ndarray, bar: _Progress | None
+    ) -> tuple[np.ndarray, float, int, str, bool, list[float]]:
+        """SciPy's L-BFGS-B on the same objective (problems with control bounds)."""
+        import torch
+        from scipy.optimize import minimize
+
+        ocp = self.ocp
+        shape = u0.shape
+        history: list[float] = []
+        k = 0
+
+        def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+            u = torch.tensor(x.reshape(shape), dtype=torch.float64, requires_grad=True)
+            value = self.value(u)
+            value.backward()
+            return float(value.detach()) / ocp.dt, u.grad.numpy().ravel() / ocp.dt
+
+        def cb(x: np.ndarray) -> None:
+            nonlocal k
+            k += 1
+            history.append(fun(x)[0] * ocp.dt)
+            if bar:
+                bar.update(k, history[-1])
+            if self.callback is not None and self.callback(k, history[-1], x.reshape(shape)):
+                raise StopIteration
+
+        bounds = list(zip(np.tile(ocp.u_min, shape[0]), np.tile(ocp.u_max, shape[0]), strict=True))
+        history.append(fun(u0.ravel())[0] * ocp.dt)
+        try:
+            res = minimize(
+                fun, u0.ravel(), jac=True, method="L-BFGS-B", bounds=bounds,
+                callback=cb, options={"maxiter": self.iters, "ftol": 1e-15, "gtol": 1e-12},
+            )  # fmt: skip
+            x, msg = res.x, f"L-BFGS-B: {res.message}"
+        except _NonFinite as exc:
+            return u0, history[-1], k, f"stopped early: {exc}", True, history
+        finally:
+            if bar:
+                bar.close()
+        final = fun(x)[0] * ocp.dt
+        history.append(final)
+        return x.reshape(shape), final, k, msg, False, history

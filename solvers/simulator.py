@@ -57,9 +57,12 @@ Exact integrator (an extension, not in the paper)
     has a kink at every grid point, which makes the discrete loss kink whenever a contact
     moves to another step; the exact flow has no such kinks.
 
-Non-impulse models
-    ``contact="compliant"`` (penalty spring-damper) and ``contact="pbd"`` (position-based
-    projection) delegate the whole step to :mod:`hybridoc.solvers.penalty`.
+Contact models
+    The step itself belongs to the contact model (:mod:`hybridoc.solvers.contacts`): the
+    impulse models ``direct``, ``lcp`` and ``convex`` share the time-of-impact logic above;
+    ``compliant`` (penalty spring-damper) and ``pbd`` (position-based projection) are not
+    impulse models. Gaps, normals, impulses and times of impact come from
+    :mod:`hybridoc.problems.physics`, shared with the judge and the CasADi step.
 """
 
 from __future__ import annotations
@@ -70,54 +73,69 @@ import numpy as np
 import torch
 
 from hybridoc.errors import ControlsError, SceneError
+from hybridoc.problems import physics as ph
+from hybridoc.solvers.contacts import TOI_MODES, ContactModel, contact_model
 
-__all__ = ["Simulator", "TOI_MODES", "IMPULSE_METHODS", "CONTACT_MODELS", "INTEGRATORS"]
+__all__ = ["Simulator", "TOI_MODES", "INTEGRATORS", "NEWTON_ITERATIONS", "disc_scene"]
 
-TOI_MODES = ("none", "position", "velocity", "both")
 INTEGRATORS = ("symplectic-euler", "exact")
 NEWTON_ITERATIONS = 4
 """Newton iterations refining the time of impact of the exact integrator (quadratic
 convergence from the linear estimate, whose error is O(a dt^2))."""
-IMPULSE_METHODS = ("direct", "lcp", "convex")
-CONTACT_MODELS = ("compliant", "pbd")
 
 
-def _load_scene(scene: Any) -> Any:
-    from hybridoc.problems import load_scene
+def disc_scene(problem: Any) -> Any:
+    """The :class:`~hybridoc.problems.Scene` of a disc problem (name, Scene or its OCP).
 
-    return load_scene(scene)
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For a problem that is not a disc scene.
+    """
+    from hybridoc.problem import as_ocp
+    from hybridoc.problems import Scene
+
+    if isinstance(problem, Scene):
+        return problem
+    ocp = as_ocp(problem)
+    scene = ocp.meta.get("scene")
+    if not isinstance(scene, Scene):
+        raise SceneError(
+            f"{ocp.name!r} is not a disc scene: the torch disc simulator needs one (gradient "
+            "descent on other hybrid systems uses the generic TOI simulation)"
+        )
+    if ocp.x0.shape != scene.initial_state().shape or not np.array_equal(
+        ocp.x0, scene.initial_state()
+    ):
+        scene = scene.with_initial_state(ocp.x0)
+    return scene
 
 
 class Simulator(torch.nn.Module):
-    """Differentiable symplectic-Euler simulator of a disc scene.
+    """Differentiable disc simulator (symplectic Euler or the exact flow) with contact models.
 
     Parameters
     ----------
     scene
-        A :class:`~hybridoc.problems.Scene`, a built-in scene name or a TOML path.
-    impulse
-        Impulse solver of the impulse-based models: ``"direct"`` (default), ``"lcp"`` or
-        ``"convex"``.
-    toi
-        Time-of-impact correction: ``"none"``, ``"position"``, ``"velocity"`` or ``"both"``
-        (default, the paper's method).
+        A disc problem: a :class:`~hybridoc.problems.Scene`, a built-in scene name, a TOML
+        path, or the HybridOCP of a scene.
     contact
-        ``None`` (impulse-based, default), ``"compliant"`` or ``"pbd"``. For convenience the
-        impulse method names are accepted here too (``contact="lcp"`` means impulse-based
-        with the LCP solver).
+        A contact model name of :data:`hybridoc.solvers.contacts.CONTACT_MODELS`
+        (``"direct"`` by default, ``"lcp"``, ``"convex"``, ``"compliant"``, ``"pbd"``), also
+        as ``"lcp/both"``, or a :class:`~hybridoc.solvers.contacts.ContactModel` instance.
+    toi
+        Time-of-impact correction of the impulse models: ``"none"``, ``"position"``,
+        ``"velocity"`` or ``"both"`` (default, the paper's method); ignored by the others.
     integrator
         ``"symplectic-euler"`` (default, the paper's scheme) or ``"exact"``: the exact flow
         of the piecewise-constant force (``p + v dt + a dt^2 / 2``) with the time of impact
         refined to the root of the gap along that flow (see *Exact integrator* in the module
-        notes). ``"exact"`` needs an impulse-based model and ``toi="both"``.
+        notes). ``"exact"`` needs an impulse model and ``toi="both"``.
     dtype, device
         Floating point type (``torch.float64`` by default) and device of all tensors.
-    stiffness, damping
-        Spring stiffness and damping of the compliant model (default: the defaults of
-        :func:`hybridoc.solvers.penalty.compliant_step`).
-    pbd_iterations
-        Projection iterations of the PBD model (default: that of
-        :func:`hybridoc.solvers.penalty.pbd_step`).
+    **model_options
+        Options of the contact model (``stiffness``, ``damping`` of ``compliant``;
+        ``iterations`` of ``pbd``).
 
     Attributes
     ----------
@@ -129,6 +147,8 @@ class Simulator(torch.nn.Module):
         Scalar coefficient of restitution.
     targets : torch.Tensor
         ``(n, 2)`` target positions (rows of discs without a target are ignored).
+    model : ContactModel
+        The contact model.
 
     Notes
     -----
@@ -141,56 +161,36 @@ class Simulator(torch.nn.Module):
         self,
         scene: Any,
         *,
-        impulse: str = "direct",
+        contact: str | ContactModel = "direct",
         toi: str = "both",
-        contact: str | None = None,
         integrator: str = "symplectic-euler",
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
-        stiffness: float | None = None,
-        damping: float | None = None,
-        pbd_iterations: int | None = None,
+        **model_options: Any,
     ) -> None:
         super().__init__()
-        scene = _load_scene(scene)
-        if contact in IMPULSE_METHODS:
-            impulse, contact = contact, None
-        if contact is not None and contact not in CONTACT_MODELS:
-            raise SceneError(
-                f"unknown contact model {contact!r}; choose one of "
-                f"{', '.join(IMPULSE_METHODS + CONTACT_MODELS)}"
-            )
-        if impulse not in IMPULSE_METHODS:
-            raise SceneError(
-                f"unknown impulse solver {impulse!r}; choose one of {', '.join(IMPULSE_METHODS)}"
-            )
-        if toi not in TOI_MODES:
-            raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(TOI_MODES)}")
+        scene = disc_scene(scene)
+        if isinstance(contact, ContactModel):
+            if model_options:
+                raise SceneError("model options cannot be given with a contact model instance")
+            model = contact
+        else:
+            model = contact_model(contact, toi=toi, **model_options)
         if integrator not in INTEGRATORS:
             raise SceneError(
                 f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
             )
-        if integrator == "exact" and (contact is not None or toi != "both"):
-            raise SceneError("integrator 'exact' needs an impulse-based model and toi='both'")
+        if integrator == "exact" and not (
+            model.impulse_based and getattr(model, "toi", None) == "both"
+        ):
+            raise SceneError("integrator 'exact' needs an impulse model with toi='both'")
         if dtype not in (torch.float32, torch.float64):
             raise SceneError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.scene = scene
-        self.impulse = impulse
-        self.toi = toi
-        self.contact = contact
+        self.model = model
         self.integrator = integrator
         self.dtype = dtype
         self.device = torch.device(device)
-        if contact is not None:
-            from hybridoc.solvers import penalty
-
-            stiffness = penalty.DEFAULT_STIFFNESS if stiffness is None else stiffness
-            damping = penalty.DEFAULT_DAMPING if damping is None else damping
-            if pbd_iterations is None:
-                pbd_iterations = penalty.DEFAULT_PBD_ITERATIONS
-        self.stiffness = stiffness
-        self.damping = damping
-        self.pbd_iterations = pbd_iterations
         self.n = scene.n_discs
         self.nx = 4 * self.n
         self.nu = scene.n_controls
@@ -208,20 +208,20 @@ class Simulator(torch.nn.Module):
         self.wall_points = t(np.array([w.point for w in scene.walls]).reshape(-1, 2))
         self.wall_normals = t(np.array([w.normal for w in scene.walls]).reshape(-1, 2))
 
-        # Contact incidence S (C, n): +1 on disc i, -1 on disc j for pair (i, j); +1 on the
-        # disc of a wall contact. Pairs first (i < j, scene order), then disc-wall, disc-major:
-        # the order of the HybridOCP guards.
+        # contact incidence (C, n): +1 on disc i, -1 on disc j for pair (i, j); +1 on the
+        # disc of a wall contact; in the one contact order of hybridoc.problems.physics
         n, nw = self.n, len(scene.walls)
-        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-        walls = [(i, k) for i in range(n) for k in range(nw)]
+        cl = ph.contacts(n, nw)
+        pairs = [(c.i, c.j) for c in cl if c.is_pair]
+        walls = [(c.i, c.wall) for c in cl if not c.is_pair]
         self.n_pairs, self.n_wall_contacts = len(pairs), len(walls)
-        self.n_contacts = len(pairs) + len(walls)
+        self.n_contacts = len(cl)
         S = np.zeros((self.n_contacts, n))
-        for c, (i, j) in enumerate(pairs):
-            S[c, i], S[c, j] = 1.0, -1.0
-        for c, (i, _) in enumerate(walls):
-            S[len(pairs) + c, i] = 1.0
-        self._S = t(S)
+        for k, (i, j) in enumerate(pairs):
+            S[k, i], S[k, j] = 1.0, -1.0
+        for k, (i, _) in enumerate(walls):
+            S[len(pairs) + k, i] = 1.0
+        self.incidence = t(S)
         dev = self.device
         self._pair_i = torch.tensor([i for i, _ in pairs], dtype=torch.long, device=dev)
         self._pair_j = torch.tensor([j for _, j in pairs], dtype=torch.long, device=dev)
@@ -235,17 +235,31 @@ class Simulator(torch.nn.Module):
         self._B = t(Bm)
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def toi(self) -> str | None:
+        """The model's time-of-impact correction (``None`` for non-impulse models)."""
+        return getattr(self.model, "toi", None)
+
+    @property
+    def contact(self) -> str:
+        """The contact model's name."""
+        return self.model.name
+
     def _tensor(self, x: Any) -> torch.Tensor:
         return torch.as_tensor(np.asarray(x, dtype=float), dtype=self.dtype, device=self.device)
 
     def extra_repr(self) -> str:
-        model = self.contact or f"impulse={self.impulse}, toi={self.toi}"
-        return f"scene={self.scene.name!r}, {model}, dtype={self.dtype}"
+        return f"scene={self.scene.name!r}, contact={self.model.label}, dtype={self.dtype}"
 
     def _check_controls(self, controls: Any) -> tuple[torch.Tensor, bool]:
-        u = torch.as_tensor(controls)
-        if not torch.is_floating_point(u):
-            u = u.to(self.dtype)
+        if isinstance(controls, torch.Tensor):
+            u = controls
+        else:
+            from hybridoc.ocp import as_float_array
+
+            u = torch.as_tensor(as_float_array(controls, "controls", error=ControlsError))
+        if u.is_complex() or u.dtype == torch.bool:
+            raise ControlsError("controls must be real numbers")
         u = u.to(dtype=self.dtype, device=self.device)
         batched = u.ndim == 3
         if u.ndim == 2:
@@ -265,103 +279,32 @@ class Simulator(torch.nn.Module):
         return force / self.masses[:, None]
 
     # ------------------------------------------------------------------ geometry
-    def _relative(self, p: torch.Tensor) -> torch.Tensor:
+    def relative(self, p: torch.Tensor) -> torch.Tensor:
         """Per-contact relative quantity ``S p``: ``p_i - p_j`` (pairs) or ``p_i`` (walls)."""
-        return torch.einsum("ck,bka->bca", self._S, p)
+        return torch.einsum("ck,bka->bca", self.incidence, p)
 
-    def _gap_normal(self, rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def gap_normal(self, rel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Gap ``(B, C)`` and unit normal ``(B, C, 2)`` from relative positions ``(B, C, 2)``."""
+        ops = ph.TORCH
         P = self.n_pairs
         gaps, normals = [], []
         if P:
-            dp = rel[:, :P]
-            dist = torch.linalg.vector_norm(dp, dim=-1)
-            gaps.append(dist - (self.radii[self._pair_i] + self.radii[self._pair_j]))
-            normals.append(dp / dist[..., None])
+            R = self.radii[self._pair_i] + self.radii[self._pair_j]
+            g, nrm = ph.pair_gap(rel[:, :P], R, ops)
+            gaps.append(g)
+            normals.append(nrm)
         if self.n_wall_contacts:
             nw = self.wall_normals[self._wall_idx].expand(rel.shape[0], -1, -1)
             a = self.wall_points[self._wall_idx]
-            gaps.append(((rel[:, P:] - a) * nw).sum(-1) - self.radii[self._wall_disc])
+            gaps.append(ph.wall_gap(rel[:, P:], a, nw, self.radii[self._wall_disc], ops))
             normals.append(nw)
         return torch.cat(gaps, 1), torch.cat(normals, 1)
 
     def gaps(self, p: torch.Tensor) -> torch.Tensor:
         """Signed gaps ``(B, C)`` of all potential contacts at positions ``p`` ``(B, n, 2)``."""
-        return self._gap_normal(self._relative(p))[0]
+        return self.gap_normal(self.relative(p))[0]
 
-    # ------------------------------------------------------------------ the step
-    def step(
-        self, p: torch.Tensor, v: torch.Tensor, acc: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step from positions/velocities ``(B, n, 2)`` under accelerations ``(B, n, 2)``."""
-        dt = self.dt
-        if self.contact == "compliant":
-            from hybridoc.solvers.penalty import compliant_step
-
-            return compliant_step(
-                p, v, acc, dt, self.radii, 1.0 / self.masses, self.wall_points,
-                self.wall_normals, stiffness=self.stiffness, damping=self.damping,
-            )  # fmt: skip
-        if self.contact == "pbd":
-            from hybridoc.solvers.penalty import pbd_step
-
-            return pbd_step(
-                p, v, acc, dt, self.radii, 1.0 / self.masses, self.wall_points,
-                self.wall_normals, self.restitution, iterations=self.pbd_iterations,
-            )  # fmt: skip
-        exact = self.integrator == "exact"
-        v_hat = v + acc * dt
-        p_hat = p + (v + 0.5 * acc * dt) * dt if exact else p + v_hat * dt
-        if self.n_contacts == 0:
-            return p_hat, v_hat
-        rel_p_hat = self._relative(p_hat)
-        rel_v_hat = self._relative(v_hat)
-        d_hat, n_hat = self._gap_normal(rel_p_hat)
-        w_hat = (rel_v_hat * n_hat).sum(-1)
-        active = (d_hat < 0) & (w_hat < 0)
-        if not bool(active.any()):
-            return p_hat, v_hat
-        # safe denominator: torch.where does not stop NaN gradients of the unused branch
-        w_safe = torch.where(active, w_hat, -torch.ones_like(w_hat))
-        toi = torch.where(active, torch.clamp(d_hat / w_safe, 0.0, dt), torch.zeros_like(w_hat))
-        if exact:
-            rel_p, rel_v, rel_a = self._relative(p), self._relative(v), self._relative(acc)
-            tau = self._impact_time(rel_p, rel_v, rel_a, dt - toi, active)
-            toi = torch.where(active, dt - tau, torch.zeros_like(tau))
-            t_ = tau[..., None]
-            _, nrm = self._gap_normal(rel_p + (rel_v + 0.5 * rel_a * t_) * t_)
-            w = ((rel_v + rel_a * t_) * nrm).sum(-1)
-        elif self.toi in ("velocity", "both"):
-            tau = (dt - toi)[..., None]
-            rel_p_bar = self._relative(p) + tau * rel_v_hat
-            rel_v_bar = self._relative(v) + tau * self._relative(acc)
-            _, nrm = self._gap_normal(rel_p_bar)
-            w = (rel_v_bar * nrm).sum(-1)
-        else:
-            nrm, w = n_hat, w_hat
-        inv_m = 1.0 / self.masses
-        if self.impulse == "direct":
-            W_diag = (self._S**2) @ inv_m  # (C,): 1/m_i + 1/m_j or 1/m_i
-            approaching = active & (w < 0)
-            lam = torch.where(
-                approaching, -(1.0 + self.restitution) * w / W_diag, torch.zeros_like(w)
-            )
-        else:
-            from hybridoc.solvers.impulses import solve_impulses
-
-            J = self._S[None, :, :, None] * nrm[:, :, None, :]  # (B, C, n, 2)
-            W = torch.einsum("bcka,k,bdka->bcd", J, inv_m, J)
-            lam = solve_impulses(self.impulse, W, w, active, self.restitution)
-        # velocity change of each contact on each disc: (B, C, n, 2)
-        dv_c = (lam[..., None, None] * self._S[None, :, :, None]) * nrm[:, :, None, :]
-        dv_c = dv_c * inv_m[:, None]
-        v_next = v_hat + dv_c.sum(1)
-        p_next = p_hat
-        if self.toi in ("position", "both"):
-            p_next = p_hat + (toi[..., None, None] * dv_c).sum(1)
-        return p_next, v_next
-
-    def _impact_time(
+    def impact_time(
         self,
         rel_p: torch.Tensor,
         rel_v: torch.Tensor,
@@ -369,23 +312,50 @@ class Simulator(torch.nn.Module):
         tau: torch.Tensor,
         active: torch.Tensor,
     ) -> torch.Tensor:
-        """Newton refinement of the contact time ``tau`` (after the step start) on the exact
-        flow ``D(t) = D_p + D_v t + D_a t^2 / 2`` of the relative position: the root of
-        ``|D|^2 - R^2`` (pairs) or ``(D - a) . n - r`` (walls), clipped to ``[0, dt]``."""
-        P = self.n_pairs
-        R = self.radii[self._pair_i] + self.radii[self._pair_j]
-        nw = self.wall_normals[self._wall_idx]
-        off = (self.wall_points[self._wall_idx] * nw).sum(-1) + self.radii[self._wall_disc]
-        for _ in range(NEWTON_ITERATIONS):
-            t_ = tau[..., None]
-            D = rel_p + (rel_v + 0.5 * rel_a * t_) * t_
-            dD = rel_v + rel_a * t_
-            g = torch.cat([(D[:, :P] ** 2).sum(-1) - R**2, (D[:, P:] * nw).sum(-1) - off], 1)
-            dg = torch.cat([2 * (D[:, :P] * dD[:, :P]).sum(-1), (dD[:, P:] * nw).sum(-1)], 1)
-            ok = active & (dg < 0)
-            dg = torch.where(ok, dg, -torch.ones_like(dg))
-            tau = torch.where(ok, torch.clamp(tau - g / dg, 0.0, self.dt), tau)
-        return tau
+        """Newton refinement of the contact time ``tau`` on the exact flow of the relative
+        positions (:func:`hybridoc.problems.physics.refine_impact_time`)."""
+        ops, P, dt = ph.TORCH, self.n_pairs, self.dt
+        parts = []
+        if P:
+            R = self.radii[self._pair_i] + self.radii[self._pair_j]
+            parts.append(
+                ph.refine_impact_time(
+                    rel_p[:, :P],
+                    rel_v[:, :P],
+                    rel_a[:, :P],
+                    tau[:, :P],
+                    active[:, :P],
+                    dt,
+                    ops,
+                    R=R,
+                    iterations=NEWTON_ITERATIONS,
+                )  # fmt: skip
+            )
+        if self.n_wall_contacts:
+            nw = self.wall_normals[self._wall_idx]
+            off = (self.wall_points[self._wall_idx] * nw).sum(-1) + self.radii[self._wall_disc]
+            parts.append(
+                ph.refine_impact_time(
+                    rel_p[:, P:],
+                    rel_v[:, P:],
+                    rel_a[:, P:],
+                    tau[:, P:],
+                    active[:, P:],
+                    dt,
+                    ops,
+                    normal=nw,
+                    offset=off,
+                    iterations=NEWTON_ITERATIONS,
+                )  # fmt: skip
+            )
+        return torch.cat(parts, 1)
+
+    # ------------------------------------------------------------------ the step
+    def step(
+        self, p: torch.Tensor, v: torch.Tensor, acc: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step from positions/velocities ``(B, n, 2)`` under accelerations ``(B, n, 2)``."""
+        return self.model.torch_step(self, p, v, acc)
 
     # ------------------------------------------------------------------ rollout and loss
     def _initial(self, x0: Any, batch: int) -> torch.Tensor:

@@ -23,6 +23,7 @@ reference to round-off.
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -31,12 +32,13 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.errors import ConvergenceError, HybridocError
-from hybridoc.evaluator import Evaluation, as_ocp, evaluate
+from hybridoc.evaluation import Evaluation
+from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
+from hybridoc.problem import as_ocp
 
 __all__ = [
     "DTResult",
-    "cli_solve_dt",
     "control_function",
     "resample_controls",
     "solve_dt",
@@ -44,7 +46,7 @@ __all__ = [
 ]
 
 _DEFAULT_MESH = 4
-_CACHE_KEY = "solvers.transcription"
+_NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
 # ----------------------------------------------------------------------------------------
@@ -238,7 +240,7 @@ class _PhaseNLP:
 
 
 def _nlp_for(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> _PhaseNLP:
-    cache = ocp._cache.setdefault(_CACHE_KEY, {})
+    cache = _NLPS.setdefault(ocp, {})
     key = (tuple(guards), degree, tuple(mesh))
     if key not in cache:
         cache[key] = _PhaseNLP(ocp, guards, degree, mesh)
@@ -779,71 +781,3 @@ def resample_controls(solution: Any, grid: np.ndarray) -> np.ndarray:
     """
     pp = _PiecewisePolynomial(solution)
     return _cell_averages(pp.at, pp.eb, np.asarray(grid, dtype=float))
-
-
-def cli_solve_dt(args: Any) -> int:
-    """``hybridoc solve SCENE --method dt [--json] [--out DIR]``.
-
-    Prints the cost parts, the events and the solve time (one JSON object with ``--json``:
-    keys ``cost``, ``terminal_cost``, ``running_cost``, ``events``, ``solve_time_s``,
-    ``sequence``, ``nlp_cost``); ``--out DIR`` writes ``DIR/solution.npz`` + ``.json`` and the
-    trajectory and control figures.
-    """
-    from hybridoc.cli_util import emit_json, ensure_dir, resolve_scene, say
-
-    scene = resolve_scene(args.scene)
-    seq = getattr(args, "sequence", None)
-    if isinstance(seq, str):
-        seq = [x.strip() for x in seq.split(",") if x.strip()]
-    sol = solve_dt(scene, sequence=seq)
-    written = []
-    if getattr(args, "out", None) is not None:
-        from hybridoc.plotting import plot_controls, plot_scene, save_figure
-
-        out = ensure_dir(args.out)
-        sol.save(out / "solution")
-        written += [out / "solution.npz", out / "solution.json"]
-        ev = evaluate(scene, sol.controls)
-        written.append(
-            save_figure(
-                plot_scene(
-                    scene, ev, title=f"{scene.name}: direct transcription, J = {sol.cost:.8g}"
-                ),
-                out / "dt_trajectory.png",
-            )
-        )
-        written.append(
-            save_figure(
-                plot_controls(
-                    scene.time_grid(),
-                    {"dt (cell averages)": sol.controls},
-                    scene.control_labels(),
-                    title=f"{scene.name}: direct transcription controls",
-                ),
-                out / "dt_controls.png",
-            )
-        )
-    payload = {
-        "method": "dt",
-        "scene": scene.name,
-        "cost": sol.cost,
-        "terminal_cost": sol.terminal_cost,
-        "running_cost": sol.running_cost,
-        "events": sol.events,
-        "solve_time_s": sol.timings["solve_time_s"],
-        "sequence": sol.info["sequence"],
-        "nlp_cost": sol.info["nlp_cost"],
-    }
-    if getattr(args, "json", False):
-        emit_json(payload)
-    else:
-        say(args, f"{scene.name}: direct transcription (LGR degree 3)")
-        say(args, f"  cost          {sol.cost:.12g}")
-        say(args, f"  terminal cost {sol.terminal_cost:.12g}")
-        say(args, f"  running cost  {sol.running_cost:.12g}")
-        for e in sol.events:
-            say(args, f"  event t = {e['time']:.10f}  {e['kind']}  {'|'.join(e['bodies'])}")
-        say(args, f"  solve time    {sol.timings['solve_time_s']:.3f} s")
-    for p in written:
-        say(args, f"wrote {p}")
-    return 0

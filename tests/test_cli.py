@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import textwrap
 
 import numpy as np
 import pytest
@@ -91,12 +90,11 @@ def test_gradient_json_equals_library(tmp_path, single):
         ok(run(tmp_path, "gradient", "single-collision", "--controls", "u.npy", "--json")).stdout
     )
     g = hybridoc.gradient(single, u)
-    pos = np.array(data["d_cost_d_initial_position"])
-    vel = np.array(data["d_cost_d_initial_velocity"])
+    lam0 = np.array(data["d_cost_d_initial_state"])
     du = np.array(data["d_cost_d_controls"])
-    assert pos.shape == (2, 2) and vel.shape == (2, 2) and du.shape == (480, 2)
-    assert np.array_equal(pos.ravel(), g.d_initial_state[:4])
-    assert np.array_equal(vel.ravel(), g.d_initial_state[4:])
+    assert lam0.shape == (8,) and du.shape == (480, 2)
+    assert data["state_labels"][:2] == ["ball1.x", "ball1.y"]
+    assert np.array_equal(lam0, g.d_initial_state)
     assert np.array_equal(du, g.d_controls)
     assert data["cost"] == g.cost
 
@@ -106,9 +104,10 @@ def test_evaluate_out_json_mode(tmp_path):
     data = json.loads(proc.stdout)  # the "wrote ..." lines went to stderr
     assert "wrote" in proc.stderr
     res = tmp_path / "res"
-    for name in ("solution.npz", "solution.json", "trajectory.png", "controls.png"):
-        assert (res / name).stat().st_size > 0
-    sol = Solution.load(res / "solution")
+    stem = "multiple-collision_evaluate"
+    for name in (".npz", ".json", "_trajectory.png", "_controls.png"):
+        assert (res / f"{stem}{name}").stat().st_size > 0
+    sol = Solution.load(res / stem)
     assert sol.method == "evaluate" and sol.scene == "multiple-collision"
     assert sol.cost == data["cost"] and sol.events == data["events"]
     scene = hybridoc.load_scene("multiple-collision")
@@ -122,7 +121,7 @@ BAD_SCENE = "horizon = 1.0\n[[discs]\nname = 'a'\n"
 @pytest.mark.parametrize(
     ("args", "setup", "message"),
     [
-        (["evaluate", "no-such-scene"], None, "unknown scene 'no-such-scene'"),
+        (["evaluate", "no-such-scene"], None, "unknown problem 'no-such-scene'"),
         (["evaluate", "bad.toml"], "toml", "not valid TOML"),
         (["evaluate", "single-collision", "--controls", "u.npy"], "short", r"\(480, 2\)"),
         (["gradient", "single-collision", "--controls", "u.npy", "--json"], "nan", "non-finite"),
@@ -153,37 +152,36 @@ def test_user_errors(tmp_path, args, setup, message):
 def test_demo_in_process(tmp_path, capsys):
     assert cli.main(["demo", "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    for name in cli.DEMO_SCENES:
+    from hybridoc.cli.evaluate import DEMO_SCENES
+
+    for name in DEMO_SCENES:
         cost = hybridoc.evaluate(hybridoc.load_scene(name)).cost
         assert name in out and f"{cost:.6f}" in out
         for kind in ("trajectory", "controls"):
-            png = tmp_path / "out" / f"{name}_{kind}.png"
+            png = tmp_path / "out" / f"{name}_demo_{kind}.png"
             assert png.stat().st_size > 0 and str(png) in out
 
 
-def test_plugins(tmp_path, monkeypatch, capsys):
-    (tmp_path / "hyb_good_plugin.py").write_text(
-        textwrap.dedent(
-            """
-            def register(subparsers):
-                p = subparsers.add_parser("hello")
-                p.add_argument("--json", action="store_true")
-                p.set_defaults(func=lambda args: print("hi from plugin") or 0)
-            """
-        )
-    )
-    (tmp_path / "hyb_broken_plugin.py").write_text("import hyb_no_such_dependency\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(cli, "PLUGINS", ("hyb_missing_plugin", "hyb_good_plugin"))
-    assert cli.main(["hello"]) == 0
-    assert capsys.readouterr().out == "hi from plugin\n"
-    monkeypatch.setattr(cli, "PLUGINS", ("hyb_broken_plugin",))
-    with pytest.raises(ModuleNotFoundError, match="hyb_no_such_dependency"):
-        cli.build_parser()
+def test_a_registered_method_is_a_solve_choice(capsys):
+    """A new solver is one registration: ``hybridoc solve --method`` reads the registry."""
+    from hybridoc.solvers import registry
+
+    def run_guess(ocp, *, initial=None):
+        ev = hybridoc.evaluate(ocp, initial)
+        return Solution.from_evaluation(ev, method="guess", scene=ocp.name)
+
+    registry.register_method(registry.Method("guess", "the initial guess", run_guess))
+    try:
+        assert cli.main(["solve", "head-on", "--method", "guess", "--json"]) == 0
+        data = json.loads(capsys.readouterr().out)
+        assert data["method"] == "guess" and data["status"] == "success"
+        assert data["cost"] == hybridoc.evaluate("head-on").cost
+    finally:
+        del registry.METHODS["guess"]
 
 
 def test_usage_error_exits_2(capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(["evaluate"])
     assert info.value.code == 2
-    assert "required: SCENE" in capsys.readouterr().err
+    assert "required: PROBLEM" in capsys.readouterr().err

@@ -17,7 +17,7 @@ from hybridoc.solvers.simulator import Simulator
 
 def test_plain_gd_history_and_final_loss() -> None:
     sc = hybridoc.load_scene("single-collision")
-    sol = solve_gd(sc, optimizer="gd", iters=5)
+    sol = solve_gd(sc, optimizer="gd", iters=5, integrator="symplectic-euler")
     hist = sol.arrays["loss_history"]
     assert len(hist) == 6 and sol.info["iterations"] == 5
     sim = Simulator(sc)
@@ -30,16 +30,22 @@ def test_plain_gd_history_and_final_loss() -> None:
 
 
 def test_compiled_and_torch_paths_agree() -> None:
-    a = solve_gd("multiple-collision", optimizer="gd", iters=4, path="compiled")
-    b = solve_gd("multiple-collision", optimizer="gd", iters=4, path="torch")
-    np.testing.assert_allclose(a.controls, b.controls, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(a.arrays["loss_history"], b.arrays["loss_history"], rtol=1e-12)
-    assert a.settings["path"] == "compiled" and b.settings["path"] == "torch"
+    for integrator in ("symplectic-euler", "exact"):
+        a = solve_gd(
+            "multiple-collision", optimizer="gd", iters=4, path="compiled", integrator=integrator
+        )
+        b = solve_gd(
+            "multiple-collision", optimizer="gd", iters=4, path="torch", integrator=integrator
+        )
+        np.testing.assert_allclose(a.controls, b.controls, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(a.arrays["loss_history"], b.arrays["loss_history"], rtol=1e-12)
+        assert a.settings["path"] == "compiled" and b.settings["path"] == "torch"
 
 
 def test_nan_stops_early_and_keeps_best() -> None:
-    with pytest.warns(RuntimeWarning, match="best iterate"):
-        sol = solve_gd("single-collision", optimizer="gd", lr=1e200, iters=20)
+    sol = solve_gd("single-collision", optimizer="gd", lr=1e200, iters=20)
+    assert sol.status is hybridoc.Status.NOT_CONVERGED and not sol.success
+    assert "best iterate" in sol.message
     assert sol.info["nan_stop"] is True
     assert "stopped early" in sol.info["message"]
     assert np.isfinite(sol.controls).all() and np.isfinite(sol.cost)
@@ -59,7 +65,8 @@ def test_callback_can_stop() -> None:
 
 
 def test_lbfgs_single_collision() -> None:
-    sol = solve_gd("single-collision")  # direct + both, L-BFGS with the smoothing continuation
+    # the paper's symplectic Euler, direct + both, L-BFGS with the smoothing continuation
+    sol = solve_gd("single-collision", integrator="symplectic-euler")
     assert [st["mu"] for st in sol.info["stages"]] == [1e-4, 1e-5, 1e-6]
     # The reference optimum is 0.311417; the paper's plain gd ends at 0.3151 (its Table 1).
     assert sol.info["loss"] < 0.3140
@@ -94,7 +101,7 @@ def test_bad_arguments() -> None:
     with pytest.raises(SceneError, match="lr"):
         solve_gd("head-on", lr=-1.0)
     with pytest.raises(ControlsError, match="initial controls"):
-        solve_gd("head-on", initial_controls=np.zeros((3, 2)))
+        solve_gd("head-on", initial=np.zeros((3, 2)))
 
 
 def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
@@ -102,9 +109,10 @@ def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr()
     assert rc == 0
     data = json.loads(out.out)
-    for key in ("loss", "cost", "iterations", "time_s", "loss_history", "events"):
+    for key in ("problem", "method", "status", "success", "cost", "events", "timings", "info"):
         assert key in data
-    assert data["iterations"] == 3 and len(data["loss_history"]) == 4
+    assert data["method"] == "gd" and data["status"] == "success" and data["success"] is True
+    assert data["info"]["iterations"] == 3 and "loss" in data["info"]
     assert "gd/gd" in out.err  # the progress bar goes to stderr
 
 

@@ -1,4 +1,4 @@
-"""Tests of ``hybridoc gradcheck`` / ``compare-contacts`` (hybridoc.solvers.cli_contacts)."""
+"""Tests of ``hybridoc gradcheck`` / ``compare-contacts`` (hybridoc.solvers.gradcheck)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import pytest
 
 import hybridoc
 from hybridoc.cli import main
-from hybridoc.solvers.cli_contacts import CONTACT_MODELS, ContactModel, gradient_errors
+from hybridoc.solvers.contacts import contact_model
+from hybridoc.solvers.gradcheck import compared_models, gradient_errors
 
 
 @pytest.fixture(scope="module")
@@ -24,8 +25,8 @@ def test_toi_both_gradient_beats_plain_direct(single):
     # the paper's claim, measured: with the TOI corrections the discrete gradient is much
     # closer to the exact gradient of the continuous cost
     scene, u, exact = single
-    both = gradient_errors(scene, u, ContactModel("d/b", "direct", "both"), exact)
-    none = gradient_errors(scene, u, ContactModel("d/n", "direct", "none"), exact)
+    both = gradient_errors(scene, u, contact_model("direct/both"), exact)
+    none = gradient_errors(scene, u, contact_model("direct", toi="none"), exact)
     for key in ("err_position", "err_velocity", "err_controls"):
         assert both[key] < 0.2 * none[key]
     assert both["err_controls"] < 0.01
@@ -77,9 +78,10 @@ def test_cli_compare_contacts_json_and_figures(capsys, tmp_path):
     direct = out["models"][0]
     assert direct["loss_history"][-1] < direct["loss_history"][0]
     assert direct["cost"] == pytest.approx(direct["loss"], rel=0.01)
-    assert (tmp_path / "learning_curves.png").stat().st_size > 0
-    assert (tmp_path / "learned_controls.png").stat().st_size > 0
-    sol = hybridoc.Solution.load(tmp_path / "gd_direct_both")
+    stem = "single-collision_compare-contacts"
+    assert (tmp_path / f"{stem}_learning_curves.png").stat().st_size > 0
+    assert (tmp_path / f"{stem}_controls.png").stat().st_size > 0
+    sol = hybridoc.Solution.load(tmp_path / f"{stem}_direct-both")
     assert np.isfinite(sol.controls).all()
 
 
@@ -89,5 +91,5 @@ def test_cli_unknown_model_is_a_user_error(capsys):
 
 
 def test_models_cover_the_paper_list():
-    names = {m.name for m in CONTACT_MODELS}
+    names = {m.label for m in compared_models()}
     assert {"direct/none", "direct/both", "lcp/both", "convex/both", "compliant", "pbd"} <= names

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from hybridoc.errors import HybridocError
-from hybridoc.solvers.penalty import compliant_step, damping_for_restitution, pbd_step
+from hybridoc.solvers.contacts.compliant import compliant_step, damping_for_restitution
+from hybridoc.solvers.contacts.pbd import pbd_step
 
 F64 = torch.float64
 DT = 1.0 / 480.0

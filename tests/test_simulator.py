@@ -11,7 +11,8 @@ from hybridoc.errors import ControlsError, SceneError
 from hybridoc.problems import Disc, Scene, Wall
 from hybridoc.solvers.casadi_step import make_step
 from hybridoc.solvers.compiled import CompiledLoss
-from hybridoc.solvers.simulator import TOI_MODES, Simulator
+from hybridoc.solvers.contacts import TOI_MODES
+from hybridoc.solvers.simulator import Simulator
 
 F64 = torch.float64
 
@@ -83,7 +84,7 @@ def test_no_contact_is_symplectic_euler() -> None:
 def test_momentum_conserved_unequal_masses(impulse: str, toi: str) -> None:
     sc = hybridoc.load_scene("three-disc-chain")
     u = torch.tensor(sc.initial_controls())
-    states = Simulator(sc, impulse=impulse, toi=toi).rollout(u)[0].numpy()
+    states = Simulator(sc, contact=impulse, toi=toi).rollout(u)[0].numpy()
     m = np.repeat([d.mass for d in sc.discs], 2)
     mom = (states[:, 6:] * m).reshape(-1, 3, 2).sum(1)
     # only the striker's force changes the total momentum
@@ -214,7 +215,7 @@ def test_input_errors() -> None:
     with pytest.raises(SceneError, match="contact"):
         Simulator(sc, contact="glue")
     with pytest.raises(SceneError, match="direct"):
-        make_step(sc, impulse="lcp")
+        make_step(sc, contact="lcp")
     with pytest.raises(ControlsError, match="shape"):
         CompiledLoss(sc).value(np.zeros((3, 2)))
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import hybridoc
-from hybridoc.validation import (
+from hybridoc.solvers.validation import (
     _orders,
     control_errors,
     convergence,
@@ -45,9 +45,9 @@ def test_control_errors_closed_form():
 
 
 def test_event_comparison():
-    a = [{"time": 0.5, "kind": "disc-disc", "bodies": ["a", "b"]}]
-    b = [{"time": 0.4, "kind": "disc-disc", "bodies": ["a", "b"]}]
-    c = [{"time": 0.5, "kind": "disc-wall", "bodies": ["a", "w"]}]
+    a = [{"time": 0.5, "kind": "disc-disc", "bodies": ["a", "b"], "guard": "a|b"}]
+    b = [{"time": 0.4, "kind": "disc-disc", "bodies": ["a", "b"], "guard": "a|b"}]
+    c = [{"time": 0.5, "kind": "disc-wall", "bodies": ["a", "w"], "guard": "a|w"}]
     assert event_comparison(a, b)["time_errors"] == pytest.approx([0.1])
     assert event_comparison(a, c) == {
         "sequence_matches": False,
@@ -137,7 +137,8 @@ def test_crossval_cli_json(tmp_path):
     res = _cli("crossval", SCENE, "--json", "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr
     data = json.loads(res.stdout)
-    assert set(data) >= {"reference", "dt", "gd"}
+    assert set(data) >= {"reference", "dt", "gd", "agree", "reasons"}
+    assert data["agree"] is True and data["reasons"] == []
     assert data["reference"]["cost_gap_relative"] == 0.0
     assert abs(data["dt"]["cost_gap_relative"]) < 1e-6
     # no control beats the optimum; the gap is what the entry says it is
@@ -153,9 +154,9 @@ def test_crossval_cli_json(tmp_path):
 def test_crossval_multiple_collision_local_and_global_gaps():
     """gd (exact flow, lbfgs) from the paper's guess lands in the two-event basin: within 0.25%
     of that sequence's HMP extremal, and about 4.9% above the three-event reference."""
-    from hybridoc.validation import crossval
+    from hybridoc.solvers.validation import crossval
 
-    report, _ = crossval("multiple-collision", gd_options={"integrator": "exact"})
+    report, _ = crossval("multiple-collision", options={"gd": {"starts": 1}})
     ref, dt, gd = report["reference"], report["dt"], report["gd"]
     assert len(ref["events"]) == 3
     assert abs(dt["cost_gap_relative"]) < 1e-6 and dt["sequence_matches"]
@@ -166,3 +167,6 @@ def test_crossval_multiple_collision_local_and_global_gaps():
         (gd["cost"] - ref["cost"]) / ref["cost"], rel=1e-12
     )
     assert gd["cost_gap_relative"] > 0.04
+    # a disagreement is a finding, with the reason
+    assert report["agree"] is False
+    assert any("gd is" in r and "another local optimum" in r for r in report["reasons"])

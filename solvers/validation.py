@@ -1,13 +1,13 @@
 """Validation against the HMP reference: user controls, cross-validation, convergence.
 
-Three reports, each a JSON-ready dict (the CLI in :mod:`hybridoc.validation_cli` prints
-them) plus figures:
+Three reports, each a JSON-ready dict plus figures:
 
 - :func:`validate_controls`: the true continuous cost of a user's piecewise-constant control
-  (event-exact evaluator), its relative gap to the reference optimum, control errors on the
-  grid, and whether its events are the reference's.
-- :func:`crossval`: the reference, the direct transcription and gradient descent on one
-  scene, each measured against the reference.
+  (the judge), its relative gap to the reference optimum, control errors on the grid, and
+  whether its events are the reference's.
+- :func:`crossval`: every registered method (:mod:`hybridoc.solvers.registry`) on one
+  problem, each measured against the reference; disagreements are findings (``agree`` false
+  with the reasons), not table rows.
 - :func:`convergence`: costs of the transcription's control sampled on grids of N cells and
   of gradient descent at each N, errors against the reference and observed orders.
 
@@ -21,16 +21,19 @@ from __future__ import annotations
 import math
 import numbers
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from hybridoc.errors import SceneError
-from hybridoc.evaluator import Evaluation, evaluate
+from hybridoc.errors import HybridocError, SceneError
+from hybridoc.evaluator import evaluate
+from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.solution import Solution
 
 __all__ = [
     "DEFAULT_STEPS",
+    "TOLERANCES",
     "control_errors",
     "convergence",
     "convergence_figure",
@@ -39,28 +42,21 @@ __all__ = [
     "event_comparison",
     "method_entry",
     "validate_controls",
-    "validation_figure",
+    "validation_figures",
 ]
 
 #: Grid sizes of the convergence study.
 DEFAULT_STEPS: tuple[int, ...] = (60, 120, 240, 480, 960)
 
-
-def _scene(scene: Any) -> Any:
-    from hybridoc.problems import load_scene
-
-    return load_scene(scene)
+TOLERANCES: dict[str, float] = {"reference": 1e-9, "dt": 1e-6, "gd": 5e-3}
+"""Relative cost gap to the reference within which a method agrees with it: the reference
+itself to its shooting accuracy, the transcription (exact for polynomial optima) to 1e-6,
+gradient descent (a discretised control) to 0.5%. Any other method: :data:`DEFAULT_TOLERANCE`."""
+DEFAULT_TOLERANCE = 5e-3
 
 
 def control_errors(controls: np.ndarray, reference: np.ndarray, dt: float) -> dict[str, float]:
     """Grid L2 and max errors of ``(N, nu)`` controls against the reference's.
-
-    Parameters
-    ----------
-    controls, reference
-        ``(N, nu)`` arrays on the same grid.
-    dt
-        Grid step.
 
     Returns
     -------
@@ -71,19 +67,16 @@ def control_errors(controls: np.ndarray, reference: np.ndarray, dt: float) -> di
     return {"l2": float(np.sqrt(np.sum(diff**2) * dt)), "max": float(np.abs(diff).max())}
 
 
+def _event_key(e: Mapping[str, Any]) -> str:
+    return str(e.get("guard") or "|".join(e.get("bodies", [])))
+
+
 def event_comparison(
-    events: Sequence[dict[str, Any]], reference: Sequence[dict[str, Any]]
+    events: Sequence[Mapping[str, Any]], reference: Sequence[Mapping[str, Any]]
 ) -> dict[str, Any]:
-    """Whether two event lists have the same sequence, and the time errors if they do.
-
-    Events are compared by kind and bodies in time order. ``time_errors`` (``t - t*``) is
-    ``None`` when the sequences differ.
-    """
-
-    def key(e: dict[str, Any]) -> tuple[str, tuple[str, ...]]:
-        return (str(e["kind"]), tuple(e["bodies"]))
-
-    same = [key(e) for e in events] == [key(e) for e in reference]
+    """Whether two event lists have the same sequence (guards in time order), and the time
+    errors if they do (``None`` when the sequences differ)."""
+    same = [_event_key(e) for e in events] == [_event_key(e) for e in reference]
     errs = (
         [float(e["time"] - r["time"]) for e, r in zip(events, reference, strict=True)]
         if same
@@ -96,16 +89,22 @@ def event_comparison(
     }
 
 
-def method_entry(sol: Any, ref: Any, *, wall_time_s: float | None = None) -> dict[str, Any]:
+def method_entry(
+    sol: Solution, ref: Solution, *, wall_time_s: float | None = None
+) -> dict[str, Any]:
     """The cross-validation row of one Solution measured against the reference Solution."""
     dt = float(sol.time_grid[1] - sol.time_grid[0])
     ev = event_comparison(sol.events, ref.events)
     out: dict[str, Any] = {
+        "status": sol.status.value,
+        "success": sol.success,
+        "message": sol.message,
         "cost": float(sol.cost),
         "terminal_cost": float(sol.terminal_cost),
         "running_cost": float(sol.running_cost),
-        "cost_gap_relative": float((sol.cost - ref.cost) / ref.cost),
+        "cost_gap_relative": float((sol.cost - ref.cost) / abs(ref.cost)) if ref.cost else 0.0,
         "events": list(sol.events),
+        "sequence": sol.sequence,
         "event_times": [float(e["time"]) for e in sol.events],
         "sequence_matches": ev["sequence_matches"],
         "event_time_errors": ev["time_errors"],
@@ -120,15 +119,17 @@ def method_entry(sol: Any, ref: Any, *, wall_time_s: float | None = None) -> dic
 
 
 # ---------------------------------------------------------------------------- validate
-def validate_controls(scene: Any, controls: Any, *, reference: Any = None) -> dict[str, Any]:
+def validate_controls(
+    problem: ProblemLike, controls: Any, *, reference: Solution | None = None
+) -> dict[str, Any]:
     """Judge a user's piecewise-constant control against the reference optimum.
 
     Parameters
     ----------
-    scene
-        A Scene, a built-in name or a TOML path.
+    problem
+        Any problem.
     controls
-        ``(N, nu)`` array (validated: shape, finiteness; :class:`~hybridoc.ControlsError`).
+        ``(N, nu)`` array or a Solution (validated: shape, finiteness).
     reference
         The reference Solution; solved when not given.
 
@@ -137,147 +138,156 @@ def validate_controls(scene: Any, controls: Any, *, reference: Any = None) -> di
     dict
         ``cost``, ``terminal_cost``, ``running_cost``, ``reference_cost``,
         ``cost_gap_relative`` (``(J - J*) / J*``), ``control_error`` (``l2``, ``max``),
-        ``events``, ``reference_events``, ``sequence_matches``, ``event_time_errors``.
+        ``events``, ``reference_events``, ``sequence_matches``, ``event_time_errors``,
+        ``reference_status``, ``feasible``.
     """
-    scene = _scene(scene)
-    ocp = scene.to_ocp()
-    u = ocp.check_controls(controls)
-    if reference is None:
-        from hybridoc.reference import solve_reference
+    from hybridoc.solvers.registry import solve
 
-        reference = solve_reference(scene)
+    ocp = as_ocp(problem)
+    u = ocp.check_controls(getattr(controls, "controls", controls))
+    if reference is None:
+        reference = solve(ocp, "reference")
     ev = evaluate(ocp, u)
     events = ev.event_dicts()
     cmp = event_comparison(events, reference.events)
     return {
-        "scene": scene.name,
+        "problem": ocp.name,
         "cost": float(ev.cost),
         "terminal_cost": float(ev.terminal_cost),
         "running_cost": float(ev.running_cost),
         "reference_cost": float(reference.cost),
-        "cost_gap_relative": float((ev.cost - reference.cost) / reference.cost),
-        "control_error": control_errors(u, reference.controls, scene.dt),
+        "reference_status": reference.status.value,
+        "cost_gap_relative": float((ev.cost - reference.cost) / abs(reference.cost)),
+        "control_error": control_errors(u, reference.controls, ocp.dt),
         "events": events,
         "reference_events": list(reference.events),
         "sequence_matches": cmp["sequence_matches"],
         "event_time_errors": cmp["time_errors"],
+        "feasible": ev.feasible,
     }
 
 
-def validation_figure(scene: Any, controls: np.ndarray, reference: Any, *, label: str = "user"):
-    """Two figures: controls (user vs reference) and the two trajectories overlaid."""
-    from hybridoc.plotting import plot_controls
+def validation_figures(
+    problem: ProblemLike, controls: np.ndarray, reference: Solution, *, label: str = "user"
+) -> dict[str, Any]:
+    """Figures ``controls`` (user vs reference) and ``trajectories`` (overlaid)."""
+    from hybridoc.plotting import plot_controls, plot_trajectories
 
-    scene = _scene(scene)
-    ev_user = evaluate(scene, controls)
+    ocp = as_ocp(problem)
+    ev_user = evaluate(ocp, controls)
     fig_u = plot_controls(
-        scene.time_grid(),
+        ocp.time_grid(),
         {"reference": reference.controls, label: controls},
-        scene.control_labels(),
-        title=f"{scene.name}: {label} control vs reference",
+        list(ocp.control_labels or []),
+        title=f"{ocp.name}: {label} control vs reference",
         event_times={
             "reference": [e["time"] for e in reference.events],
             label: [e.time for e in ev_user.events],
         },
     )
-    fig_x = _trajectory_overlay(
-        scene,
-        {"reference": evaluate(scene, reference.controls), label: ev_user},
-        title=f"{scene.name}: {label} trajectory vs reference",
+    fig_x = plot_trajectories(
+        ocp,
+        {"reference": evaluate(ocp, reference.controls), label: ev_user},
+        title=f"{ocp.name}: {label} trajectory vs reference",
     )
-    return fig_u, fig_x
-
-
-def _trajectory_overlay(scene: Any, evals: dict[str, Evaluation], *, title: str):
-    """The scene drawn with the first evaluation, the others' disc paths overlaid."""
-    from matplotlib.lines import Line2D
-
-    from hybridoc.plotting import _path_states, plot_scene
-
-    names = list(evals)
-    fig = plot_scene(scene, evals[names[0]], title=title)
-    ax = fig.axes[0]
-    styles = ["--", ":", "-."]
-    n = scene.n_discs
-    for k, name in enumerate(names[1:]):
-        states = _path_states(evals[name])
-        for i in range(n):
-            ax.plot(
-                states[:, 2 * i],
-                states[:, 2 * i + 1],
-                ls=styles[k % len(styles)],
-                color="k",
-                lw=1.1,
-                alpha=0.8,
-                label=f"{name} paths" if i == 0 else None,
-            )
-    # one legend: plot_scene's entries, then the overlay's. A second legend added with
-    # add_artist is invisible to the constrained layout and gets clipped at the right edge.
-    handles: list[Any] = []
-    labels: list[str] = []
-    old = ax.get_legend()
-    if old is not None:
-        handles += list(old.legend_handles)
-        labels += [t.get_text() for t in old.get_texts()]
-        old.remove()
-    handles.append(Line2D([], [], color="0.3", lw=1.5))
-    labels.append(f"{names[0]} paths (solid)")
-    h2, l2 = ax.get_legend_handles_labels()
-    keep = [(h, lab) for h, lab in zip(h2, l2, strict=True) if lab.endswith(" paths")]
-    handles += [h for h, _ in keep]
-    labels += [lab for _, lab in keep]
-    ax.legend(
-        handles, labels, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
-    )
-    return fig
+    return {"controls": fig_u, "trajectories": fig_x}
 
 
 # ---------------------------------------------------------------------------- crossval
 def crossval(
-    scene: Any, *, gd_options: dict[str, Any] | None = None
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Run the reference, the direct transcription and gradient descent on one scene.
+    problem: ProblemLike,
+    *,
+    methods: Sequence[str] = ("reference", "dt", "gd"),
+    options: Mapping[str, Mapping[str, Any]] | None = None,
+    tolerances: Mapping[str, float] | None = None,
+) -> tuple[dict[str, Any], dict[str, Solution]]:
+    """Run several methods on one problem and measure each against the reference.
 
     Parameters
     ----------
-    scene
-        A Scene, a built-in name or a TOML path.
-    gd_options
-        Extra keyword arguments of :func:`hybridoc.solvers.gd.solve_gd` (default: its
-        default contact model and ``lbfgs``).
+    problem
+        Any problem.
+    methods
+        Registered method names; ``"reference"`` is always run (first).
+    options
+        ``{method: {option: value}}`` passed to :func:`hybridoc.solve`.
+    tolerances
+        ``{method: relative cost gap}`` overriding :data:`TOLERANCES`.
 
     Returns
     -------
     report, solutions
-        ``report``: ``{"scene", "reference": entry, "dt": entry, "gd": entry}`` with the
-        entries of :func:`method_entry`; ``solutions``: the three Solutions.
+        ``report``: ``{"problem", "agree", "reasons", <method>: entry}``; ``agree`` is false
+        when the reference is beaten by another method's true cost, when a method's cost is
+        outside its tolerance of the reference's, when a method failed, or when a method's
+        own status is not a success; ``reasons`` says which. Each entry is
+        :func:`method_entry` plus the gap to the reference extremal of the method's own
+        event sequence (:func:`local_gap`). ``solutions``: the Solutions.
     """
-    from hybridoc.reference import solve_reference
-    from hybridoc.solvers.gd import solve_gd
-    from hybridoc.solvers.transcription import solve_dt
+    from hybridoc.solvers.registry import METHODS, solve
 
-    scene = _scene(scene)
-    sols: dict[str, Any] = {}
+    ocp = as_ocp(problem)
+    names = ["reference"] + [m for m in methods if m != "reference"]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    opts = {k: dict(v) for k, v in (options or {}).items()}
+    tol = {**TOLERANCES, **dict(tolerances or {})}
+    sols: dict[str, Solution] = {}
     walls: dict[str, float] = {}
-    runs = (
-        ("reference", lambda: solve_reference(scene)),
-        ("dt", lambda: solve_dt(scene)),
-        ("gd", lambda: solve_gd(scene, **(gd_options or {}))),
-    )
-    for name, run in runs:
+    errors: dict[str, str] = {}
+    for name in names:
         t0 = time.perf_counter()
-        sols[name] = run()
+        try:
+            sols[name] = solve(ocp, name, **opts.get(name, {}))
+        except HybridocError as exc:
+            if name == "reference":
+                raise
+            errors[name] = str(exc)
         walls[name] = time.perf_counter() - t0
     ref = sols["reference"]
-    report: dict[str, Any] = {"scene": scene.name}
-    for name, sol in sols.items():
+    report: dict[str, Any] = {"problem": ocp.name}
+    reasons: list[str] = []
+    if not ref.success:
+        reasons.append(f"the reference reports {ref.status.value}: {ref.message}")
+    for name in names:
+        if name in errors:
+            report[name] = {"error": errors[name], "wall_time_s": walls[name]}
+            reasons.append(f"{name} failed: {errors[name]}")
+            continue
+        sol = sols[name]
         entry = method_entry(sol, ref, wall_time_s=walls[name])
-        entry.update(local_gap(scene, sol, ref))
+        entry.update(local_gap(ocp, sol, ref))
+        entry["tolerance"] = tol.get(name, DEFAULT_TOLERANCE)
         report[name] = entry
+        if name == "reference":
+            continue
+        gap = entry["cost_gap_relative"]
+        if sol.cost < ref.cost - max(1e-9 * abs(ref.cost), 1e-15):
+            reasons.append(
+                f"{name} beats the reference: cost {sol.cost:.10g} < {ref.cost:.10g} "
+                f"({gap:+.3e}); the reference is not the optimum"
+            )
+        elif gap > entry["tolerance"]:
+            local = entry.get("cost_gap_local_relative")
+            why = (
+                f" (it is within {local:+.2e} of the extremal of its own event sequence "
+                f"{entry['local_reference_sequence']}: another local optimum)"
+                if local is not None and abs(local) <= entry["tolerance"]
+                else ""
+            )
+            reasons.append(
+                f"{name} is {gap:+.3e} above the reference, beyond its tolerance "
+                f"{entry['tolerance']:.0e}{why}"
+            )
+        if not sol.success:
+            reasons.append(f"{name} reports {sol.status.value}: {sol.message}")
+    report["agree"] = not reasons
+    report["reasons"] = reasons
     return report, sols
 
 
-def local_gap(scene: Any, sol: Any, ref: Any) -> dict[str, Any]:
+def local_gap(problem: ProblemLike, sol: Solution, ref: Solution) -> dict[str, Any]:
     """The gap of ``sol`` to the reference extremal with ``sol``'s own event sequence.
 
     Local methods (gradient descent above all) converge to the HMP extremal of the basin
@@ -292,15 +302,14 @@ def local_gap(scene: Any, sol: Any, ref: Any) -> dict[str, Any]:
         ``cost_gap_local_relative``; ``local_reference_error`` instead when the reference
         has no verified extremal for that sequence.
     """
-    from hybridoc.errors import HybridocError
-    from hybridoc.reference import solve_reference
+    from hybridoc.solvers.registry import solve
 
-    sequence = ["|".join(e["bodies"]) for e in sol.events]
+    sequence = sol.sequence
     if event_comparison(sol.events, ref.events)["sequence_matches"]:
         local = ref
     else:
         try:
-            local = solve_reference(scene, sequence=sequence, initial=sol)
+            local = solve(problem, "reference", sequence=sequence, initial=sol)
         except HybridocError as exc:
             return {
                 "local_reference_cost": None,
@@ -311,31 +320,28 @@ def local_gap(scene: Any, sol: Any, ref: Any) -> dict[str, Any]:
     return {
         "local_reference_cost": float(local.cost),
         "local_reference_sequence": sequence,
-        "cost_gap_local_relative": float((sol.cost - local.cost) / local.cost),
+        "cost_gap_local_relative": float((sol.cost - local.cost) / abs(local.cost)),
     }
 
 
-def crossval_figures(scene: Any, sols: dict[str, Any]) -> dict[str, Any]:
+def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict[str, Any]:
     """Figures of a cross-validation: ``controls``, ``trajectories``, ``learning_curve``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from hybridoc.plotting import plot_controls
+    from hybridoc.plotting import plot_controls, plot_trajectories
 
-    scene = _scene(scene)
+    ocp = as_ocp(problem)
     figs: dict[str, Any] = {}
     figs["controls"] = plot_controls(
-        scene.time_grid(),
+        ocp.time_grid(),
         {name: s.controls for name, s in sols.items()},
-        scene.control_labels(),
-        title=f"{scene.name}: controls",
+        list(ocp.control_labels or []),
+        title=f"{ocp.name}: controls",
         event_times={name: [e["time"] for e in s.events] for name, s in sols.items()},
     )
-    evals = {name: evaluate(scene, s.controls) for name, s in sols.items()}
-    figs["trajectories"] = _trajectory_overlay(
-        scene, evals, title=f"{scene.name}: trajectories (reference drawn, others dashed)"
+    evals = {name: evaluate(ocp, s.controls) for name, s in sols.items()}
+    figs["trajectories"] = plot_trajectories(
+        ocp, evals, title=f"{ocp.name}: trajectories (reference drawn, others dashed)"
     )
     gd = sols.get("gd")
     hist = None if gd is None else gd.arrays.get("loss_history")
@@ -349,10 +355,10 @@ def crossval_figures(scene: Any, sols: dict[str, Any]) -> dict[str, Any]:
         ax.axhline(ref_cost, color="k", ls="--", lw=1, label=f"reference optimum {ref_cost:.6f}")
         ax.set_yscale("log")
         ax.set_ylabel("loss")
-        ax.set_title(f"{scene.name}: gradient descent learning curve")
+        ax.set_title(f"{ocp.name}: gradient descent learning curve")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
-        gap = (hist - ref_cost) / ref_cost
+        gap = (hist - ref_cost) / abs(ref_cost)
         ax2.semilogy(it[gap > 0], gap[gap > 0], lw=1.4, color="C1")
         ax2.set_xlabel("iteration")
         ax2.set_ylabel("(loss - J*) / J*")
@@ -375,7 +381,7 @@ def _orders(steps: Sequence[int], errors: Sequence[float]) -> list[float | None]
 
 
 def convergence(
-    scene: Any,
+    problem: ProblemLike,
     *,
     steps: Sequence[int] = DEFAULT_STEPS,
     gd_options: dict[str, Any] | None = None,
@@ -392,38 +398,36 @@ def convergence(
     Returns
     -------
     dict
-        ``scene``, ``steps``, ``reference_cost``, ``dt`` and ``gd`` with lists ``cost``,
+        ``problem``, ``steps``, ``reference_cost``, ``dt`` and ``gd`` with lists ``cost``,
         ``error`` (``|J_N - J*| / J*``) and ``order`` (observed, against N).
     """
-    from hybridoc.reference import solve_reference
-    from hybridoc.solvers.transcription import resample_controls, solve_dt
+    from hybridoc.solvers.registry import solve
+    from hybridoc.solvers.transcription import resample_controls
 
-    scene = _scene(scene)
+    ocp = as_ocp(problem)
     steps = tuple(steps)
     if not steps or not all(
         isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 1 for n in steps
     ):
         raise SceneError(f"steps must be a non-empty list of integers >= 1, got {steps!r}")
-    ref = solve_reference(scene)
-    dt_sol = solve_dt(scene, initial=ref)
+    ref = solve(ocp, "reference")
+    dt_sol = solve(ocp, "dt", initial=ref)
 
     out: dict[str, Any] = {
-        "scene": scene.name,
+        "problem": ocp.name,
         "steps": [int(n) for n in steps],
         "reference_cost": float(ref.cost),
         "dt_continuous_cost": float(dt_sol.cost),
     }
     dt_costs, gd_costs, gd_losses, gd_times = [], [], [], []
     for n in steps:
-        sc = scene.with_steps(int(n))
+        sc = ocp.replace(steps=int(n))
         grid = sc.time_grid()
         u_n = resample_controls(dt_sol, grid)
         dt_costs.append(float(evaluate(sc, u_n).cost))
         if include_gd:
-            from hybridoc.solvers.gd import solve_gd
-
             t0 = time.perf_counter()
-            g = solve_gd(sc, **(gd_options or {}))
+            g = solve(sc, "gd", **(gd_options or {}))
             gd_times.append(time.perf_counter() - t0)
             gd_costs.append(float(g.cost))
             gd_losses.append(float(g.info.get("loss", float("nan"))))
@@ -441,11 +445,8 @@ def convergence(
     return out
 
 
-def convergence_figure(report: dict[str, Any]):
+def convergence_figure(report: dict[str, Any]) -> Any:
     """Log-log plot of the relative cost errors against N."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(6.4, 4.4), layout="constrained")
@@ -457,7 +458,6 @@ def convergence_figure(report: dict[str, Any]):
             ok = err > 0
             label = {
                 "dt": "transcription, cell averages on the N-grid",
-                "gd": "gradient descent at N",
             }[name]
             ax.loglog(steps[ok], err[ok], marker=marker, label=label)
     e0 = report["dt"]["error"][0] if report["dt"]["error"][0] > 0 else 1e-6
@@ -465,7 +465,7 @@ def convergence_figure(report: dict[str, Any]):
     ax.loglog(steps, e0 * steps[0] ** 2 / steps**2, "k:", lw=1, label="slope -2")
     ax.set_xlabel("N (grid cells)")
     ax.set_ylabel("|J_N - J*| / J*")
-    ax.set_title(f"{report['scene']}: convergence to the reference optimum")
+    ax.set_title(f"{report['problem']}: convergence to the reference optimum")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     return fig

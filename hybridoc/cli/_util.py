@@ -1,0 +1,331 @@
+"""What every ``hybridoc`` command shares: arguments, one output convention, exit codes.
+
+Conventions
+    * ``PROBLEM`` is a built-in name, a ``.toml`` scene, or ``path/to/file.py:function``.
+    * Controls are read from ``.npy``, ``.csv`` or a saved Solution (``.npz``/``.json``).
+    * ``--json``: standard output carries exactly one JSON object; everything else goes to
+      standard error.
+    * ``--out DIR`` writes ``DIR/<problem>_<command>[_<method>]`` + ``.npz``/``.json`` (a
+      Solution) or ``.json`` (a report), and ``..._<figure>.png``; a command rerun into the
+      same folder replaces its own files and no other command's.
+    * Every solving command prints the same block (problem, method, status, cost, events).
+    * Exit codes: 0 success; 1 a finding (a result that is not what it claims to be: not
+      optimal, events not as modelled, infeasible, methods that disagree), with a warning
+      line; 2 a user error or a solver that did not converge, with one ``error`` line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.errors import HybridocError
+
+__all__ = [
+    "HybridocArgumentParser",
+    "add_controls_arg",
+    "add_initial_arg",
+    "add_json_out",
+    "emit_json",
+    "ensure_dir",
+    "exit_code",
+    "fmt",
+    "format_table",
+    "load_controls_arg",
+    "load_problem_arg",
+    "nonnegative_int",
+    "output_stem",
+    "positive_float",
+    "positive_int",
+    "print_solution",
+    "problem_arg",
+    "say",
+    "solution_payload",
+    "to_jsonable",
+    "warn",
+]
+
+
+class HybridocArgumentParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line, like every other user error.
+
+    ``hybridoc: error: <command>: <message> (see 'hybridoc <command> --help')`` on stderr and
+    exit code 2, instead of argparse's usage block followed by the message.
+    """
+
+    def error(self, message: str) -> Any:
+        command = self.prog.removeprefix("hybridoc").strip()
+        where = f"{command}: " if command else ""
+        message = " ".join(message.split())
+        self.exit(2, f"hybridoc: error: {where}{message} (see '{self.prog} --help')\n")
+
+
+def _number(text: str, kind: type, test: Any, what: str) -> Any:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not test(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    return _number(text, float, lambda x: math.isfinite(x) and x > 0, "a finite number > 0")
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    return _number(text, int, lambda n: n >= 1, "an integer >= 1")
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _number(text, int, lambda n: n >= 0, "an integer >= 0")
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Numpy scalars and arrays, tuples, enums and paths -> plain JSON types."""
+    from enum import Enum
+
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, Enum):
+        return obj.value
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def emit_json(obj: Any) -> None:
+    """Print ``obj`` as one JSON object on stdout (floats round-trip exactly)."""
+    sys.stdout.write(json.dumps(to_jsonable(obj)) + "\n")
+    sys.stdout.flush()
+
+
+def say(args: argparse.Namespace | None, text: str = "") -> None:
+    """Print human text: to stdout normally, to stderr when ``--json`` is on."""
+    stream = sys.stderr if getattr(args, "json", False) else sys.stdout
+    print(text, file=stream, flush=True)
+
+
+def warn(text: str) -> None:
+    """One warning line on stderr."""
+    print(f"hybridoc: warning: {' '.join(str(text).split())}", file=sys.stderr, flush=True)
+
+
+def problem_arg(parser: argparse.ArgumentParser) -> None:
+    """Add the positional ``PROBLEM`` argument."""
+    parser.add_argument(
+        "problem",
+        metavar="PROBLEM",
+        help="built-in name (see 'hybridoc problems'), a .toml scene file, or "
+        "path/to/file.py:function returning a HybridOCP or a Scene",
+    )
+
+
+def load_problem_arg(text: str) -> Any:
+    """The :class:`~hybridoc.HybridOCP` named by a ``PROBLEM`` argument."""
+    from hybridoc.problem import as_ocp
+
+    return as_ocp(text)
+
+
+def disc_scene_of(ocp: Any, command: str) -> Any:
+    """The Scene of a disc problem, or a one-line error naming the command."""
+    scene = ocp.meta.get("scene")
+    if scene is None:
+        raise HybridocError(f"{command} needs a disc scene; {ocp.name!r} is a generic HybridOCP")
+    return scene
+
+
+def add_json_out(parser: argparse.ArgumentParser, *, out_help: str | None = None) -> None:
+    """Add ``--json`` (one JSON object on stdout) and ``--out DIR``."""
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object on stdout (messages go to stderr)",
+    )
+    parser.add_argument(
+        "--out",
+        metavar="DIR",
+        type=Path,
+        default=None,
+        help=out_help or "also write results and figures to this directory",
+    )
+
+
+def add_controls_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--controls FILE``."""
+    parser.add_argument(
+        "--controls",
+        metavar="FILE",
+        type=Path,
+        default=None,
+        help="controls as .npy or .csv (N rows, nu columns) or a saved Solution (.npz/.json); "
+        "default: the problem's initial guess",
+    )
+
+
+def add_initial_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--initial FILE`` (the same file types as ``--controls``)."""
+    parser.add_argument(
+        "--initial",
+        metavar="FILE",
+        type=Path,
+        default=None,
+        help="start from these controls: .npy, .csv or a saved Solution (.npz/.json)",
+    )
+
+
+def load_controls_arg(path: Path | None, ocp: Any) -> tuple[np.ndarray, str]:
+    """Controls from a file (or the initial guess when ``path`` is None) and a label."""
+    if path is None:
+        return np.array(ocp.u_guess, dtype=float), "initial guess"
+    from hybridoc.io import load_controls
+
+    return load_controls(path, ocp), str(path)
+
+
+def ensure_dir(path: str | Path) -> Path:
+    """Create an output directory; an unwritable path is a user error."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HybridocError(f"cannot create output directory {str(p)!r}: {exc.strerror}") from None
+    if not p.is_dir():
+        raise HybridocError(f"output path {str(p)!r} is not a directory")
+    return p
+
+
+def output_stem(out: Path, problem: str, command: str, method: str | None = None) -> Path:
+    """``out/<problem>_<command>[_<method>]``, with a file-safe problem name."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "-", problem).strip("-") or "problem"
+    parts = [safe, command] + ([method] if method and method != command else [])
+    return out / "_".join(parts)
+
+
+def fmt(x: float, digits: int = 10) -> str:
+    """A float with ``digits`` significant digits (``-`` for NaN or None)."""
+    if x is None:
+        return "-"
+    x = float(x)
+    return "-" if math.isnan(x) else f"{x:.{digits}g}"
+
+
+def format_table(
+    headers: Sequence[str], rows: Sequence[Sequence[Any]], *, right: Sequence[bool] | None = None
+) -> str:
+    """A plain-text table; ``right[k]`` right-aligns column ``k`` (default: numbers)."""
+    cells = [[str(c) for c in row] for row in rows]
+    widths = [len(h) for h in headers]
+    for row in cells:
+        widths = [max(w, len(c)) for w, c in zip(widths, row, strict=True)]
+    if right is None:
+        right = [
+            all(isinstance(r[k], int | float | np.number) for r in rows) and bool(rows)
+            for k in range(len(headers))
+        ]
+
+    def line(row: Sequence[str]) -> str:
+        parts = [
+            c.rjust(w) if r else c.ljust(w) for c, w, r in zip(row, widths, right, strict=True)
+        ]
+        return "  ".join(parts).rstrip()
+
+    out = [line(list(headers)), line(["-" * w for w in widths])]
+    out += [line(row) for row in cells]
+    return "\n".join(out)
+
+
+def events_table(events: Sequence[dict[str, Any]]) -> str:
+    """The events of a Solution or an Evaluation as a table."""
+    rows = [
+        [k, repr(float(e["time"])), e.get("guard") or "|".join(e["bodies"]), e["kind"]]
+        for k, e in enumerate(events, start=1)
+    ]
+    return format_table(["#", "time", "guard", "kind"], rows, right=[True, False, False, False])
+
+
+def indent(text: str, prefix: str = "  ") -> str:
+    """Every line of ``text`` indented."""
+    return "\n".join(prefix + line for line in text.splitlines())
+
+
+def solution_payload(sol: Any, **extra: Any) -> dict[str, Any]:
+    """The one JSON shape of a solving command's answer."""
+    out = {
+        "problem": sol.scene,
+        "method": sol.method,
+        "status": sol.status.value,
+        "success": sol.success,
+        "message": sol.message,
+        "cost": sol.cost,
+        "terminal_cost": sol.terminal_cost,
+        "running_cost": sol.running_cost,
+        "events": sol.events,
+        "sequence": sol.sequence,
+        "timings": sol.timings,
+        "settings": sol.settings,
+        "info": sol.info,
+    }
+    out.update(extra)
+    return out
+
+
+def print_solution(
+    args: argparse.Namespace, sol: Any, ocp: Any, details: Sequence[tuple[str, str]] = ()
+) -> None:
+    """The one human-readable block of a solving command's answer."""
+    rows = [
+        ("problem", f"{ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})"),
+        ("method", sol.method),
+        ("status", sol.status.value + (f": {sol.message}" if sol.message else "")),
+        ("cost", repr(float(sol.cost))),
+        ("terminal", repr(float(sol.terminal_cost))),
+        ("running", repr(float(sol.running_cost))),
+        *details,
+    ]
+    t = sol.timings.get("solve_time_s", sol.timings.get("wall_time_s"))
+    if t is not None:
+        rows.append(("time", f"{float(t):.3g} s"))
+    rows.append(("events", str(len(sol.events))))
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        say(args, f"{k.ljust(width)}  {v}")
+    if sol.events:
+        say(args, indent(events_table(sol.events)))
+
+
+def exit_code(status: Any, message: str = "") -> int:
+    """The exit code of a status (module notes), printing the warning line of a finding."""
+    from hybridoc.solution import Status
+
+    st = Status(status)
+    if st is not Status.SUCCESS:
+        text = f"{st.value}: {message}" if message else st.value
+        if st.exit_code == 2:
+            print(f"hybridoc: error: {' '.join(text.split())}", file=sys.stderr, flush=True)
+        else:
+            warn(text)
+    return st.exit_code

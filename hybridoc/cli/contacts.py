@@ -1,0 +1,264 @@
+"""``hybridoc gradcheck`` and ``hybridoc compare-contacts``: the contact models side by side
+(the library functions are in :mod:`hybridoc.solvers.gradcheck`)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+from hybridoc.cli._util import (
+    add_json_out,
+    disc_scene_of,
+    emit_json,
+    ensure_dir,
+    fmt,
+    format_table,
+    load_problem_arg,
+    nonnegative_int,
+    output_stem,
+    positive_float,
+    problem_arg,
+    say,
+)
+from hybridoc.errors import HybridocError, SceneError
+
+__all__ = ["register"]
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise SceneError(
+            f"--gd-iters: expected a comma-separated list of integers, got {text!r}"
+        ) from None
+    if any(v < 0 for v in values):
+        raise SceneError(f"--gd-iters: iteration counts must be >= 0, got {text!r}")
+    return values
+
+
+def cmd_gradcheck(args: argparse.Namespace) -> int:
+    """Compare each contact model's gradient with the exact gradient of the continuous cost.
+
+    For every contact model and every point (the initial guess and iterates of the paper's
+    plain gradient descent), the relative errors ||g_sim - g_exact|| / ||g_exact|| of the
+    gradient with respect to the initial positions, the initial velocities and the controls.
+    """
+    import hybridoc
+    from hybridoc.solvers.gradcheck import gradcheck_points, gradient_errors, parse_models
+
+    scene = disc_scene_of(load_problem_arg(args.problem), "gradcheck")
+    models = parse_models(args.models)
+    gd_iters = _int_list(args.gd_iters)
+    t0 = time.perf_counter()
+    say(args, f"gradcheck {scene.name}: finding the points (plain gd, direct/both) ...")
+    points = gradcheck_points(scene, gd_iters)
+    entries = []
+    for label, u in points:
+        try:
+            exact = hybridoc.gradient(scene, u)
+        except HybridocError as exc:
+            say(args, f"  {label}: no exact gradient ({exc}); point skipped")
+            continue
+        for model in models:
+            say(args, f"  {label}: {model.label} ...")
+            entry = {"model": model.label, **model.settings(), "point": label}
+            try:
+                entry.update(gradient_errors(scene, u, model, exact))
+            except HybridocError as exc:
+                entry.update(error=str(exc))
+            entries.append(entry)
+    elapsed = time.perf_counter() - t0
+    if args.json:
+        emit_json(
+            {
+                "problem": scene.name,
+                "points": [label for label, _ in points],
+                "entries": entries,
+                "time_s": elapsed,
+            }
+        )
+        return 0
+    rows = []
+    for e in entries:
+        if "error" in e:
+            rows.append([e["point"], e["model"], "-", "-", "-", "-", e["error"]])
+            continue
+        rows.append(
+            [
+                e["point"], e["model"], fmt(e["loss"], 7), f"{e['err_position']:.3e}",
+                f"{e['err_velocity']:.3e}", f"{e['err_controls']:.3e}", f"{e['cosine']:.5f}",
+            ]
+        )  # fmt: skip
+    print(f"{scene.name}: relative gradient errors ||g_sim - g_exact|| / ||g_exact||")
+    print(
+        format_table(
+            ["point", "model", "loss", "d p0", "d v0", "d u", "cos(d u)"],
+            rows,
+            right=[False, False, True, True, True, True, True],
+        )
+    )
+    print(f"({elapsed:.1f} s)")
+    return 0
+
+
+def _learning_curves(scene: Any, sols: dict[str, Any]) -> Any:
+    from matplotlib.figure import Figure
+
+    from hybridoc.solvers.gradcheck import PAPER_OPTIMUM
+
+    groups = [
+        ("velocity-impulse models", [k for k in sols if "/" in k]),
+        ("compliant and PBD", [k for k in sols if "/" not in k]),
+    ]
+    groups = [(t, ks) for t, ks in groups if ks]
+    fig = Figure(figsize=(5.0 * len(groups), 3.8), layout="constrained")
+    axes = fig.subplots(1, len(groups), squeeze=False)[0]
+    for ax, (title, keys) in zip(axes, groups, strict=True):
+        for k in keys:
+            h = np.asarray(sols[k].arrays["loss_history"])
+            ax.plot(np.arange(h.size), h, lw=1.3, label=f"{k} (cost {sols[k].cost:.4f})")
+        opt = PAPER_OPTIMUM.get(scene.name)
+        if opt is not None:
+            ax.axhline(opt, color="k", ls="--", lw=1.0, label=f"paper's grid-search optimum {opt}")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("discrete loss")
+        ax.set_title(title)
+        ax.grid(True, lw=0.4, alpha=0.5)
+        ax.legend(fontsize=7)
+        lo = min(float(np.nanmin(sols[k].arrays["loss_history"])) for k in keys)
+        hi = max(float(np.nanmax(sols[k].arrays["loss_history"])) for k in keys)
+        if opt is not None:
+            lo = min(lo, opt)
+        # the start is far above the end: zoom on the part where the models differ
+        top = min(hi, lo + 3.0 * (np.nanmedian([sols[k].info["loss"] for k in keys]) - lo) + 0.05)
+        ax.set_ylim(lo - 0.02 * (top - lo), top)
+    fig.suptitle(f"{scene.name}: plain gradient descent with each contact model")
+    return fig
+
+
+def cmd_compare_contacts(args: argparse.Namespace) -> int:
+    """Plain gradient descent with every contact model: discrete loss and true cost.
+
+    Uses the paper's learning rate (200 on single-collision, 50 elsewhere) and iterations (500,
+    1500 on multiple-collision, 500 elsewhere) unless --iters / --lr are given; the true cost
+    is the event-exact continuous cost of the learned controls.
+    """
+    from hybridoc.cli.evaluate import save
+    from hybridoc.solvers.gradcheck import (
+        PAPER_OPTIMUM,
+        compare_contacts,
+        paper_gd_settings,
+        parse_models,
+    )
+
+    scene = disc_scene_of(load_problem_arg(args.problem), "compare-contacts")
+    models = parse_models(args.models)
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    lr, iters = paper_gd_settings(scene)
+    lr = lr if args.lr is None else args.lr
+    iters = iters if args.iters is None else args.iters
+    say(args, f"compare-contacts {scene.name}: plain gd, lr {lr:g}, {iters} iterations")
+    sols = compare_contacts(scene, models=models, iters=iters, lr=lr, progress=True)
+    figures: list[str] = []
+    if out is not None:
+        from hybridoc.plotting import plot_controls
+
+        stem = output_stem(out, scene.name, "compare-contacts")
+        for name, sol in sols.items():
+            sol.save(f"{stem}_{name.replace('/', '-')}")
+        figures.append(str(save(_learning_curves(scene, sols), f"{stem}_learning_curves.png")))
+        fig = plot_controls(
+            scene.time_grid(),
+            {name: sol.controls for name, sol in sols.items()},
+            scene.control_labels(),
+            title=f"{scene.name}: controls learned with each contact model",
+        )
+        figures.append(str(save(fig, f"{stem}_controls.png")))
+    results = [
+        {
+            "model": name,
+            **sol.settings,
+            "loss": sol.info["loss"],
+            "cost": sol.cost,
+            "iterations": sol.info["iterations"],
+            "time_s": sol.timings.get("solve_time_s"),
+            "message": sol.info.get("message"),
+            "events": sol.events,
+            "loss_history": sol.arrays["loss_history"],
+        }
+        for name, sol in sols.items()
+    ]
+    if args.json:
+        emit_json(
+            {
+                "problem": scene.name,
+                "lr": lr,
+                "iters": iters,
+                "paper_grid_search_optimum": PAPER_OPTIMUM.get(scene.name),
+                "models": results,
+                "figures": figures,
+            }
+        )
+        return 0
+    rows = [
+        [r["model"], fmt(r["loss"], 7), fmt(r["cost"], 7), len(r["events"]), f"{r['time_s']:.1f}"]
+        for r in results
+    ]
+    print(f"{scene.name}: plain gradient descent, lr {lr:g}, {iters} iterations")
+    print(format_table(["model", "loss", "true cost", "events", "time s"], rows))
+    if scene.name in PAPER_OPTIMUM:
+        print(
+            f"the paper's grid-search optimum: {PAPER_OPTIMUM[scene.name]} (the exact optimum: "
+            "'hybridoc reference')"
+        )
+    for f in figures:
+        print(f"wrote {f}")
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add ``gradcheck`` and ``compare-contacts``."""
+    from hybridoc.solvers.contacts import model_names
+
+    names = ", ".join(model_names())
+    p = sub.add_parser(
+        "gradcheck",
+        help="each contact model's gradient against the exact gradient",
+        description=cmd_gradcheck.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument(
+        "--gd-iters",
+        default="20,100",
+        metavar="K,K",
+        help="also compare at these iterates of the paper's plain gd (default 20,100; '' none)",
+    )
+    p.add_argument(
+        "--models", default=None, metavar="M,M",
+        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {names})",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_gradcheck)
+
+    p = sub.add_parser(
+        "compare-contacts",
+        help="plain gradient descent with every contact model (paper Figs 5, 10)",
+        description=cmd_compare_contacts.__doc__,
+    )
+    problem_arg(p)
+    add_json_out(p, out_help="write each model's Solution, the learning curves and the controls")
+    p.add_argument(
+        "--iters", type=nonnegative_int, default=None, help="iterations (default: the paper's)"
+    )
+    p.add_argument(
+        "--lr", type=positive_float, default=None, help="learning rate (default: the paper's)"
+    )
+    p.add_argument(
+        "--models", default=None, metavar="M,M",
+        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {names})",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_compare_contacts)

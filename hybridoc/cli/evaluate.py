@@ -1,0 +1,238 @@
+"""``hybridoc evaluate``, ``gradient`` and ``demo``: the judge on the command line."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.cli._util import (
+    add_controls_arg,
+    add_json_out,
+    emit_json,
+    ensure_dir,
+    events_table,
+    fmt,
+    format_table,
+    indent,
+    load_controls_arg,
+    load_problem_arg,
+    output_stem,
+    problem_arg,
+    say,
+)
+from hybridoc.errors import HybridocError
+
+__all__ = ["register", "save", "write_figures"]
+
+#: The scenes evaluated by ``hybridoc demo``: the paper's two problems.
+DEMO_SCENES = ("single-collision", "multiple-collision")
+
+
+def save(fig: Any, path: str | Path) -> Path:
+    """Write a figure; an unwritable path is a user error."""
+    from hybridoc.plotting import save_figure
+
+    try:
+        return save_figure(fig, path)
+    except OSError as exc:
+        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+
+
+def write_figures(ocp: Any, ev: Any, stem: Path, *, label: str) -> list[Path]:
+    """The trajectory and control figures of one evaluation, ``stem_<figure>.png``."""
+    from hybridoc.plotting import plot_controls, plot_scene, plot_trajectories
+
+    scene = ocp.meta.get("scene")
+    title = f"{ocp.name}: {label}, cost {ev.cost:.6g}"
+    if scene is not None:
+        fig = plot_scene(scene, ev, title=title)
+    else:
+        fig = plot_trajectories(ocp, {label: ev}, title=title)
+    paths = [save(fig, f"{stem}_trajectory.png")]
+    fig = plot_controls(
+        ocp.time_grid(),
+        {label: ev.controls},
+        list(ocp.control_labels),
+        title=f"{ocp.name}: controls ({label})",
+        event_times=[e.time for e in ev.events],
+    )
+    paths.append(save(fig, f"{stem}_controls.png"))
+    return paths
+
+
+def _timed(fn: Any, *args: Any, repeat: int = 1) -> tuple[Any, float]:
+    best = float("inf")
+    out = None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn(*args)
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate controls with the event-exact judge: true cost and events."""
+    from hybridoc.evaluator import evaluate
+    from hybridoc.solution import Solution
+
+    ocp = load_problem_arg(args.problem)
+    controls, source = load_controls_arg(args.controls, ocp)
+    out = None if args.out is None else ensure_dir(args.out)
+    ev, seconds = _timed(evaluate, ocp, controls)
+    events = ev.event_dicts()
+    payload = {
+        "problem": ocp.name,
+        "controls": source,
+        "cost": ev.cost,
+        "terminal_cost": ev.terminal_cost,
+        "running_cost": ev.running_cost,
+        "events": events,
+        "sequence": ev.sequence,
+        "feasible": ev.feasible,
+    }
+    if args.json:
+        emit_json(payload)
+    else:
+        say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})")
+        say(args, f"controls  {source}")
+        say(args, f"cost      {ev.cost!r}")
+        say(args, f"terminal  {ev.terminal_cost!r}")
+        say(args, f"running   {ev.running_cost!r}")
+        if not ev.feasible:
+            say(
+                args,
+                f"feasible  no (bounds {ev.bound_violation:.3g}, path {ev.path_violation:.3g})",
+            )
+        say(args, f"events    {len(events)}")
+        if events:
+            say(args, indent(events_table(events)))
+    if out is not None:
+        sol = Solution.from_evaluation(
+            ev, method="evaluate", scene=ocp.name, settings={"controls": source},
+            timings={"evaluate_time_s": seconds},
+        )  # fmt: skip
+        stem = output_stem(out, ocp.name, "evaluate")
+        try:
+            written = list(sol.save(stem))
+        except OSError as exc:
+            raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
+        label = "initial guess" if args.controls is None else Path(source).name
+        written += write_figures(ocp, ev, stem, label=label)
+        for p in written:
+            say(args, f"wrote {p}")
+    return 0
+
+
+def cmd_gradient(args: argparse.Namespace) -> int:
+    """Exact gradient of the continuous cost (adjoint with the HMP jump relation)."""
+    from hybridoc.evaluator import gradient
+
+    ocp = load_problem_arg(args.problem)
+    controls, source = load_controls_arg(args.controls, ocp)
+    g = gradient(ocp, controls)
+    lam0 = np.asarray(g.d_initial_state)
+    du = np.asarray(g.d_controls)
+    if args.json:
+        emit_json(
+            {
+                "problem": ocp.name,
+                "cost": g.cost,
+                "state_labels": list(ocp.state_labels),
+                "control_labels": list(ocp.control_labels),
+                "d_cost_d_initial_state": lam0,
+                "d_cost_d_controls": du,
+            }
+        )
+        return 0
+    row, col = np.unravel_index(int(np.argmax(np.abs(du))), du.shape)
+    labels = list(ocp.control_labels)
+    print(f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})")
+    print(f"controls  {source}")
+    print(f"cost      {g.cost!r}")
+    print(f"events    {len(g.evaluation.events)}")
+    print()
+    print(f"dJ/du: {du.shape[0]} x {du.shape[1]} values (one per grid interval and component)")
+    print(f"  norm (all values)  {fmt(np.linalg.norm(du))}")
+    for k, name in enumerate(labels):
+        print(f"  norm {name:<13} {fmt(np.linalg.norm(du[:, k]))}")
+    print(f"  largest |dJ/du|    {fmt(abs(du[row, col]))} at interval {row}, {labels[col]}")
+    print()
+    print("dJ/d(initial state) = lambda(0):")
+    rows = [[name, fmt(x)] for name, x in zip(ocp.state_labels, lam0, strict=True)]
+    print(indent(format_table(["state", "dJ/ds0"], rows, right=[False, True])))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Evaluate the initial guesses of the paper's two problems; table and figures."""
+    from hybridoc.evaluator import evaluate, gradient
+
+    out = ensure_dir(args.out)
+    rows = []
+    written: list[Path] = []
+    for name in DEMO_SCENES:
+        ocp = load_problem_arg(name)
+        u = ocp.u_guess
+        evaluate(ocp, u)  # the first call compiles the CasADi functions; time the next ones
+        ev, t_eval = _timed(evaluate, ocp, u, repeat=3)
+        g, t_grad = _timed(gradient, ocp, u, repeat=3)
+        times = ", ".join(f"{e.time:.4f}" for e in ev.events) or "-"
+        rows.append(
+            [
+                name, f"{ev.cost:.6f}", f"{ev.terminal_cost:.6f}", f"{ev.running_cost:.6f}",
+                len(ev.events), times, f"{np.linalg.norm(g.d_controls):.6f}",
+                f"{1e3 * t_eval:.1f}", f"{1e3 * t_grad:.1f}",
+            ]
+        )  # fmt: skip
+        written += write_figures(ocp, ev, output_stem(out, name, "demo"), label="initial guess")
+    print("Initial guesses of the paper's problems, judged by the event-exact evaluator")
+    print("(N = 480, T = 1; times are the best of 3 runs)\n")
+    headers = ["scene", "cost", "terminal", "running", "events", "event times", "|dJ/du|"]
+    headers += ["eval [ms]", "grad [ms]"]
+    right = [False, True, True, True, True, False, True, True, True]
+    print(format_table(headers, rows, right=right))
+    print()
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add ``evaluate``, ``gradient`` and ``demo``."""
+    p = sub.add_parser(
+        "evaluate",
+        help="true cost and events of controls (event-exact)",
+        description=cmd_evaluate.__doc__,
+    )
+    problem_arg(p)
+    add_controls_arg(p)
+    add_json_out(
+        p,
+        out_help="write DIR/<problem>_evaluate.npz + .json and its trajectory and controls figures",
+    )
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "gradient",
+        help="exact gradient of the cost w.r.t. controls and initial state",
+        description=cmd_gradient.__doc__,
+    )
+    problem_arg(p)
+    add_controls_arg(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=cmd_gradient)
+
+    p = sub.add_parser(
+        "demo",
+        help="evaluate the paper problems' initial guesses; table and figures",
+        description=cmd_demo.__doc__,
+    )
+    p.add_argument(
+        "--out", metavar="DIR", type=Path, default=Path("out"),
+        help="directory for the figures (default: ./out)",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_demo)

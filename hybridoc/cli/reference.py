@@ -1,0 +1,158 @@
+"""``hybridoc reference``: the optimal control by shooting on the hybrid minimum principle."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.cli._util import (
+    add_initial_arg,
+    add_json_out,
+    emit_json,
+    ensure_dir,
+    exit_code,
+    format_table,
+    indent,
+    load_controls_arg,
+    load_problem_arg,
+    nonnegative_int,
+    output_stem,
+    print_solution,
+    problem_arg,
+    say,
+    solution_payload,
+)
+
+__all__ = ["register", "write_reference_outputs"]
+
+
+def cmd_reference(args: argparse.Namespace) -> int:
+    """Solve PROBLEM exactly by shooting on the hybrid minimum principle.
+
+    Without --sequence the event sequence is searched: candidates come from the initial
+    guess, the direct transcription and a batched multi-start of the simulator (and, with
+    --search K, every feasible sequence of up to K events). The result is re-simulated by the
+    event-exact judge and compared with every cheaper control the search met before it is
+    reported; a result that is not the optimum it would claim to be exits with code 1.
+    """
+    from hybridoc.reference import solve_reference
+
+    ocp = load_problem_arg(args.problem)
+    initial = None
+    if args.initial is not None:
+        initial, _ = load_controls_arg(args.initial, ocp)
+    out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
+    sol = solve_reference(
+        ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search
+    )
+    files: list[Path] = []
+    if out_dir is not None:
+        files = write_reference_outputs(ocp, sol, output_stem(out_dir, ocp.name, "reference"))
+    landscape = sol.info.get("landscape")
+    if args.json:
+        emit_json(solution_payload(sol, files=[str(f) for f in files]))
+        return exit_code(sol.status, sol.message)
+    its = sol.info["newton_iterations"]
+    details = [
+        ("residual", f"{sol.info['residual']:.2e} (HMP, max norm; {its} Newton iterations)"),
+        ("tried", f"{len(sol.info.get('candidates', []))} sequence(s)"),
+    ]
+    print_solution(args, sol, ocp, details)
+    if sol.info.get("grazing"):
+        say(args, "note: a grazing event (approach speed ~ 0): the HMP may not hold there")
+    if landscape:
+        say(args, "")
+        say(args, "landscape of extremals (by event sequence):")
+        rows = [
+            [
+                ",".join(r["sequence"]) or "(none)",
+                "-" if r["cost"] is None else repr(r["cost"]),
+                r["verdict"],
+                f"{r['time_s']:.3f}",
+            ]
+            for r in landscape
+        ]
+        say(args, indent(format_table(["sequence", "cost", "verdict", "time s"], rows)))
+    for f in files:
+        say(args, f"wrote {f}")
+    return exit_code(sol.status, sol.message)
+
+
+def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
+    """Save the Solution and three figures (trajectory, control, costates)."""
+    from hybridoc.callable_eval import evaluate_callable
+    from hybridoc.cli.evaluate import save
+    from hybridoc.plotting import plot_controls, plot_costates, plot_scene, plot_trajectories
+    from hybridoc.reference import reference_control
+
+    files = list(sol.save(stem))
+    u, bps = reference_control(sol)
+    sim = evaluate_callable(ocp, u, breakpoints=bps)
+    # draw the paths from the reference's own samples (grid and events): the integrator's
+    # steps are too coarse to show the arcs
+    sim = dataclasses.replace(sim, times=sol.state_times, states=sol.states)
+    title = f"{ocp.name}: reference, J = {sol.cost:.10g}"
+    scene = ocp.meta.get("scene")
+    fig = (
+        plot_scene(scene, sim, title=title)
+        if scene is not None
+        else plot_trajectories(ocp, {"reference": sim}, title=title)
+    )
+    files.append(save(fig, f"{stem}_trajectory.png"))
+    times = sol.info["event_times"]
+    fig = plot_controls(
+        sol.time_grid,
+        {"cell mean": sol.controls},
+        list(ocp.control_labels),
+        title=f"{ocp.name}: optimal control u(t) (line) and its cell means",
+        event_times=times,
+    )
+    t_fine = np.union1d(np.linspace(0, ocp.horizon, 2001), times)
+    edges = np.concatenate([[0.0], times, [ocp.horizon]])
+    for k, ax in enumerate(fig.axes[: ocp.nu]):
+        # the exact control is smooth between events: draw each phase separately
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            tt = t_fine[(t_fine >= a) & (t_fine <= b)]
+            vals = [u(min(max(x, a), b - 1e-15 if b > a else b))[k] for x in tt]
+            ax.plot(tt, vals, color="k", lw=0.9, label="u(t)" if a == 0 else None)
+    fig.axes[0].legend(fontsize=8, loc="best")
+    files.append(save(fig, f"{stem}_controls.png"))
+    fig = plot_costates(
+        sol.costate_times, sol.costates, list(ocp.state_labels), times,
+        title=f"{ocp.name}: costates (jumps at events)",
+    )  # fmt: skip
+    files.append(save(fig, f"{stem}_costates.png"))
+    return files
+
+
+def register(sub: Any) -> None:
+    """Add ``reference``."""
+    p = sub.add_parser(
+        "reference",
+        help="the optimal control by shooting on the hybrid minimum principle",
+        description=cmd_reference.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument(
+        "--sequence",
+        metavar="EVENTS",
+        default=None,
+        help="comma-separated guard names in event order, e.g. 'ball1|ball2,ball2|wall' "
+        "(an empty string: no event)",
+    )
+    p.add_argument(
+        "--search",
+        metavar="K",
+        type=nonnegative_int,
+        default=None,
+        help="also enumerate every feasible event sequence of up to K events and print the "
+        "landscape of extremals",
+    )
+    add_initial_arg(p)
+    p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")
+    add_json_out(p, out_help="write DIR/<problem>_reference.npz + .json and three figures")
+    p.set_defaults(func=cmd_reference)

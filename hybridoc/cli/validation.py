@@ -1,0 +1,249 @@
+"""``hybridoc crossval``, ``validate`` and ``convergence``: methods measured against the
+reference (library: :mod:`hybridoc.solvers.validation`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from hybridoc.cli._util import (
+    add_json_out,
+    emit_json,
+    ensure_dir,
+    exit_code,
+    fmt,
+    format_table,
+    load_controls_arg,
+    load_problem_arg,
+    output_stem,
+    positive_int,
+    problem_arg,
+    say,
+    to_jsonable,
+)
+from hybridoc.errors import HybridocError
+
+__all__ = ["register"]
+
+
+def _write_json(path: Path, obj: Any) -> Path:
+    try:
+        path.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    return path
+
+
+def _events_text(events: list[dict[str, Any]]) -> str:
+    return (
+        ", ".join(f"{e.get('guard') or '|'.join(e['bodies'])}@{e['time']:.6f}" for e in events)
+        or "none"
+    )
+
+
+def cmd_crossval(args: argparse.Namespace) -> int:
+    """Run the reference, the direct transcription and gradient descent; compare them.
+
+    A method that beats the reference, or lands beyond its tolerance of it, or fails, is a
+    finding: a warning line per reason and exit code 1 (the JSON carries ``agree`` and
+    ``reasons``).
+    """
+    from hybridoc.cli.evaluate import save
+    from hybridoc.solvers.validation import crossval, crossval_figures
+
+    ocp = load_problem_arg(args.problem)
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    names = ["reference"] + [m for m in methods if m != "reference"]
+    say(args, f"{ocp.name}: solving with {', '.join(names)} ...")
+    gd_options: dict[str, Any] = {}
+    if args.gd_integrator is not None:
+        gd_options["integrator"] = args.gd_integrator
+    report, sols = crossval(ocp, methods=methods, options={"gd": gd_options})
+    written: list[Path] = []
+    if out is not None:
+        stem = output_stem(out, ocp.name, "crossval")
+        for name, fig in crossval_figures(ocp, sols).items():
+            written.append(save(fig, f"{stem}_{name}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
+    if args.json:
+        emit_json(report)
+    else:
+        rows = []
+        names = [k for k in report if isinstance(report[k], dict)]
+        for name in names:
+            e = report[name]
+            if "error" in e:
+                rows.append([name, "failed", "-", "-", "-", "-", "-", f"{e['wall_time_s']:.2f}"])
+                continue
+            local = e.get("cost_gap_local_relative")
+            rows.append(
+                [
+                    name, fmt(e["cost"], 12), f"{e['cost_gap_relative']:+.2e}",
+                    "-" if local is None else f"{local:+.2e}", e["status"],
+                    fmt(e["control_error"]["l2"], 3), "yes" if e["sequence_matches"] else "no",
+                    f"{e['wall_time_s']:.2f}",
+                ]
+            )  # fmt: skip
+        headers = ["method", "cost", "gap", "gap (own seq.)", "status", "u err L2", "same events"]
+        headers.append("time s")
+        say(
+            args,
+            format_table(headers, rows, right=[False, True, True, True, False, True, False, True]),
+        )
+        say(
+            args, "gap: to the reference (the lowest verified HMP extremal); gap (own seq.): to the"
+        )
+        say(args, "HMP extremal with the method's own event sequence (its local optimum).")
+        for name in names:
+            if "events" in report[name]:
+                say(args, f"  {name:9s} events: {_events_text(report[name]['events'])}")
+        say(args, "agree: " + ("yes" if report["agree"] else "NO"))
+    for p in written:
+        say(args, f"wrote {p}")
+    if not report["agree"]:
+        for reason in report["reasons"]:
+            exit_code("disagree", reason)
+        return 1
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """Judge a control file (.npy, .csv or a saved Solution) against the reference optimum."""
+    from hybridoc.cli.evaluate import save
+    from hybridoc.solvers.registry import solve
+    from hybridoc.solvers.validation import validate_controls, validation_figures
+
+    ocp = load_problem_arg(args.problem)
+    u, source = load_controls_arg(args.controls, ocp)
+    out = None if args.out is None else ensure_dir(args.out)
+    ref = solve(ocp, "reference")
+    report = validate_controls(ocp, u, reference=ref)
+    report["controls_file"] = source
+    written: list[Path] = []
+    if out is not None:
+        stem = output_stem(out, ocp.name, "validate")
+        for name, fig in validation_figures(ocp, u, ref, label=Path(source).stem).items():
+            written.append(save(fig, f"{stem}_{name}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
+    if args.json:
+        emit_json(report)
+    else:
+        say(args, f"{ocp.name}: controls {source}")
+        say(args, f"  true cost         {report['cost']!r}")
+        say(args, f"  reference cost    {report['reference_cost']!r}")
+        say(args, f"  cost gap relative {report['cost_gap_relative']:+.3e}")
+        ce = report["control_error"]
+        say(args, f"  control error     L2 {ce['l2']:.4g}, max {ce['max']:.4g}")
+        say(args, f"  events            {_events_text(report['events'])}")
+        say(args, f"  reference events  {_events_text(report['reference_events'])}")
+        if report["sequence_matches"]:
+            errs = ", ".join(f"{x:+.2e}" for x in report["event_time_errors"])
+            say(args, f"  same event sequence; time errors {errs or '-'}")
+        else:
+            say(args, "  event sequence DIFFERS from the reference's")
+    for p in written:
+        say(args, f"wrote {p}")
+    return exit_code(ref.status, f"the reference itself: {ref.message}") if not ref.success else 0
+
+
+def cmd_convergence(args: argparse.Namespace) -> int:
+    """Costs of the transcription and gradient descent for N in 60 ... 960."""
+    from hybridoc.cli.evaluate import save
+    from hybridoc.solvers.validation import DEFAULT_STEPS, convergence, convergence_figure
+
+    ocp = load_problem_arg(args.problem)
+    steps = tuple(args.steps) if args.steps else DEFAULT_STEPS
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    say(args, f"{ocp.name}: convergence study, N = {', '.join(map(str, steps))} ...")
+    report = convergence(ocp, steps=steps, include_gd=not args.no_gd)
+    written: list[Path] = []
+    if out is not None:
+        stem = output_stem(out, ocp.name, "convergence")
+        written.append(save(convergence_figure(report), f"{stem}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
+    if args.json:
+        emit_json(report)
+    else:
+        say(args, f"reference optimum J* = {report['reference_cost']!r}")
+        headers = ["N", "dt cost", "dt err", "dt order"]
+        if "gd" in report:
+            headers += ["gd cost", "gd err", "gd order"]
+        rows = []
+        for k, n in enumerate(report["steps"]):
+            row: list[Any] = [n]
+            for name in ("dt", "gd"):
+                if name not in report:
+                    continue
+                b = report[name]
+                order = b["order"][k]
+                row += [
+                    fmt(b["cost"][k], 10),
+                    f"{b['error'][k]:.2e}",
+                    "-" if order is None else f"{order:.2f}",
+                ]
+            rows.append(row)
+        say(args, format_table(headers, rows))
+        say(args, "dt: the transcription's continuous optimum averaged on the N-grid and judged")
+        tail = (
+            "; gd: gradient descent re-run at N, true continuous cost." if "gd" in report else "."
+        )
+        say(args, "piecewise constant" + tail)
+    for p in written:
+        say(args, f"wrote {p}")
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add ``crossval``, ``validate`` and ``convergence``."""
+    p = sub.add_parser(
+        "crossval",
+        help="reference vs direct transcription vs gradient descent on one problem",
+        description=cmd_crossval.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument(
+        "--methods", default="reference,dt,gd", metavar="M,M",
+        help="registered methods to compare with the reference (default reference,dt,gd)",
+    )  # fmt: skip
+    p.add_argument(
+        "--gd-integrator",
+        choices=("exact", "symplectic-euler"),
+        default=None,
+        help="gradient descent's time stepping on disc scenes: exact (default) or the paper's "
+        "symplectic Euler",
+    )
+    add_json_out(p, out_help="write the figures and DIR/<problem>_crossval.json")
+    p.set_defaults(func=cmd_crossval)
+
+    p = sub.add_parser(
+        "validate",
+        help="judge a control file against the reference optimum",
+        description=cmd_validate.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument(
+        "controls", metavar="CONTROLS", type=Path,
+        help=".npy or .csv (N rows, one column per control) or a saved Solution (.npz/.json)",
+    )  # fmt: skip
+    add_json_out(p, out_help="write the overlay figures and DIR/<problem>_validate.json")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser(
+        "convergence",
+        help="transcription and gradient-descent costs against N",
+        description=cmd_convergence.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument(
+        "--steps",
+        type=positive_int,
+        nargs="+",
+        default=None,
+        help="grid sizes (default 60 ... 960)",
+    )
+    p.add_argument("--no-gd", action="store_true", help="skip gradient descent (fast)")
+    add_json_out(p, out_help="write the log-log figure and DIR/<problem>_convergence.json")
+    p.set_defaults(func=cmd_convergence)

@@ -1,0 +1,160 @@
+"""What happens at an event: the jump rule shared by every simulation path of the judge.
+
+Which crossings jump
+    A guard fires when it reaches zero with approach speed
+    ``d psi/dt < -max(graze_tol, sqrt(2 sigma max(d2 psi/dt2, 0)))`` with
+    ``sigma = 4 eps max(1, |s|_inf)`` the rounding level of the guard. The second term is the
+    noise floor of the approach speed at a near-tangent root: there a rounding error
+    ``sigma`` in ``psi`` moves the computed root by ``sqrt(2 sigma / psi'')`` and gives a
+    spurious approach speed of that size. A grazing contact (approach speed below the
+    threshold) does not jump; the penetration this allows is of order ``sigma``.
+
+Several guards at one instant
+    At an event time every guard that is at zero (within its rounding level) and approaching
+    is due. If two due guards have resets that do not commute (``g_a(g_b(s)) != g_b(g_a(s))``,
+    e.g. a striker touching two discs at once), the outcome of the impulsive model depends on
+    an order that the physics does not give: the judge raises
+    :class:`~hybridoc.errors.SimultaneousEventError` instead of choosing one. Commuting resets
+    (a disc in a right-angled corner, two separate pairs) are applied one after the other in
+    guard order, which gives the same state in any order. After each jump the due set is
+    computed again, so jumps that a jump causes at the same instant (a Newton's cradle) follow.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hybridoc.errors import EvaluationError, SimultaneousEventError
+
+__all__ = ["Event", "approaching", "EventResolver", "MAX_EVENTS_AT_ONE_TIME"]
+
+EPS = float(np.finfo(float).eps)
+MAX_EVENTS_AT_ONE_TIME = 1000
+_COMMUTE_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Event:
+    """One state jump.
+
+    Attributes
+    ----------
+    time
+        Event time.
+    kind
+        Guard kind, e.g. ``"disc-disc"`` or ``"disc-wall"``.
+    bodies
+        Names of the bodies involved.
+    guard
+        Index of the guard in ``ocp.guards``.
+    approach_speed
+        ``d psi/dt`` just before the jump (negative).
+    state_before, state_after
+        ``s(gamma-)`` and ``s(gamma+)``.
+    name
+        The guard's name.
+    """
+
+    time: float
+    kind: str
+    bodies: tuple[str, ...]
+    guard: int
+    approach_speed: float
+    state_before: np.ndarray = field(repr=False)
+    state_after: np.ndarray = field(repr=False)
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        # plain floats, so reprs and JSON read the same whatever produced them
+        object.__setattr__(self, "time", float(self.time))
+        object.__setattr__(self, "approach_speed", float(self.approach_speed))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready ``{"time", "kind", "bodies", "guard"}``."""
+        return {
+            "time": float(self.time),
+            "kind": self.kind,
+            "bodies": list(self.bodies),
+            "guard": self.name,
+        }
+
+
+def approaching(rate: np.ndarray, accel: np.ndarray, s: np.ndarray, graze_tol: float) -> np.ndarray:
+    """Which guards approach fast enough to jump (see the module notes on grazing)."""
+    sigma = 4.0 * EPS * max(1.0, float(np.max(np.abs(s), initial=0.0)))
+    floor = np.sqrt(2.0 * sigma * np.maximum(accel, 0.0))
+    return rate < -np.maximum(graze_tol, floor)
+
+
+class EventResolver:
+    """Applies the jumps due at one instant (see the module notes).
+
+    Parameters
+    ----------
+    ocp
+        The problem (guard names, kinds, bodies).
+    num
+        The problem's buffer-bound kernels (:meth:`hybridoc.kernels.Kernels.numeric`).
+    graze_tol
+        The grazing threshold.
+    """
+
+    def __init__(self, ocp: Any, num: Any, graze_tol: float) -> None:
+        self.ocp = ocp
+        self.num = num
+        self.graze_tol = graze_tol
+        self.G = len(ocp.guards)
+
+    def due(self, s: np.ndarray, u: np.ndarray, pending: set[int]) -> tuple[list[int], np.ndarray]:
+        """Guards due at ``s``: approaching, and pending or at zero; and their rates."""
+        psi, rate, accel, noise = self.num.contact(s, u)
+        appr = approaching(rate, accel, s, self.graze_tol)
+        tol = 4.0 * noise + 1e-300
+        due = [j for j in range(self.G) if appr[j] and (j in pending or abs(psi[j]) <= tol[j])]
+        return due, rate
+
+    def resolve(
+        self, t: float, s: np.ndarray, u: np.ndarray, pending: set[int]
+    ) -> tuple[np.ndarray, list[Event]]:
+        """All jumps at time ``t`` from state ``s``; returns the new state and the events."""
+        events: list[Event] = []
+        pending = set(pending)
+        while True:
+            due, rate = self.due(s, u, pending)
+            if not due:
+                return s, events
+            if len(due) > 1:
+                self._check_commute(t, s, due)
+            j = due[0]
+            pending.discard(j)
+            s_new = self.num.reset(j)(s)[0]
+            g = self.ocp.guards[j]
+            events.append(Event(t, g.kind, g.bodies, j, float(rate[j]), s, s_new, g.name))
+            s = s_new
+            if len(events) > MAX_EVENTS_AT_ONE_TIME:
+                raise EvaluationError(
+                    f"more than {MAX_EVENTS_AT_ONE_TIME} jumps at t = {t:.9g}: an "
+                    "accumulation of impacts at one instant that the impulsive model does not "
+                    "resolve"
+                )
+
+    def _check_commute(self, t: float, s: np.ndarray, due: list[int]) -> None:
+        for ia, a in enumerate(due):
+            for b in due[ia + 1 :]:
+                ga, gb = self.num.reset(a), self.num.reset(b)
+                ab = ga(gb(s)[0])[0]
+                ba = gb(ga(s)[0])[0]
+                scale = max(1.0, float(np.max(np.abs(ab))), float(np.max(np.abs(s))))
+                if np.max(np.abs(ab - ba)) > _COMMUTE_RTOL * scale:
+                    na, nb = self.ocp.guards[a].name, self.ocp.guards[b].name
+                    raise SimultaneousEventError(
+                        f"guards {na!r} and {nb!r} fire at the same instant t = {t:.12g} and "
+                        "their jumps do not commute: the impulsive model's outcome depends on "
+                        "an order the physics does not give. Perturb the scene or the control "
+                        "slightly so that the contacts happen one after the other",
+                        guards=(na, nb),
+                        time=t,
+                    )

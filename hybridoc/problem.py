@@ -1,0 +1,54 @@
+"""One way to name a problem everywhere: :func:`as_ocp`.
+
+Every entry point of hybridoc (the judge, the reference, the solvers, the CLI) accepts a
+problem as
+
+* a :class:`~hybridoc.HybridOCP`;
+* a :class:`~hybridoc.problems.Scene` (disc scenes compile to a HybridOCP);
+* a string or path: a built-in name (``hybridoc problems`` lists them), a ``.toml`` scene
+  file, or ``path/to/file.py:function`` naming a function that takes no arguments and
+  returns a HybridOCP or a Scene (``path/to/file.py`` alone when the file defines exactly
+  one function called ``problem``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeAlias
+
+from hybridoc.errors import SceneError
+from hybridoc.ocp import HybridOCP
+
+__all__ = ["ProblemLike", "as_ocp"]
+
+ProblemLike: TypeAlias = "HybridOCP | Any | str | Path"
+"""A HybridOCP, a Scene, a built-in name, a ``.toml`` path or ``file.py:function``."""
+
+
+def as_ocp(problem: ProblemLike) -> HybridOCP:
+    """The :class:`~hybridoc.HybridOCP` of anything that names a problem (module notes).
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For an unknown name, an unreadable or invalid file, or an object that is not a
+        problem.
+    """
+    if isinstance(problem, HybridOCP):
+        return problem
+    if isinstance(problem, str | Path):
+        from hybridoc.problems import load_problem
+
+        problem = load_problem(problem)
+        if isinstance(problem, HybridOCP):
+            return problem
+    to_ocp = getattr(problem, "to_ocp", None)
+    if to_ocp is None:
+        raise SceneError(
+            f"expected a problem (a HybridOCP, a Scene, a built-in name, a .toml file or "
+            f"file.py:function), got {type(problem).__name__}"
+        )
+    ocp = to_ocp()
+    if not isinstance(ocp, HybridOCP):
+        raise SceneError(f"{type(problem).__name__}.to_ocp() did not return a HybridOCP")
+    return ocp
