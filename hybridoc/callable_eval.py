@@ -26,7 +26,7 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation
-from hybridoc.events import Event, EventResolver, approaching
+from hybridoc.events import ZENO_RUN, Event, EventResolver, accumulating, approaching
 from hybridoc.kernels import UNKNOWN_DEGREE, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp
@@ -141,7 +141,18 @@ def evaluate_callable(
                 t0, t1 = float(solver.t_old), float(solver.t)
                 dense = solver.dense_output()
                 hit = (
-                    _search_step(num, k, dense, u_piece, t0, t1, graze_tol, integ_factor)
+                    _search_step(
+                        ocp,
+                        num,
+                        k,
+                        dense,
+                        u_piece,
+                        t0,
+                        t1,
+                        graze_tol,
+                        integ_factor,
+                        penetration_tol,
+                    )  # fmt: skip
                     if G
                     else None
                 )
@@ -199,6 +210,7 @@ def evaluate_callable(
 
 
 def _search_step(
+    ocp: HybridOCP,
     num: Any,
     k: Any,
     dense: Any,
@@ -207,6 +219,7 @@ def _search_step(
     t1: float,
     graze_tol: float,
     integ_factor: float,
+    penetration_tol: float,
 ) -> tuple[float, int] | None:
     """Earliest crossing inside one integrator step ``[t0, t1]`` (times relative to t0)."""
     nx, G = k.nx, k.G
@@ -229,8 +242,12 @@ def _search_step(
         _, rate, accel, _ = num.contact(s, u)
         return bool(approaching(rate[j : j + 1], accel[j : j + 1], s, graze_tol)[0])
 
+    def penetrated(j: int, tau: float) -> None:
+        s = np.asarray(dense(t0 + tau), dtype=float)[:nx]
+        _check_penetration(ocp, num, s, u_piece(t0 + tau, s), t0 + tau, penetration_tol)
+
     exact = np.zeros(G, dtype=bool)
-    return CrossingSearch(_CHEB, exact, window, value, appr).run(t1 - t0)
+    return CrossingSearch(_CHEB, exact, window, value, appr, penetrated).run(t1 - t0)
 
 
 def _check_penetration(
@@ -250,6 +267,12 @@ def _check_penetration(
 
 def _check_events(events: list[Event], max_events: int, T: float) -> None:
     n = len(events)
+    limit = accumulating([e.time for e in events[-(ZENO_RUN + 2) :]], T)
+    if limit is not None:
+        raise EvaluationError(
+            f"the events accumulate near t = {limit:.9g} (their gaps shrink geometrically): "
+            "Zeno behaviour, which the impulsive model does not resolve"
+        )
     if n > max_events:
         raise EvaluationError(f"more than {max_events} events by t = {events[-1].time:.6g}")
     if n >= _ZENO_WINDOW and events[-1].time - events[n - _ZENO_WINDOW].time < 1e-9 * T:

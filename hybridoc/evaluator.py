@@ -41,7 +41,7 @@ import numpy as np
 from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation, Gradient, Segment
-from hybridoc.events import Event, EventResolver, approaching
+from hybridoc.events import ZENO_RUN, Event, EventResolver, accumulating, approaching
 from hybridoc.kernels import Kernels, Numeric, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp
@@ -205,6 +205,7 @@ class Forward:
         self.segments: list[Segment] = []
         self.running = 0.0
         self.zeno_T = 1e-9 * max(ocp.horizon, 1e-300)
+        self._t_origin = 0.0
 
     def run(self) -> Evaluation:
         ocp, k = self.ocp, self.k
@@ -303,7 +304,25 @@ class Forward:
             _, rate, accel, _ = num.contact(s_tau, u)
             return bool(approaching(rate[j : j + 1], accel[j : j + 1], s_tau, self.graze_tol)[0])
 
-        return CrossingSearch(k.cheb, k.exact, window, value, appr)
+        def penetrated(j: int, tau: float) -> None:
+            s_tau = num.point(s, u, tau)[0]
+            self._check_penetration(s_tau, u, float(self._t_origin + tau))
+
+        return CrossingSearch(k.cheb, k.exact, window, value, appr, penetrated)
+
+    def _check_penetration(self, s: np.ndarray, u: np.ndarray, t: float) -> None:
+        """Sustained contact: a guard violated beyond tolerance without an impact."""
+        psi, _, _, noise_psi = self.num.contact(s, u)
+        tol = np.maximum(self.penetration_tol, 4 * noise_psi)
+        bad = np.flatnonzero(psi < -tol)
+        if bad.size:
+            worst = int(bad[np.argmin(psi[bad])])
+            g = self.ocp.guards[worst]
+            raise EvaluationError(
+                f"guard {g.name!r} is violated by {-psi[worst]:.3g} at t = {t:.6g} without an "
+                "impact: the bodies stay in contact (e.g. restitution 0 with a force pushing "
+                "into the contact), which the impulsive model does not represent"
+            )
 
     def _interval(
         self,
@@ -328,6 +347,7 @@ class Forward:
                 cost = float(cost_a[0])
                 samples = samples.reshape(D + 1, G).T
                 noise = noise.reshape(D + 1, G).T
+            self._t_origin = t
             hit = self._search(s, u).run(h, (samples, noise)) if G else None
             if hit is None:
                 self.segments.append(Segment(t, s, n, h, None))
@@ -359,17 +379,7 @@ class Forward:
             s = s_new
             self._record(t, s)
         if G:
-            psi, _, _, noise_psi = num.contact(s, u)
-            tol = np.maximum(self.penetration_tol, 4 * noise_psi)
-            bad = np.flatnonzero(psi < -tol)
-            if bad.size:
-                worst = int(bad[np.argmin(psi[bad])])
-                g = self.ocp.guards[worst]
-                raise EvaluationError(
-                    f"guard {g.name!r} is violated by {-psi[worst]:.3g} at t = {t_end:.6g}: "
-                    "the bodies stay in contact (e.g. restitution 0 with a force pushing into "
-                    "the contact), which the impulsive model does not represent"
-                )
+            self._check_penetration(s, u, t_end)
         self._record(t_end, s)
         return s
 
@@ -379,6 +389,14 @@ class Forward:
             raise EvaluationError(
                 f"more than {self.max_events} events by t = {t:.6g}; raise max_events to "
                 "simulate longer collision series"
+            )
+        limit = accumulating([e.time for e in self.events[-(ZENO_RUN + 2) :]], self.ocp.horizon)
+        if limit is not None:
+            raise EvaluationError(
+                f"the events accumulate near t = {limit:.9g} (their gaps shrink "
+                f"geometrically over the last {ZENO_RUN}): Zeno behaviour, e.g. a body "
+                "coming to rest on a contact through infinitely many impacts, which the "
+                "impulsive model does not resolve"
             )
         if n >= ZENO_WINDOW:
             span = t - self.events[n - ZENO_WINDOW].time

@@ -22,6 +22,7 @@ Several guards at one instant
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,10 +30,22 @@ import numpy as np
 
 from hybridoc.errors import EvaluationError, SimultaneousEventError
 
-__all__ = ["Event", "approaching", "EventResolver", "MAX_EVENTS_AT_ONE_TIME"]
+__all__ = [
+    "Event",
+    "EventResolver",
+    "MAX_EVENTS_AT_ONE_TIME",
+    "MAX_REPEATS_AT_ONE_TIME",
+    "accumulating",
+    "approaching",
+]
 
 EPS = float(np.finfo(float).eps)
-MAX_EVENTS_AT_ONE_TIME = 1000
+MAX_EVENTS_AT_ONE_TIME = 200
+"""More jumps than this at one instant are an error."""
+MAX_REPEATS_AT_ONE_TIME = 8
+"""One guard firing more often than this at one instant (a cascade that only converges in the
+limit, e.g. a disc squeezed between two bodies with restitution < 1) is an error, not a count
+that depends on the grazing threshold."""
 _COMMUTE_RTOL = 1e-9
 
 
@@ -89,6 +102,28 @@ def approaching(rate: np.ndarray, accel: np.ndarray, s: np.ndarray, graze_tol: f
     return rate < -np.maximum(graze_tol, floor)
 
 
+ZENO_RUN = 12
+"""Consecutive shrinking gaps between events that signal an accumulation (Zeno behaviour)."""
+
+
+def accumulating(times: list[float], horizon: float) -> float | None:
+    """The accumulation time when the last :data:`ZENO_RUN` gaps between events shrink
+    geometrically (each at most 0.9 times the previous, or zero) towards a point before the
+    horizon; ``None`` otherwise. A bouncing ball with restitution below 1 comes to rest this
+    way after infinitely many bounces, which the impulsive model does not resolve."""
+    if len(times) < ZENO_RUN + 2:
+        return None
+    gaps = np.diff(np.asarray(times[-(ZENO_RUN + 2) :], dtype=float))
+    if gaps[0] <= 0:
+        return None
+    ratios = gaps[1:] / np.maximum(gaps[:-1], 1e-300)
+    if not np.all((gaps[1:] == 0) | (ratios <= 0.9)):
+        return None
+    r = float(np.max(ratios[gaps[1:] > 0], initial=0.0))
+    limit = times[-1] + gaps[-1] * r / (1 - r) if r < 1 else math.inf
+    return limit if limit <= horizon * (1 + 1e-9) else None
+
+
 class EventResolver:
     """Applies the jumps due at one instant (see the module notes).
 
@@ -134,11 +169,22 @@ class EventResolver:
             g = self.ocp.guards[j]
             events.append(Event(t, g.kind, g.bodies, j, float(rate[j]), s, s_new, g.name))
             s = s_new
-            if len(events) > MAX_EVENTS_AT_ONE_TIME:
+            if sum(e.guard == j for e in events) > MAX_REPEATS_AT_ONE_TIME:
+                names = sorted({e.name for e in events})
                 raise EvaluationError(
-                    f"more than {MAX_EVENTS_AT_ONE_TIME} jumps at t = {t:.9g}: an "
-                    "accumulation of impacts at one instant that the impulsive model does not "
-                    "resolve"
+                    f"guard {g.name!r} fires more than {MAX_REPEATS_AT_ONE_TIME} times at one "
+                    f"instant t = {t:.9g} ({', '.join(names)}): a cascade of impacts that only "
+                    "converges in the limit (e.g. a body squeezed between two others with "
+                    "restitution < 1), which the impulsive model does not resolve in finitely "
+                    "many events"
+                )
+            if len(events) > MAX_EVENTS_AT_ONE_TIME:
+                names = sorted({e.name for e in events})
+                raise EvaluationError(
+                    f"more than {MAX_EVENTS_AT_ONE_TIME} jumps at one instant t = {t:.9g} "
+                    f"({', '.join(names)}): a cascade of impacts that only converges in the "
+                    "limit (e.g. a body squeezed between two others with restitution < 1), "
+                    "which the impulsive model does not resolve in finitely many events"
                 )
 
     def _check_commute(self, t: float, s: np.ndarray, due: list[int]) -> None:

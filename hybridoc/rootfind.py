@@ -91,6 +91,10 @@ class CrossingSearch:
     approaching
         ``approaching(j, tau) -> bool``: whether guard ``j`` approaches fast enough at
         ``tau`` to jump (the grazing rule).
+    penetrated
+        ``penetrated(j, tau)``: called where guard ``j`` is found inside (below its rounding
+        level) without an impact that put it there; it raises when that is beyond tolerance
+        (sustained contact).
     """
 
     cheb: Chebyshev
@@ -98,6 +102,7 @@ class CrossingSearch:
     window: Callable[[float, float], tuple[np.ndarray, np.ndarray]]
     value: Callable[[int, float], tuple[float, float, float]]
     approaching: Callable[[int, float], bool]
+    penetrated: Callable[[int, float], None] | None = None
 
     def run(
         self, h: float, first: tuple[np.ndarray, np.ndarray] | None = None
@@ -195,6 +200,10 @@ class CrossingSearch:
                 if self.approaching(j, tau):
                     return tau
                 # a sign change at the rounding level without approach: a graze
+            if d < -nz and self.penetrated is not None:
+                # inside the guard without an impact (a resting contact pushed into, or a
+                # graze that went on): the caller decides whether that is beyond tolerance
+                self.penetrated(j, t)
             if d > 0 or abs(d) > nz:
                 prev_t, prev_d = t, d
             elif prev_d is None or prev_d > 0:

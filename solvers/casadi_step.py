@@ -225,8 +225,8 @@ def make_step(
         ``Function('step', [s, u], [s_next])`` with ``SX`` inside, equal to one step of
         :class:`hybridoc.solvers.simulator.Simulator` with the same settings.
     """
+    from hybridoc.problems import disc_scene
     from hybridoc.solvers.contacts import CONTACT_MODELS, contact_model
-    from hybridoc.solvers.simulator import disc_scene
 
     scene = disc_scene(scene)
     model = contact_model(contact, toi=toi)

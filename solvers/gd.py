@@ -223,6 +223,8 @@ def solve_gd(
     max_step: float | None = None,
     smoothing: Sequence[float] | None = None,
     path_weight: float = 1e4,
+    starts: int = 1,
+    seed: int | None = 0,
     _penalty: float = 0.0,
 ) -> Solution:
     """Minimise the discrete objective by gradient descent through the simulation.
@@ -270,6 +272,14 @@ def solve_gd(
     path_weight
         Weight of the quadratic penalty on path-constraint violations (problems with
         ``path`` constraints).
+    starts
+        Multi-start: ``starts`` initial controls (the guess, perturbations of it, random smooth
+        controls, controls aimed at each body and wall; :mod:`hybridoc.solvers.multistart`)
+        descend together, one batched rollout per iteration, on a coarse grid; the best
+        distinct results are refined by the single-start method at full resolution and the
+        best of them returned. ``info["starts"]`` lists every start's result.
+    seed
+        Seed of the random starts.
 
     Returns
     -------
@@ -298,6 +308,16 @@ def solve_gd(
     iters, lr = int(iters), float(lr)
     if integrator is None:
         integrator = default_integrator(ocp, contact, toi)
+    if isinstance(starts, bool) or not isinstance(starts, numbers.Integral) or starts < 1:
+        raise SceneError(f"starts must be an integer >= 1, got {starts!r}")
+    if starts > 1:
+        return _multistart(
+            ocp, int(starts), seed, dict(
+                contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
+                iters=iters, lr=lr, callback=callback, progress=progress, path=path,
+                max_step=max_step, smoothing=smoothing, path_weight=path_weight,
+            ),
+        )  # fmt: skip
     t_start = time.perf_counter()
     loss_obj, used_path = make_loss(ocp, contact, toi, integrator, path, path_weight)
     u0 = _initial(ocp, initial)
@@ -355,6 +375,12 @@ def solve_gd(
     status, status_message = Status.SUCCESS, ""
     if nan_stop:
         status, status_message = Status.NOT_CONVERGED, message
+    elif history and history[-1] > history[0] * (1 + 1e-9) + 1e-300:
+        status = Status.NOT_CONVERGED
+        status_message = (
+            f"the loss rose from {history[0]:.6g} to {history[-1]:.6g}: the optimisation "
+            "diverged; try a smaller learning rate"
+        )
     elif not ev.feasible:
         status = Status.INFEASIBLE
         status_message = (
@@ -380,6 +406,57 @@ def solve_gd(
         arrays={"loss_history": np.array(history, dtype=float)},
     )
     return sol.set_status(status, status_message)
+
+
+#: multi-start: the coarse grid of the batched phase, its iterations, and how many distinct
+#: results are refined at full resolution
+MULTISTART_STEPS = 60
+MULTISTART_ITERS = 60
+MULTISTART_REFINE = 2
+MULTISTART_SMOOTHING = (3e-6,)
+
+
+def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str, Any]) -> Solution:
+    """:func:`solve_gd` with ``starts > 1`` (see its ``starts``)."""
+    from hybridoc.solvers.multistart import explore
+
+    t0 = time.perf_counter()
+    if "scene" in ocp.meta and (options["contact"] != "direct" or options["integrator"] != "exact"):
+        raise SceneError(
+            "the batched multi-start runs the compiled exact simulation (contact 'direct', "
+            "integrator 'exact')"
+        )
+    coarse = min(ocp.steps, MULTISTART_STEPS)
+    found = explore(ocp, starts, seed=seed, steps=coarse, iters=MULTISTART_ITERS)
+    t_explore = time.perf_counter() - t0
+    refined: list[Solution] = []
+    seen: set[tuple[str, ...]] = set()
+    for r in found:
+        key = tuple(r["sequence"])
+        if key in seen:
+            continue
+        if refined and r["cost"] > 1.02 * found[0]["cost"]:
+            break  # the batched phase ranks the basins well enough
+        seen.add(key)
+        # the batched phase has found the basin: one light smoothing stage for the kinks
+        smoothing = options["smoothing"]
+        if smoothing is None:
+            smoothing = MULTISTART_SMOOTHING if options["optimizer"] == "lbfgs" else ()
+        refined.append(solve_gd(ocp, initial=r["controls"], **dict(options, smoothing=smoothing)))
+        if len(refined) >= MULTISTART_REFINE:
+            break
+    if not refined:
+        return solve_gd(ocp, **options)
+    best = min(refined, key=lambda s: s.cost)
+    best.settings["starts"] = starts
+    best.settings["seed"] = seed
+    best.info["starts"] = [
+        {"cost": r["cost"], "sequence": r["sequence"], "steps": coarse} for r in found
+    ]
+    best.info["refined"] = [{"cost": s.cost, "sequence": s.sequence} for s in refined]
+    best.timings["explore_time_s"] = t_explore
+    best.timings["solve_time_s"] = time.perf_counter() - t0
+    return best
 
 
 class _Run:
@@ -436,12 +513,22 @@ class _Run:
         u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
         best = {"loss": math.inf, "u": u0.copy()}
 
+        last: dict[str, Any] = {"u": None, "value": None}
+
         def evaluate_loss() -> Any:
             value = self.value(u)
             val = float(value.detach())
             if val < best["loss"]:
                 best["loss"], best["u"] = val, u.detach().numpy().copy()
+            last["u"], last["value"] = u.detach().clone(), val
             return value
+
+        def loss_here() -> float:
+            """The loss at the current controls (the line search's last evaluation when it
+            was there: no second rollout)."""
+            if last["u"] is not None and torch.equal(last["u"], u.detach()):
+                return float(last["value"])
+            return float(evaluate_loss().detach())
 
         # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
         # the gradient with respect to one control value scales with dt: it sees loss / dt
@@ -484,7 +571,7 @@ class _Run:
             for k in range(self.iters):
                 if self.optimizer == "lbfgs":
                     if not history:
-                        history.append(float(evaluate_loss().detach()))
+                        history.append(loss_here())
                     before = u.detach().clone()
                     opt.step(closure)
                     jump = float((u.detach() - before).abs().max())
@@ -513,7 +600,7 @@ class _Run:
                         opt, fresh = make_optimizer(), True
                         self.restarts += 1
                     else:
-                        history.append(float(evaluate_loss().detach()))
+                        history.append(loss_here())
                         fresh = False
                 else:
                     history.append(float(closure().detach()))

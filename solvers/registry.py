@@ -15,6 +15,7 @@ whose cost is the judge's cost of its control and whose status says what the res
 
 from __future__ import annotations
 
+import importlib
 import inspect
 import time
 from collections.abc import Callable
@@ -40,26 +41,35 @@ class Method:
     summary
         One line for listings.
     run
-        ``run(ocp, **options) -> Solution``.
+        ``run(ocp, **options) -> Solution``, or ``"module:function"`` naming it (imported on
+        first use, so that listing the methods imports no solver).
     supports
         ``supports(ocp) -> None`` when the method can solve the problem, else a one-line
         reason.
-    options
-        Option names ``run`` accepts (read from its signature when empty).
     """
 
     name: str
     summary: str
-    run: Callable[..., Solution]
+    run: Callable[..., Solution] | str
     supports: Callable[[HybridOCP], str | None] = field(default=lambda ocp: None)
-    options: tuple[str, ...] = ()
+
+    def function(self) -> Callable[..., Solution]:
+        """The solver function."""
+        if callable(self.run):
+            return self.run
+        module, _, attr = self.run.partition(":")
+        return getattr(importlib.import_module(module), attr)
 
     def accepted(self) -> tuple[str, ...]:
-        """The option names :meth:`run` accepts."""
-        if self.options:
-            return self.options
-        params = inspect.signature(self.run).parameters
-        return tuple(p for p in params if p not in ("ocp", "problem") and not p.startswith("_"))
+        """The option names the solver accepts (read from its signature)."""
+        params = inspect.signature(self.function()).parameters
+        return tuple(
+            p.name
+            for p in params.values()
+            if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+            and p.name not in ("ocp", "problem")
+            and not p.name.startswith("_")
+        )
 
 
 METHODS: dict[str, Method] = {}
@@ -117,34 +127,16 @@ def solve(
             f"{', '.join(o for o in accepted if o != 'initial')}"
         )
     t0 = time.perf_counter()
-    sol = m.run(ocp, initial=initial, **options)
+    sol = m.function()(ocp, initial=initial, **options)
     sol.timings.setdefault("wall_time_s", time.perf_counter() - t0)
     return sol
 
 
 # ---------------------------------------------------------------------- built-in methods
-def _reference(ocp: HybridOCP, **options: Any) -> Solution:
-    from hybridoc.reference import solve_reference
-
-    return solve_reference(ocp, **options)
-
-
-def _dt(ocp: HybridOCP, **options: Any) -> Solution:
-    from hybridoc.solvers.transcription import solve_dt
-
-    return solve_dt(ocp, **options)
-
-
-def _gd(ocp: HybridOCP, **options: Any) -> Solution:
-    from hybridoc.solvers.gd import solve_gd
-
-    return solve_gd(ocp, **options)
-
-
 def _reference_supports(ocp: HybridOCP) -> str | None:
-    if ocp.path is not None:
-        return "the HMP reference does not handle path (state) constraints; use method 'dt'"
-    return None
+    from hybridoc.reference import reference_supports
+
+    return reference_supports(ocp)
 
 
 def _gd_supports(ocp: HybridOCP) -> str | None:
@@ -158,40 +150,23 @@ register_method(
     Method(
         "reference",
         "optimal control by shooting on the hybrid minimum principle (the ground truth)",
-        _reference,
+        "hybridoc.reference.solve:solve_reference",
         _reference_supports,
-        options=("sequence", "initial", "search", "verbose", "tol", "verify", "transcription"),
     )
 )
 register_method(
     Method(
         "dt",
         "multi-phase direct transcription (Radau collocation, IPOPT)",
-        _dt,
-        options=("sequence", "initial", "degree", "mesh", "verbose"),
+        "hybridoc.solvers.transcription:solve_dt",
     )
 )
 register_method(
     Method(
         "gd",
         "gradient descent through the differentiable time-of-impact simulation",
-        _gd,
+        "hybridoc.solvers.gd:solve_gd",
         _gd_supports,
-        options=(
-            "contact",
-            "toi",
-            "integrator",
-            "optimizer",
-            "iters",
-            "lr",
-            "initial",
-            "callback",
-            "progress",
-            "path",
-            "max_step",
-            "smoothing",
-            "path_weight",
-        ),  # fmt: skip
     )
 )
 

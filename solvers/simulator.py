@@ -73,42 +73,17 @@ import numpy as np
 import torch
 
 from hybridoc.errors import ControlsError, SceneError
+from hybridoc.problems import disc_scene
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts import TOI_MODES, ContactModel, contact_model
 
 __all__ = ["Simulator", "TOI_MODES", "INTEGRATORS", "NEWTON_ITERATIONS", "disc_scene"]
 
+
 INTEGRATORS = ("symplectic-euler", "exact")
 NEWTON_ITERATIONS = 4
 """Newton iterations refining the time of impact of the exact integrator (quadratic
 convergence from the linear estimate, whose error is O(a dt^2))."""
-
-
-def disc_scene(problem: Any) -> Any:
-    """The :class:`~hybridoc.problems.Scene` of a disc problem (name, Scene or its OCP).
-
-    Raises
-    ------
-    hybridoc.errors.SceneError
-        For a problem that is not a disc scene.
-    """
-    from hybridoc.problem import as_ocp
-    from hybridoc.problems import Scene
-
-    if isinstance(problem, Scene):
-        return problem
-    ocp = as_ocp(problem)
-    scene = ocp.meta.get("scene")
-    if not isinstance(scene, Scene):
-        raise SceneError(
-            f"{ocp.name!r} is not a disc scene: the torch disc simulator needs one (gradient "
-            "descent on other hybrid systems uses the generic TOI simulation)"
-        )
-    if ocp.x0.shape != scene.initial_state().shape or not np.array_equal(
-        ocp.x0, scene.initial_state()
-    ):
-        scene = scene.with_initial_state(ocp.x0)
-    return scene
 
 
 class Simulator(torch.nn.Module):

@@ -54,6 +54,11 @@ itself to its shooting accuracy, the transcription (exact for polynomial optima)
 gradient descent (a discretised control) to 0.5%. Any other method: :data:`DEFAULT_TOLERANCE`."""
 DEFAULT_TOLERANCE = 5e-3
 
+GD_STARTS = {"disc": 32, "generic": 16}
+"""Cross-validation runs gradient descent as a multi-start (``starts``), since a local method
+from one guess can land in another basin (multiple-collision's two-event extremal); disc
+scenes have aimed starts, hence more of them."""
+
 
 def control_errors(controls: np.ndarray, reference: np.ndarray, dt: float) -> dict[str, float]:
     """Grid L2 and max errors of ``(N, nu)`` controls against the reference's.
@@ -210,7 +215,8 @@ def crossval(
     methods
         Registered method names; ``"reference"`` is always run (first).
     options
-        ``{method: {option: value}}`` passed to :func:`hybridoc.solve`.
+        ``{method: {option: value}}`` passed to :func:`hybridoc.solve` (gradient descent
+        defaults to a multi-start, :data:`GD_STARTS`).
     tolerances
         ``{method: relative cost gap}`` overriding :data:`TOLERANCES`.
 
@@ -232,6 +238,8 @@ def crossval(
     if unknown:
         raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
     opts = {k: dict(v) for k, v in (options or {}).items()}
+    gd_opts = opts.setdefault("gd", {})
+    gd_opts.setdefault("starts", GD_STARTS["disc" if "scene" in ocp.meta else "generic"])
     tol = {**TOLERANCES, **dict(tolerances or {})}
     sols: dict[str, Solution] = {}
     walls: dict[str, float] = {}

@@ -81,7 +81,7 @@ def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (("compare-contacts", "head-on", "--iters", "-2"), ("--iters",)),
         (("compare-contacts", "head-on", "--lr", "0"), ("--lr",)),
         (("convergence", "head-on", "--steps", "0"), ("--steps", "integer >= 1")),
-        (("evaluate",), ("evaluate:", "SCENE", "hybridoc evaluate --help")),
+        (("evaluate",), ("evaluate:", "PROBLEM", "hybridoc evaluate --help")),
         (("no-such-command",), ("COMMAND",)),
     ],
 )
@@ -101,8 +101,15 @@ def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments)
         (("compare-contacts", "head-on", "--out", "a_file"), ("a_file",)),
         (("reference", "head-on", "--out", "a_file"), ("a_file",)),
         # the transcription has no gd options: say so instead of ignoring them
-        (("solve", "head-on", "--method", "dt", "--iters", "3"), ("--iters applies only",)),
-        (("solve", "head-on", "--method", "dt", "--toi", "both", "--lr", "1"), ("--toi, --lr",)),
+        (
+            ("solve", "head-on", "--method", "dt", "--iters", "3"),
+            ("--iters applies to --method gd",),
+        ),
+        (
+            ("solve", "head-on", "--method", "dt", "--toi", "both", "--lr", "1"),
+            ("--toi applies to --method gd", "--lr", "not to --method dt"),
+        ),
+        (("solve", "head-on", "--method", "gd", "--mesh", "8"), ("--mesh applies to --method dt",)),
         # event sequences
         (("reference", "head-on", "--sequence", "nosuch"), ("unknown guard", "striker|target")),
         (("reference", "head-on", "--sequence", "striker|target,,"), ("empty event name",)),
@@ -111,7 +118,10 @@ def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments)
         (("gradcheck", "head-on", "--gd-iters", "x"), ("--gd-iters",)),
         (("show", "overlap.toml"), ("overlap",)),
         (("evaluate", "bad.toml"), ("not valid TOML",)),
-        (("validate", "nosuch", "short.npy"), ("unknown scene",)),
+        (("validate", "nosuch", "short.npy"), ("unknown problem",)),
+        (("evaluate", "nope.py:problem"), ("does not exist",)),
+        (("evaluate", "a_file:problem"), ("unknown problem",)),
+        (("evaluate", "head-on", "--controls", "nope.npz"), ("nope.npz", "does not exist")),
         (("validate", "head-on", "short.npy"), ("expected shape (240, 2)",)),
     ],
 )
@@ -142,7 +152,7 @@ def test_gd_rejects_bad_numbers() -> None:
         with pytest.raises(SceneError, match=match):
             solve_gd("head-on", optimizer="gd", **kwargs)
     with pytest.raises(ControlsError, match="not a numeric array"):
-        solve_gd("head-on", initial_controls="abc")
+        solve_gd("head-on", initial="abc")
 
 
 def test_simulator_batch_mismatch_is_a_controls_error() -> None:
@@ -195,7 +205,7 @@ def test_check_sequence() -> None:
 
 
 def test_convergence_rejects_bad_steps() -> None:
-    from hybridoc.validation import convergence
+    from hybridoc.solvers.validation import convergence
 
     for steps in [(), (1.5,), (0,)]:
         with pytest.raises(SceneError, match="steps"):

@@ -15,23 +15,24 @@ def test_reference_json(capsys):
     out = capsys.readouterr()
     assert rc == 0
     data = json.loads(out.out)  # exactly one JSON object on stdout
-    for key in ("cost", "terminal_cost", "running_cost", "events", "residual", "solve_time_s"):
+    for key in ("cost", "terminal_cost", "running_cost", "events", "status", "info", "timings"):
         assert key in data
+    assert data["status"] == "success" and data["success"] is True
     assert abs(data["cost"] - data["terminal_cost"] - data["running_cost"]) < 1e-14
     assert data["events"][0]["kind"] == "disc-disc"
-    assert set(data["events"][0]) == {"time", "kind", "bodies"}
-    assert data["residual"] < 1e-10
+    assert set(data["events"][0]) == {"time", "kind", "bodies", "guard"}
+    assert data["info"]["residual"] < 1e-10 and data["timings"]["solve_time_s"] > 0
 
 
 def test_reference_out_writes_solution_and_figures(tmp_path, capsys):
     rc = main(["reference", "head-on", "--out", str(tmp_path)])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "striker, target" in text
-    sol = hybridoc.Solution.load(tmp_path / "reference")
+    assert "striker|target" in text
+    sol = hybridoc.Solution.load(tmp_path / "head-on_reference")
     assert sol.method == "reference" and sol.info["sequence"] == ["striker|target"]
     for name in ("trajectory", "controls", "costates"):
-        png = tmp_path / f"reference_{name}.png"
+        png = tmp_path / f"head-on_reference_{name}.png"
         assert png.stat().st_size > 10_000
     # the saved controls are the cell means: re-evaluating them is O(dt) from the optimum
     ev = hybridoc.evaluate(hybridoc.load_scene("head-on"), sol.controls)

@@ -182,7 +182,8 @@ def test_cli_solve_dt_json():
         cwd="/",
     )
     data = json.loads(out.stdout)
-    for key in ("cost", "terminal_cost", "running_cost", "events", "solve_time_s"):
+    for key in ("cost", "terminal_cost", "running_cost", "events", "status", "timings"):
         assert key in data
+    assert data["status"] == "success" and data["timings"]["solve_time_s"] > 0
     assert data["cost"] == pytest.approx(0.311416870358, rel=1e-10)
     assert data["events"][0]["bodies"] == ["ball1", "ball2"]

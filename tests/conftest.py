@@ -1,0 +1,45 @@
+"""Shared test settings: the hypothesis profiles of the property tests.
+
+``ci`` (the default): a fixed seed (derandomized) and a bounded number of examples, so that
+``make test`` stays within its time budget and is reproducible. ``fuzz``: a hundred times
+more examples with random seeds (``make fuzz`` sets ``HYBRIDOC_FUZZ=1``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from hypothesis import HealthCheck, settings
+
+# tests import helper modules (the oracle, the library's independent optima) by name
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+# background C compilation would compete with the tests for CI's two cores; one test
+# (test_codegen.py) turns it on for itself
+os.environ.setdefault("HYBRIDOC_CODEGEN", "0")
+
+FUZZ = os.environ.get("HYBRIDOC_FUZZ", "") not in ("", "0")
+#: examples per property test at CI size; ``make fuzz`` runs FUZZ_FACTOR times more
+FUZZ_FACTOR = 100
+
+settings.register_profile(
+    "ci",
+    derandomize=True,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+)
+settings.register_profile(
+    "fuzz",
+    derandomize=False,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+)
+settings.load_profile("fuzz" if FUZZ else "ci")
+
+
+def examples(n: int) -> int:
+    """The number of examples of a property test: ``n`` at CI size, 100 ``n`` when fuzzing."""
+    return n * FUZZ_FACTOR if FUZZ else n
