@@ -8,7 +8,7 @@ STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
 PKG_DIRS := hybridoc hybridoc/cli reference solvers solvers/contacts problems problems/library problems/scenes
 
-.PHONY: run test lint format docs bench install clean
+.PHONY: run test fuzz lint format docs bench install clean
 
 # The main job: cross-validation of reference, transcription and gradient descent on both
 # of the paper's problems; tables on stdout, figures and JSON reports in ./out.
@@ -18,6 +18,11 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/pytest -q -p no:cacheprovider
+
+# The property tests of the judge with a hundred times more random cases (and random seeds).
+fuzz: $(STAMP)
+	HYBRIDOC_FUZZ=1 $(BIN)/pytest -q -p no:cacheprovider tests/test_judge_properties.py \
+		--hypothesis-show-statistics
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -44,7 +44,7 @@ def scene_to_ocp(scene: Scene) -> HybridOCP:
     phi = ca.SX(0)
     for i, d in enumerate(scene.discs):
         if d.target is not None:
-            phi += ca.sumsqr(p[i] - ca.DM(d.target))
+            phi += ph.target_cost(p[i], ca.DM(d.target), ops)
 
     h = ca.SX.sym("h")
     p_end = s[: 2 * n] + s[2 * n :] * h + 0.5 * a_flat * h**2

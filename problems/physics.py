@@ -17,7 +17,8 @@ The physics (DESIGN.md sections 1 and 3)
     frictionless impulse with restitution ``e`` is ``J = -(1 + e) w / (1/m_i + 1/m_j)``
     (``1/m_j = 0`` for a wall), applied as ``v_i += J n / m_i``, ``v_j -= J n / m_j``. The
     time of impact of a penetrated step is the paper's linear estimate ``d / w`` (Eq. 3)
-    and, on the exact flow, its Newton refinement.
+    and, on the exact flow, its Newton refinement. The terminal cost is the sum of
+    ``|p_i(T) - target_i|^2`` over the discs with a target.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ __all__ = [
     "pair_detector",
     "pair_gap",
     "refine_impact_time",
+    "target_cost",
     "toi_linear",
     "wall_gap",
 ]
@@ -168,6 +170,12 @@ def wall_gap(p: Any, point: Any, normal: Any, r: Any, ops: Ops) -> Any:
 def normal_speed(dv: Any, normal: Any, ops: Ops) -> Any:
     """``dv . n``: the relative normal speed, negative when approaching."""
     return ops.dot(dv, normal)
+
+
+def target_cost(p: Any, target: Any, ops: Ops) -> Any:
+    """A disc's share of the terminal cost, ``|p(T) - target|^2``."""
+    d = p - target
+    return ops.dot(d, d)
 
 
 def impulse(w: Any, inv_mass_sum: Any, restitution: Any) -> Any:

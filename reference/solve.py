@@ -557,22 +557,73 @@ def _multistart_candidates(ocp: HybridOCP, book: _Book, count: int) -> None:
         )  # fmt: skip
 
 
+_SEARCH_STATE: dict[str, Any] = {}
+
+
+def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, float]:
+    """A worker: Newton from the disc NLP (or the transcription) for one sequence."""
+    from hybridoc.reference.sequence import solve_sequence as _solve
+
+    ocp, u0, ev, tol = (_SEARCH_STATE[k] for k in ("ocp", "u0", "ev", "tol"))
+    t0 = time.perf_counter()
+    try:
+        res, why = _solve(
+            ocp, seq, guess_times(ocp, seq, ev), u0, estimate=False,
+            guess_ev=None if is_disc_scene(ocp) else ev, tol=tol,
+        )  # fmt: skip
+    except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
+        res, why = None, str(exc)
+    return seq, (None if res is None else res.z), why, time.perf_counter() - t0
+
+
 def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluation) -> None:
-    """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning."""
+    """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning, in
+    worker processes (one per core) where the platform can fork."""
+    import multiprocessing as mp
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    from hybridoc.reference.result import make_result
+    from hybridoc.reference.shooting import newton, shooting_system
+
+    verified = [r.cost for k, r in book.results.items() if book.verdicts.get(k, (False,))[0]]
+    best = min(verified, default=math.inf)
+    todo = []
     for seq in enumerate_sequences(ocp, depth):
         key = tuple(seq)
         if key in book.results or key in book.reasons:
             continue
-        verified = [r.cost for k, r in book.results.items() if book.verdicts.get(k, (False,))[0]]
-        best = min(verified, default=math.inf)
         lb = lower_bound(ocp, seq)
         if lb >= best:
             book.reasons[key] = f"pruned: its cost is at least {lb:.6g} >= {best:.6g}"
             book.origins[key] = "search"
             book.times[key] = 0.0
             continue
-        res = book.attempt(
-            seq, guess_times(ocp, seq, ev), u0, "search", estimate=False, guess_ev=ev
-        )
-        if res is not None:
-            book.verify(key)
+        todo.append(seq)
+    _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol)
+    workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1, 8)
+    try:
+        if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+                outcomes = list(pool.map(_search_one, todo, chunksize=4))
+        else:
+            outcomes = [_search_one(seq) for seq in todo]
+    finally:
+        _SEARCH_STATE.clear()
+    for seq, z, why, took in outcomes:
+        key = tuple(seq)
+        book.origins[key] = "search"
+        book.times[key] = took
+        if z is None:
+            book.reasons[key] = why
+            book.say(f"{seq} (search): {why}")
+            continue
+        S = shooting_system(ocp, seq)
+        nr = newton(S, z, tol=book.tol)  # polishes in one step: rebuilds the result here
+        if not nr.converged:
+            book.reasons[key] = f"Newton from the search's point: residual {nr.residual:.2e}"
+            continue
+        book.results[key] = make_result(S, nr, "search")
+        book.say(f"{seq} (search): cost {book.results[key].cost:.12g}")
+    for key in list(book.results):
+        book.verify(key)

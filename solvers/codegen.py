@@ -2,10 +2,11 @@
 
 :class:`Accelerated` wraps a CasADi Function: calls go to CasADi's virtual machine until a
 C version is ready, then to the C version. The C code comes from CasADi's
-``CodeGenerator``; the system C compiler (``cc``, ``gcc`` or ``clang``; ``-O1
--ffp-contract=off``, so that the arithmetic is the virtual machine's, bit for bit) builds it
-in a background thread, one compilation at a time, into a cache folder keyed by a hash of
-the function's serialisation: a second run loads the library at once. Without a compiler,
+``CodeGenerator``; once a function has been called :data:`HOT_CALLS` times, the system C
+compiler (``cc``, ``gcc`` or ``clang``; ``-O1 -ffp-contract=off``, so that the arithmetic is
+the virtual machine's, bit for bit) builds it in a background thread, one compilation at a
+time, into a cache folder keyed by a hash of the function's serialisation: a later run loads
+the library at once. Without a compiler,
 or when compilation fails, the virtual machine simply stays in use.
 
 Settings (environment): ``HYBRIDOC_CODEGEN=0`` turns it off; ``HYBRIDOC_CACHE`` sets the
@@ -25,9 +26,11 @@ from typing import Any
 
 import casadi as ca
 
-__all__ = ["Accelerated", "cache_dir", "compiler", "enabled"]
+__all__ = ["HOT_CALLS", "Accelerated", "cache_dir", "compiler", "enabled"]
 
 _QUEUE_LOCK = threading.Lock()  # one compilation at a time: two cores are often all there is
+HOT_CALLS = 50
+"""Calls after which a function is compiled (see :class:`Accelerated`)."""
 _FLAGS = ["-O1", "-ffp-contract=off", "-fPIC", "-shared"]
 
 
@@ -65,6 +68,10 @@ class Accelerated:
     vm
         What to call until the C version is ready, if not ``fn`` itself (e.g. ``fn`` mapped
         over threads, when ``fn`` is its serial map).
+    hot
+        Start compiling after this many calls (a function called a few times is not worth a
+        compilation that competes for the cores); a library already in the cache is loaded
+        at once.
     """
 
     def __init__(

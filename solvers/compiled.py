@@ -70,7 +70,7 @@ class CompiledLoss:
         Events resolved per step by the generic step.
     path_weight
         Problems with path constraints ``c(s, u) >= 0``: the step cost gains
-        ``path_weight * dt * |min(c(s_n, u_n), 0)|^2`` (a quadratic penalty at the grid).
+        ``path_weight * dt * |min(c(s_{n+1}, u_n), 0)|^2`` (a quadratic penalty at the grid).
 
     Notes
     -----
@@ -88,7 +88,7 @@ class CompiledLoss:
         *,
         simulation: str = "auto",
         max_events: int = 2,
-        path_weight: float = 1e4,
+        path_weight: float = 1e5,
     ) -> None:
         from hybridoc.problem import as_ocp
         from hybridoc.problems import Scene
@@ -131,8 +131,9 @@ class CompiledLoss:
             step_fn = toi_step(ocp, ocp.dt, max_events=max_events)
             self.settings = {"simulation": "generic", "integrator": "exact"}
         if ocp.path is not None:
-            viol = ca.sumsqr(ca.fmin(ocp.path(s, u), 0))
+            # the penalty at each step's end state (with its control): s_1 .. s_N
             s_next, c_step = step_fn(s, u)
+            viol = ca.sumsqr(ca.fmin(ocp.path(s_next, u), 0))
             step_fn = ca.Function(
                 "step", [s, u], [s_next, c_step + path_weight * ocp.dt * viol], ["s", "u"],
                 ["s_next", "cost"],

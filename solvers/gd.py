@@ -124,7 +124,7 @@ def make_loss(
     toi: str,
     integrator: str,
     path: str = "auto",
-    path_weight: float = 1e4,
+    path_weight: float = 1e5,
 ) -> tuple[Any, str]:
     """The differentiable objective of a problem: ``(loss object, "compiled" | "torch")``.
 
@@ -222,7 +222,7 @@ def solve_gd(
     path: str = "auto",
     max_step: float | None = None,
     smoothing: Sequence[float] | None = None,
-    path_weight: float = 1e4,
+    path_weight: float = 1e5,
     starts: int = 1,
     seed: int | None = 0,
     _penalty: float = 0.0,

@@ -378,7 +378,7 @@ class Simulator(torch.nn.Module):
     def terminal_cost(self, states: torch.Tensor) -> torch.Tensor:
         """``phi(s_N) = sum_i |p_i(T) - target_i|^2`` over discs with a target, ``(B,)``."""
         pN = states[:, -1, : 2 * self.n].reshape(-1, self.n, 2)
-        return (((pN - self.targets) ** 2).sum(-1) * self.target_mask).sum(-1)
+        return (ph.target_cost(pN, self.targets, ph.TORCH) * self.target_mask).sum(-1)
 
     def running_cost(self, controls: Any) -> torch.Tensor:
         """``sum_n eps |u_n|^2 dt`` (paper Eq. 8), ``(B,)``."""

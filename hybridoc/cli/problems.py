@@ -36,9 +36,11 @@ def cmd_problems(args: argparse.Namespace) -> int:
                 s.description,
             ]
         )
+    from hybridoc.problems.library import describe
+
     for name in library_names():
         ocp = load_problem(name)
-        doc = ocp.meta.get("description", "")
+        doc = describe(name)
         rows.append([name, "library", ocp.nx, ocp.nu, ocp.steps, fmt(ocp.horizon), doc])
     print(
         format_table(

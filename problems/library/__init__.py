@@ -15,17 +15,36 @@ All have a running cost quadratic in ``u`` and a flow affine in ``u``, so the HM
 ``u* = argmin_u H`` is explicit.
 """
 
+from functools import partial
+
 from .ball_on_slope import ball_on_slope
 from .bouncing_ball import bouncing_ball
 from .juggling_paddle import juggling_paddle
 from .pendulum_wall import pendulum_wall
 
-__all__ = ["ball_on_slope", "bouncing_ball", "juggling_paddle", "pendulum_wall", "LIBRARY"]
+__all__ = [
+    "LIBRARY",
+    "ball_on_slope",
+    "bouncing_ball",
+    "describe",
+    "juggling_paddle",
+    "pendulum_wall",
+]
 
-#: name -> problem function
+#: built-in name (as ``hybridoc problems`` lists it) -> function returning the problem with
+#: its defaults; other configurations: ``path/to/file.py:function`` or the functions in Python
 LIBRARY = {
-    "bouncing_ball": bouncing_ball,
-    "ball_on_slope": ball_on_slope,
-    "juggling_paddle": juggling_paddle,
-    "pendulum_wall": pendulum_wall,
+    "bouncing-ball": bouncing_ball,
+    "bouncing-ball-2": partial(bouncing_ball, bounces=2),
+    "ball-on-slope": ball_on_slope,
+    "juggling-paddle": juggling_paddle,
+    "pendulum-wall": pendulum_wall,
 }
+
+
+def describe(name: str) -> str:
+    """One line about a built-in library problem (its function's summary)."""
+    fn = LIBRARY[name]
+    doc = getattr(fn, "func", fn).__doc__ or ""
+    line = doc.strip().splitlines()[0] if doc.strip() else name
+    return line + (" (two bounces)" if name.endswith("-2") else "")
