@@ -23,6 +23,8 @@ from hybridoc.reference.shooting import ShootingSystem, newton, shooting_system
 __all__ = ["COST_RTOL", "solve_sequence", "verify_reference", "z_from_transcription"]
 
 COST_RTOL = 1e-9
+#: Constraint violation above which the search drops a sequence whose NLP failed.
+SCREEN_INFEASIBILITY = 1e-3
 """Relative agreement of the shooting cost and the judge's cost of the same control."""
 
 
@@ -100,6 +102,7 @@ def solve_sequence(
     transcription: bool = True,
     tol: float = 1e-10,
     verbose: bool = False,
+    screen: bool = False,
 ) -> tuple[ReferenceResult | None, str]:
     """Solve the HMP system of one sequence; ``(result, "")`` or ``(None, reasons)``.
 
@@ -118,6 +121,11 @@ def solve_sequence(
         A simulated trajectory to initialise the transcription's phases.
     transcription
         Fall back on the direct transcription with the sequence fixed.
+    screen
+        For the search over many sequences (disc scenes): where IPOPT stops at a point that
+        violates the sequence's guard conditions (by more than 1e-3), give the sequence up
+        without Newton, and give Newton fewer, shorter tries; most enumerated sequences are
+        not realisable, and an extremal's Newton from the NLP takes two or three steps.
     """
     S = shooting_system(ocp, list(sequence))
     gamma0 = np.asarray(gamma0, dtype=float)
@@ -125,9 +133,18 @@ def solve_sequence(
     found: list[ReferenceResult] = []
 
     def attempt(z0: np.ndarray, path: str) -> None:
-        nr = newton(S, z0, tol=tol, verbose=verbose)
+        if screen:
+            nr = newton(S, z0, tol=tol, verbose=verbose, max_iter=20, min_step=1e-3)
+        else:
+            nr = newton(S, z0, tol=tol, verbose=verbose)
         if nr.converged:
             found.append(make_result(S, nr, path))
+        elif nr.residual <= tol:
+            times = ", ".join(f"{float(g):.6g}" for g in S.unpack(nr.z)[1])
+            reasons.append(
+                f"Newton from the {path} found a root with event times [{times}], not in "
+                f"order inside (0, T = {S.T:g})"
+            )
         else:
             reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
 
@@ -141,8 +158,14 @@ def solve_sequence(
     if S.disc:
         # also after a converged estimate: from a poor guess Newton can land on a worse
         # stationary point of the same sequence, while the NLP minimises over it
-        z0, _ok = S.solve_nlp(gamma0, fit_coeffs(ocp, u_guess, gamma0))
-        attempt(z0, "nlp")
+        coeffs = fit_coeffs(ocp, u_guess, gamma0)
+        z0, ok, infeasibility = S.solve_nlp(gamma0, coeffs, max_iter=40 if screen else 100)
+        if screen and not ok and infeasibility > SCREEN_INFEASIBILITY:
+            reasons.append(
+                f"the NLP found no point with these events (violation {infeasibility:.1e})"
+            )
+        else:
+            attempt(z0, "nlp")
     if not found and transcription and guess_ev is not None:
         from hybridoc.solvers.transcription import solve_dt_sequence
 

@@ -141,9 +141,35 @@ class _Core:
         self.nx, self.nu = ocp.nx, ocp.nu
         self.disc = is_disc_scene(ocp)
         self._build_pieces(ocp)
-        self._build_residual(ocp)
-        self._nlp: Any = None
+        self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
+
+    @property
+    def F(self) -> Any:
+        """``(residual, Jacobian)`` of ``(z, x0, T)``; built on first use, since the
+        search solves many sequences' NLPs whose Newton step never comes."""
+        return self._residual()[0]
+
+    @property
+    def traj(self) -> Any:
+        """Phase starts, states, costates, costs, ... of ``(z, x0, T)`` (see ``F``)."""
+        return self._residual()[1]
+
+    @property
+    def flow_fn(self) -> Any:
+        """``(s, lambda)`` after time ``tau`` from ``(s0, lambda0)`` (see ``F``)."""
+        self._residual()
+        return self._flow_fn
+
+    def _residual(self) -> tuple[Any, Any]:
+        if self._residual_fns is None:
+            ocp = self._ocp_ref()
+            if ocp is None:
+                raise RuntimeError("the problem of this shooting core no longer exists")
+            with _LOCK:
+                if self._residual_fns is None:
+                    self._residual_fns = self._build_residual(ocp)
+        return self._residual_fns
 
     # ------------------------------------------------------------------ building blocks
     def _build_pieces(self, ocp: HybridOCP) -> None:
@@ -185,15 +211,7 @@ class _Core:
 
     def phase_u(self, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
         """Disc scenes: state after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""
-        n2 = self.nx // 2
-        A = self.A
-        p0, v0 = s0[:n2], s0[n2:]
-        a0 = ca.mtimes(A, c0)
-        a1 = ca.mtimes(A, c1)
-        p = p0 + v0 * h + a0 * h**2 / 2 + a1 * h**3 / 6
-        v = v0 + a0 * h + a1 * h**2 / 2
-        J = self.eps * (ca.sumsqr(c0) * h + ca.dot(c0, c1) * h**2 + ca.sumsqr(c1) * h**3 / 3)
-        return ca.vertcat(p, v), J
+        return _phase_u(self.A, self.eps, s0, c0, c1, h)
 
     def control_coeffs(self, lam0: Any) -> tuple[Any, Any]:
         """Disc scenes: ``u(tau) = c0 + c1 tau`` from the costate at the phase start."""
@@ -255,7 +273,7 @@ class _Core:
             parts += [[float(gam[k]), float(pis[k])], np.asarray(lps[k], float).ravel()]
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def _build_residual(self, ocp: HybridOCP) -> None:
+    def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
         nx = self.nx
         z = ca.SX.sym("z", self.nz)
         x0 = ca.SX.sym("x0", nx)
@@ -288,10 +306,10 @@ class _Core:
         phiT, gphi = self.phi(sT)
         res.insert(0, lT - gphi)
         R = ca.vertcat(*res)
-        self.F = ca.Function("hmp_F", [z, x0, T], [R, ca.jacobian(R, z)])
+        F = ca.Function("hmp_F", [z, x0, T], [R, ca.jacobian(R, z)])
         running = sum(costs[1:], costs[0])
         hc = ca.horzcat
-        self.traj = ca.Function(
+        traj = ca.Function(
             "hmp_traj",
             [z, x0, T],
             [
@@ -312,36 +330,76 @@ class _Core:
         l0 = ca.SX.sym("l0", nx)
         tau = ca.SX.sym("tau")
         s1, l1, _ = self.phase(s0, l0, tau)
-        self.flow_fn = ca.Function("hmp_flow", [s0, l0, tau], [s1, l1])
+        self._flow_fn = ca.Function("hmp_flow", [s0, l0, tau], [s1, l1])
+        return F, traj
 
-    # ------------------------------------------------------------------ globalising NLP
-    def build_nlp(self, ocp: HybridOCP) -> Any:
-        """Disc scenes: the NLP in event times and linear-in-time phase controls."""
-        if self._nlp is not None:
-            return self._nlp
-        nu, K = self.nu, self.K
+
+class _DiscNLP:
+    """Disc scenes: the NLP in event times and linear-in-time phase controls for ``K``
+    events, one compiled IPOPT instance per (structure, ``K``). Which guard each event is
+    lies in the parameters (one index per event, the guards selected by
+    ``if_else``, which also keeps an unselected guard's NaN out), so a search over
+    many sequences of one length builds it once."""
+
+    def __init__(self, ocp: HybridOCP, K: int, max_iter: int = 100) -> None:
+        nx = ocp.nx
+        n2 = nx // 2
+        s_sym = ca.SX.sym("s", nx)
+        u_sym = ca.SX.sym("u", ocp.nu)
+        nu = ocp.nu
+        self.A = np.asarray(ca.DM(ca.jacobian(ocp.f(s_sym, u_sym), u_sym)))[n2:]
+        self.eps = float(ocp.meta["control_weight"])
+        guard_fns = []
+        for j, g in enumerate(ocp.guards):
+            psi = g.psi(s_sym)
+            gs = g.reset(s_sym)
+            guard_fns.append(
+                ca.Function(
+                    f"ev{j}", [s_sym], [psi, ca.gradient(psi, s_sym), gs, ca.jacobian(gs, s_sym)]
+                )
+            )
+        phi_s = ocp.phi(s_sym)
+        phi_fn = ca.Function("phi", [s_sym], [phi_s, ca.gradient(phi_s, s_sym)])
+        lam_sym = ca.SX.sym("lam", nx)
+        H_fn = ca.Function(
+            "H",
+            [s_sym, lam_sym, u_sym],
+            [ocp.L(s_sym, u_sym) + ca.dot(lam_sym, ocp.f(s_sym, u_sym))],
+        )
+
         w = ca.SX.sym("w", K + (K + 1) * 2 * nu)
-        par = ca.SX.sym("p", self.nx + 1)
-        x0, T = par[: self.nx], par[self.nx]
+        par = ca.SX.sym("p", nx + 1 + K)
+        x0, T, idx = par[:nx], par[nx], par[nx + 1 :]
+
+        def selected(k: int, sm: Any) -> tuple[Any, Any, Any, Any]:
+            parts = [fn(sm) for fn in guard_fns]
+            pick = [idx[k] == j for j in range(len(guard_fns))]
+            return tuple(
+                sum(
+                    (ca.if_else(c, p[m], 0) for c, p in zip(pick, parts, strict=True)),
+                    ca.SX.zeros(parts[0][m].shape),
+                )
+                for m in range(4)
+            )  # type: ignore[return-value]
+
         gam = [w[k] for k in range(K)]
         C = [w[K + 2 * nu * k : K + 2 * nu * (k + 1)] for k in range(K + 1)]
         s: Any = x0
         t: Any = 0.0
         cost: Any = 0
         g, lbg, ubg = [], [], []
-        ends = []  # (s-, s+, u-, u+, h) per event, for the adjoint
+        ends = []  # (s-, s+, u-, u+, grad psi, Dg) per event, for the adjoint
         hs = []
         for k in range(K + 1):
             h = (gam[k] if k < K else T) - t
             hs.append(h)
             c0, c1 = C[k][:nu], C[k][nu:]
-            sm, J = self.phase_u(s, c0, c1, h)
+            sm, J = _phase_u(self.A, self.eps, s, c0, c1, h)
             cost += J
             if k == K:
                 s = sm
                 break
-            psi, gpsi, sp, Dg = self.guard_fns[k](sm)
-            n2 = self.nx // 2
+            psi, gpsi, sp, Dg = selected(k, sm)
             g += [psi, ca.dot(gpsi[:n2], sm[n2:])]
             lbg += [0.0, -ca.inf]
             ubg += [0.0, 0.0]
@@ -354,7 +412,7 @@ class _Core:
             g.append(T - gam[K - 1])
             lbg.append(0.0)
             ubg.append(ca.inf)
-        phiT, gphi = self.phi(s)
+        phiT, gphi = phi_fn(s)
         cost += phiT
         nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g) if g else ca.SX(0, 1)}
         opts = {
@@ -363,11 +421,11 @@ class _Core:
             "print_time": False,
             "ipopt.tol": 1e-12,
             "ipopt.acceptable_tol": 1e-9,
-            "ipopt.max_iter": 100,
+            "ipopt.max_iter": max_iter,
         }
-        solver = ca.nlpsol("hmp_nlp", "ipopt", nlp, opts)
+        self.solver = ca.nlpsol("hmp_nlp", "ipopt", nlp, opts)
+        self.lbg, self.ubg = lbg, ubg
         # adjoint of the NLP's control, backwards, with the evaluator's jump rule
-        n2 = self.nx // 2
         lam = gphi
         lps: list[Any] = [None] * K
         pis: list[Any] = [None] * K
@@ -378,16 +436,42 @@ class _Core:
             sm, sp, um, up, gpsi, Dg = ends[k - 1]
             lps[k - 1] = lam
             fm = ocp.f(sm, um)
-            Hp = self.H(sp, lam, up)
+            Hp = H_fn(sp, lam, up)
             pi = (Hp - ocp.L(sm, um) - ca.dot(lam, ca.mtimes(Dg, fm))) / ca.dot(gpsi, fm)
             pis[k - 1] = pi
             lam = ca.mtimes(Dg.T, lam) + pi * gpsi
         parts = [lam]
         for k in range(K):
             parts += [gam[k], pis[k], lps[k]]
-        to_z = ca.Function("nlp_to_z", [w, par], [ca.vertcat(*parts)])
-        self._nlp = (solver, lbg, ubg, to_z)
-        return self._nlp
+        self.to_z = ca.Function("nlp_to_z", [w, par], [ca.vertcat(*parts)])
+
+
+_NLPS: weakref.WeakKeyDictionary[Structure, dict[tuple[int, int], _DiscNLP]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _disc_nlp(ocp: HybridOCP, K: int, max_iter: int = 100) -> _DiscNLP:
+    nlps = _NLPS.setdefault(ocp.structure, {})
+    nlp = nlps.get((K, max_iter))
+    if nlp is None:
+        with _LOCK:
+            nlp = nlps.get((K, max_iter))
+            if nlp is None:
+                nlp = nlps[K, max_iter] = _DiscNLP(ocp, K, max_iter)
+    return nlp
+
+
+def _phase_u(A: np.ndarray, eps: float, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
+    """Disc scenes: state after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""
+    n2 = s0.shape[0] // 2
+    p0, v0 = s0[:n2], s0[n2:]
+    a0 = ca.mtimes(A, c0)
+    a1 = ca.mtimes(A, c1)
+    p = p0 + v0 * h + a0 * h**2 / 2 + a1 * h**3 / 6
+    v = v0 + a0 * h + a1 * h**2 / 2
+    J = eps * (ca.sumsqr(c0) * h + ca.dot(c0, c1) * h**2 + ca.sumsqr(c1) * h**3 / 3)
+    return ca.vertcat(p, v), J
 
 
 class ShootingSystem:
@@ -430,31 +514,38 @@ class ShootingSystem:
         s1, l1 = self.core.flow_fn(s0, lam0, float(tau))
         return np.asarray(s1).ravel(), np.asarray(l1).ravel()
 
-    def solve_nlp(self, gamma0: np.ndarray, coeffs0: np.ndarray) -> tuple[np.ndarray, bool]:
+    def solve_nlp(
+        self, gamma0: np.ndarray, coeffs0: np.ndarray, max_iter: int = 100
+    ) -> tuple[np.ndarray, bool, float]:
         """Disc scenes: IPOPT on event times and linear-in-time phase controls.
 
         Returns
         -------
-        z, success
+        z, success, infeasibility
             Starting point for Newton on the HMP system (costates of the NLP's control by
-            the adjoint with the HMP jump relation) and IPOPT's success flag.
+            the adjoint with the HMP jump relation), IPOPT's success flag and the largest
+            violation of the NLP's constraints (guards, approach, time order) at its point.
         """
-        solver, lbg, ubg, to_z = self.core.build_nlp(self.ocp)
+        nlp = _disc_nlp(self.ocp, self.K, max_iter)
+        solver, lbg, ubg, to_z = nlp.solver, nlp.lbg, nlp.ubg, nlp.to_z
         K, nu = self.K, self.nu
         lbw = [0.0] * K + [-ca.inf] * ((K + 1) * 2 * nu)
         ubw = [self.T] * K + [ca.inf] * ((K + 1) * 2 * nu)
-        par = np.concatenate([self.x0, [self.T]])
+        par = np.concatenate([self.x0, [self.T], self.guard_index])
         w0 = np.concatenate([np.asarray(gamma0, float), np.asarray(coeffs0, float).ravel()])
         sol = solver(x0=w0, p=par, lbg=lbg, ubg=ubg, lbx=lbw, ubx=ubw)
         ok = bool(solver.stats()["success"])
         w = np.asarray(sol["x"]).ravel()
-        return np.asarray(to_z(w, par)).ravel(), ok
+        g = np.asarray(sol["g"], dtype=float).ravel()
+        viol = np.maximum(np.asarray(lbg, float) - g, g - np.asarray(ubg, float))
+        infeasibility = float(np.max(viol, initial=0.0)) if np.all(np.isfinite(g)) else np.inf
+        return np.asarray(to_z(w, par)).ravel(), ok, infeasibility
 
     def z_from_controls(self, gamma: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
         """Disc scenes: HMP unknowns from event times and linear phase controls (their
         adjoint costates, with the HMP jump rule)."""
-        to_z = self.core.build_nlp(self.ocp)[-1]
-        par = np.concatenate([self.x0, [self.T]])
+        to_z = _disc_nlp(self.ocp, self.K).to_z
+        par = np.concatenate([self.x0, [self.T], self.guard_index])
         w = np.concatenate([np.asarray(gamma, float), np.asarray(coeffs, float).ravel()])
         return np.asarray(to_z(w, par)).ravel()
 
@@ -507,13 +598,15 @@ def newton(
     *,
     tol: float = 1e-10,
     max_iter: int = 40,
+    min_step: float = 1e-6,
     verbose: bool = False,
 ) -> NewtonResult:
     """Newton's method with exact Jacobian and a backtracking line search on ``|R|``.
 
     Iterates until the residual (max norm) stops improving below ``tol`` so the solution is
     polished to rounding; ``converged`` means ``residual <= tol`` with event times in order
-    (equal ones allowed) inside ``(0, T)``.
+    (equal ones allowed) inside ``(0, T)``. The line search gives up below a step of
+    ``min_step`` (a larger one makes a hopeless start fail sooner).
     """
     z = np.asarray(z0, dtype=float).copy()
     R, J = system.residual(z)  # non-finite: reported as not converged
@@ -540,7 +633,7 @@ def newton(
             if np.all(np.isfinite(Rn)) and float(Rn @ Rn) <= (1 - 1e-4 * alpha) * n2:
                 break
             alpha *= 0.5
-            if alpha < 1e-6 or norm <= tol:  # at rounding level: no line search
+            if alpha < min_step or norm <= tol:  # at rounding level: no line search
                 break
         new = float(np.max(np.abs(Rn))) if Rn.size else 0.0
         if verbose:
@@ -549,7 +642,7 @@ def newton(
                 f"{alpha * np.linalg.norm(dz):.3e}  damping = {alpha:g}",
                 file=sys.stderr,
             )
-        if not np.isfinite(new) or (norm <= tol and new >= 0.5 * norm) or alpha < 1e-6:
+        if not np.isfinite(new) or (norm <= tol and new >= 0.5 * norm) or alpha < min_step:
             # no further progress: keep the best point
             if np.isfinite(new) and new < norm:
                 z, R, J, norm = zn, Rn, Jn, new

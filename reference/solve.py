@@ -7,7 +7,8 @@ What it tries
     Without ``sequence``: the events of the initial guess (and that sequence with one event
     dropped, or with one near-touch added, and no event at all); the event sequence of the
     direct transcription started from the same guess; those of a cheap batched multi-start
-    of the differentiable simulator on a coarse grid; and with ``search=K`` every feasible
+    of the differentiable simulator on a coarse grid; every sequence of one event (a guess
+    that never nears a guard proposes none); and with ``search=K`` every feasible
     sequence of up to K events (:mod:`hybridoc.reference.candidates`). Each sequence is
     solved by :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate
     estimate, the disc NLP, or the transcription with the sequence fixed).
@@ -353,8 +354,9 @@ def solve_reference(
             _transcription_candidate(ocp, book, u_used, ev)
         if multistart:
             _multistart_candidates(ocp, book, multistart)
-        if search:
-            _search(ocp, book, search, u_used, ev)
+        # every one-event sequence too: a guess that never comes near a guard (a cart at rest
+        # before a wall) proposes no event at all, and neither may a multi-start
+        _search(ocp, book, max(search or 0, DEFAULT_DEPTH), u_used, ev)
         book.best_verified()
         book.follow_resimulations()
         same = []
@@ -559,6 +561,9 @@ def _multistart_candidates(ocp: HybridOCP, book: _Book, count: int) -> None:
 
 _SEARCH_STATE: dict[str, Any] = {}
 
+DEFAULT_DEPTH = 1
+"""Sequences of up to this many events that the default discovery always solves."""
+
 
 def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, float]:
     """A worker: Newton from the disc NLP (or the transcription) for one sequence."""
@@ -569,7 +574,7 @@ def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, floa
     try:
         res, why = _solve(
             ocp, seq, guess_times(ocp, seq, ev), u0, estimate=False,
-            guess_ev=None if is_disc_scene(ocp) else ev, tol=tol,
+            guess_ev=None if is_disc_scene(ocp) else ev, tol=tol, screen=True,
         )  # fmt: skip
     except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
         res, why = None, str(exc)

@@ -94,11 +94,13 @@ def test_restatement_matches_library(name: str) -> None:
 def test_library_api() -> None:
     lib = library()
     assert set(lib.LIBRARY) == {
-        "bouncing_ball",
-        "ball_on_slope",
-        "juggling_paddle",
-        "pendulum_wall",
+        "bouncing-ball",
+        "bouncing-ball-2",
+        "ball-on-slope",
+        "juggling-paddle",
+        "pendulum-wall",
     }
+    assert all(lib.describe(name) for name in lib.LIBRARY)
     for fn in lib.LIBRARY.values():
         ocp = fn()
         assert isinstance(ocp, hybridoc.HybridOCP)
