@@ -44,7 +44,7 @@ from hybridoc.evaluation import Evaluation, Gradient, Segment
 from hybridoc.events import ZENO_RUN, Event, EventResolver, accumulating, approaching
 from hybridoc.kernels import Kernels, Numeric, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
-from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.rootfind import CrossingSearch
 
 __all__ = ["evaluate", "gradient", "Policy"]
@@ -60,7 +60,7 @@ MAX_EVENTS = 10**6
 
 def evaluate(
     problem: ProblemLike,
-    controls: Any = None,
+    controls: ControlsLike | None = None,
     *,
     policy: Policy | None = None,
     hold: str = "zoh",
@@ -438,7 +438,9 @@ def _dedupe(times: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return times[keep], states[keep]
 
 
-def gradient(problem: ProblemLike, controls: Any = None, **kwargs: Any) -> Gradient:
+def gradient(
+    problem: ProblemLike, controls: ControlsLike | None = None, **kwargs: float | int | str
+) -> Gradient:
     """Exact gradient of the continuous cost (adjoint with the HMP jump relation).
 
     Between events the costate follows ``d lambda/dt = -dH/ds`` (done exactly by the

@@ -14,15 +14,25 @@ problem as
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, TypeAlias
+from typing import TYPE_CHECKING, TypeAlias
 
 from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP
 
-__all__ = ["ProblemLike", "as_ocp"]
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
-ProblemLike: TypeAlias = "HybridOCP | Any | str | Path"
+    from hybridoc.problems.scene import Scene
+    from hybridoc.solution import Solution
+
+__all__ = ["ControlsLike", "ProblemLike", "as_ocp"]
+
+ProblemLike: TypeAlias = "HybridOCP | Scene | str | Path"
 """A HybridOCP, a Scene, a built-in name, a ``.toml`` path or ``file.py:function``."""
+
+ControlsLike: TypeAlias = "npt.ArrayLike | Solution"
+"""Piecewise-constant controls: an ``(N, nu)`` array (numpy, nested lists, a torch tensor)
+or a :class:`~hybridoc.solution.Solution` whose controls are taken."""
 
 
 def as_ocp(problem: ProblemLike) -> HybridOCP:

@@ -13,12 +13,15 @@ import importlib.util
 import sys
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import SceneError
 from hybridoc.problems.scene import Disc, Scene, Wall
+
+if TYPE_CHECKING:
+    from hybridoc.ocp import HybridOCP
 
 __all__ = [
     "Disc",
@@ -80,7 +83,7 @@ def load_scene(scene: str | Path | Scene) -> Scene:
     )
 
 
-def load_problem(problem: str | Path | Any) -> Any:
+def load_problem(problem: str | Path | Scene | HybridOCP) -> Scene | HybridOCP:
     """A :class:`Scene` or :class:`~hybridoc.HybridOCP` from any name of a problem.
 
     Parameters

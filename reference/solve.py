@@ -49,7 +49,7 @@ from hybridoc.errors import (
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate, gradient
 from hybridoc.ocp import HybridOCP
-from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.reference.candidates import (
     enumerate_sequences,
     guess_candidates,
@@ -249,7 +249,7 @@ def solve_reference(
     problem: ProblemLike,
     *,
     sequence: Sequence[str] | str | None = None,
-    initial: Any = None,
+    initial: ControlsLike | None = None,
     search: int | None = None,
     verbose: bool = False,
     tol: float = 1e-10,

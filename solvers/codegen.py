@@ -75,12 +75,18 @@ class Accelerated:
     """
 
     def __init__(
-        self, fn: ca.Function, *, wait: bool = False, vm: ca.Function | None = None
+        self,
+        fn: ca.Function,
+        *,
+        wait: bool = False,
+        vm: ca.Function | None = None,
+        hot: int = HOT_CALLS,
     ) -> None:
         self.vm = fn
         self.fn = fn if vm is None else vm
         self.compiled = False
         self.error: str | None = None
+        self._calls_left = -1  # counting down to the background compilation; -1: never
         if not enabled():
             return
         key = hashlib.sha256(fn.serialize().encode()).hexdigest()[:24]
@@ -90,11 +96,21 @@ class Accelerated:
             return
         if wait:
             self._build()
+        elif hot <= 0:
+            self._start()
         else:
-            threading.Thread(target=self._build, daemon=True).start()
+            self._calls_left = int(hot)
 
     def __call__(self, *args: Any) -> Any:
+        if self._calls_left > 0:
+            self._calls_left -= 1
+            if self._calls_left == 0:
+                self._start()
         return self.fn(*args)
+
+    def _start(self) -> None:
+        self._calls_left = -1
+        threading.Thread(target=self._build, daemon=True).start()
 
     def _load(self) -> None:
         try:

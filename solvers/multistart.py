@@ -252,11 +252,14 @@ def explore(
     steps: int | None = None,
     iters: int = 60,
     judge: int | None = None,
+    report: list[dict[str, Any]] | None = None,
 ) -> list[dict[str, Any]]:
     """Batched descent from ``count`` diverse starts on a coarse grid; the ``judge`` best
     results (by discrete loss, distinct ones; default all) judged at the problem's
     resolution. Returns ``[{"controls", "cost", "sequence", "evaluation"}]`` sorted by cost
-    (failed evaluations dropped)."""
+    (failed evaluations dropped). A ``report`` list receives one row per start, in start
+    order: its coarse ``loss`` and, where it was judged, ``cost`` and ``sequence``, else
+    ``same_as`` (the start that reached the same optimum) or the reason it was not."""
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
     from hybridoc.solvers.gd import make_loss
@@ -295,12 +298,29 @@ def explore(
         if judge is not None and len(picked) >= judge:
             break
     out = []
+    rows: list[dict[str, Any]] = [
+        # f is scaled by 1 / dt for the optimiser: the rows carry the discrete loss itself
+        {"start": b, "loss": float(f[b]) * coarse.dt if np.isfinite(f[b]) else None}
+        for b in range(len(f))
+    ]
     for b in picked:
         u = resample(X[b], N)
         try:
             ev = evaluate(ocp, u)
-        except HybridocError:
+        except HybridocError as exc:
+            rows[b]["error"] = str(exc)
             continue
+        rows[b].update(cost=ev.cost, sequence=ev.sequence)
         out.append({"controls": u, "cost": ev.cost, "sequence": ev.sequence, "evaluation": ev})
+    for b, row in enumerate(rows):
+        if "cost" in row or "error" in row:
+            continue
+        if row["loss"] is None:
+            row["error"] = "the descent diverged"
+        else:
+            same = [c for c in picked if abs(f[b] - f[c]) <= 1e-9 * max(abs(f[c]), 1.0)]
+            row["same_as" if same else "not_judged"] = same[0] if same else True
+    if report is not None:
+        report.extend(rows)
     out.sort(key=lambda r: r["cost"])
     return out

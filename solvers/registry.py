@@ -24,7 +24,7 @@ from typing import Any
 
 from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP
-from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.solution import Solution
 
 __all__ = ["METHODS", "Method", "crossval", "register_method", "solve"]
@@ -83,7 +83,11 @@ def register_method(method: Method) -> Method:
 
 
 def solve(
-    problem: ProblemLike, method: str = "reference", *, initial: Any = None, **options: Any
+    problem: ProblemLike,
+    method: str = "reference",
+    *,
+    initial: ControlsLike | None = None,
+    **options: Any,
 ) -> Solution:
     """Solve a problem with a registered method.
 

@@ -11,6 +11,12 @@ rule (exact for polynomials of degree ``2 d - 2``). Phases are linked by the gua
 transcribed trajectory has no collision outside the sequence. IPOPT (bundled with CasADi)
 solves the NLP with exact second derivatives.
 
+Control bounds ``u_min <= u <= u_max`` bound the Radau-point controls, and the Bernstein
+coefficients of each element's control polynomial too, so that the polynomial ``u(t)`` that
+is returned (and judged) stays within the bounds between the Radau points as well; path
+constraints ``c(s, u) >= 0`` hold at the Radau points and phase starts (between them the
+judge may find small violations, which shrink with the mesh).
+
 Costates come from the NLP multipliers: the multiplier ``mu_j`` of the collocation defect
 ``sum_r D_rj X_r - h_e f(X_j, U_j)`` at Radau point ``j`` gives ``lambda(t_j) = -mu_j / w_j``
 (``w_j`` the Radau weight), and the multiplier of the initial condition and of each reset
@@ -26,12 +32,18 @@ import time
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from math import comb
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
-from hybridoc.errors import ConvergenceError, HybridocError
+from hybridoc.errors import (
+    ConvergenceError,
+    EvaluationError,
+    HybridocError,
+    SimultaneousEventError,
+)
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
@@ -46,6 +58,10 @@ __all__ = [
 ]
 
 _DEFAULT_MESH = 4
+_BOUND_TOL = 1e-9  # judged control-bound violation above which a result is INFEASIBLE
+_PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INFEASIBLE
+_NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
+_GUESS_PERTURBATIONS = 3  # perturbed retries of a guess with simultaneous events
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
@@ -60,6 +76,7 @@ class _Radau:
     tau: np.ndarray  # (d + 1,): 0 and the d Radau points (the last is 1)
     D: np.ndarray  # (d + 1, d): D[r, j] = dP_r/dtau at Radau point j
     w: np.ndarray  # (d,): Radau quadrature weights
+    bernstein: np.ndarray  # (d, d): Bernstein coefficients of the control polynomial
 
     @classmethod
     def make(cls, d: int) -> _Radau:
@@ -75,17 +92,18 @@ class _Radau:
             others = np.delete(pts, j)
             poly = np.poly1d(others, r=True) / np.prod(pts[j] - others)
             w[j] = np.polyint(poly)(1.0)
-        return cls(tau=tau, D=D, w=w)
+        # the control polynomial of degree n = d - 1 through the Radau points: monomial
+        # coefficients a = V^-1 u, Bernstein coefficients b_i = sum_k<=i C(i,k)/C(n,k) a_k
+        n = d - 1
+        to_bern = np.array(
+            [[comb(i, k) / comb(n, k) if k <= i else 0.0 for k in range(d)] for i in range(d)]
+        )
+        bernstein = to_bern @ np.linalg.inv(np.vander(pts, d, increasing=True))
+        return cls(tau=tau, D=D, w=w, bernstein=bernstein)
 
     def control_basis(self, s: np.ndarray) -> np.ndarray:
         """Lagrange basis through the Radau points evaluated at ``s``: shape (len(s), d)."""
-        pts = self.tau[1:]
-        out = np.ones((s.size, pts.size))
-        for j in range(pts.size):
-            for m in range(pts.size):
-                if m != j:
-                    out[:, j] *= (s - pts[m]) / (pts[j] - pts[m])
-        return out
+        return _lagrange_basis(self.tau[1:], s)
 
 
 # ----------------------------------------------------------------------------------------
@@ -111,6 +129,8 @@ class _PhaseNLP:
         funcs = (
             [ocp.f, ocp.L, ocp.phi] + [g.psi for g in ocp.guards] + [g.reset for g in ocp.guards]
         )
+        if ocp.path is not None:
+            funcs.append(ocp.path)
         sym = ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
         self.sym = sym
 
@@ -138,7 +158,10 @@ class _PhaseNLP:
             self.g_index.setdefault(name, []).append(slice(n_g, n_g + m))
             n_g += m
 
-        f, L, phi = ocp.f, ocp.L, ocp.phi
+        f, L, phi, con = ocp.f, ocp.L, ocp.phi, ocp.path
+        u_lo, u_hi = np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float)
+        bounded = np.flatnonzero(np.isfinite(u_lo) | np.isfinite(u_hi))
+        lo_b, hi_b = np.tile(u_lo[bounded], d - 1), np.tile(u_hi[bounded], d - 1)
         D = ca.DM(self.rad.D)
         psis = [g.psi for g in ocp.guards]
         cost = 0
@@ -154,6 +177,18 @@ class _PhaseNLP:
                 add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0)
                 Le = L.map(d)(Xe[:, 1:], Ue)
                 cost = cost + he * ca.mtimes(Le, ca.DM(self.rad.w))
+                if bounded.size and d > 1:
+                    # the control polynomial stays within the bounds between the Radau
+                    # points too: its Bernstein coefficients do (the last one is the value
+                    # at the element end, a Radau point, bounded by lbx/ubx)
+                    bern = ca.mtimes(Ue[bounded.tolist(), :], ca.DM(self.rad.bernstein[:-1].T))
+                    add(f"ubern{k}", bern, lo_b, hi_b)
+                if con is not None:
+                    # path constraints at the Radau points (and the phase start, with the
+                    # first control of the phase)
+                    if e == 0:
+                        add(f"con{k}", con(X[:, 0], U[:, 0]), 0.0, np.inf)
+                    add(f"con{k}", con.map(d)(Xe[:, 1:], Ue), 0.0, np.inf)
             # every guard stays in free space at the nodes, except the ones that are zero by
             # construction at this phase's boundaries (their equality constraint covers them)
             prev = self.guards[k - 1] if k > 0 else None
@@ -182,15 +217,20 @@ class _PhaseNLP:
         self.lbg = np.concatenate(lbg)
         self.ubg = np.concatenate(ubg)
         self.n_g = n_g
+        # unpacking helpers
+        sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes)])
+
         self.lbx = np.full(self.n_w, -np.inf)
         self.ubx = np.full(self.n_w, np.inf)
         self.lbx[:P] = 1e-6 * T
         self.ubx[:P] = T
+        # control bounds on every Radau-point control (U is stored column by column)
+        o = self._offsets
+        n_u = int(o[-1] - o[1 + P])
+        self.lbx[o[1 + P] :] = np.resize(np.asarray(ocp.u_min, dtype=float), n_u)
+        self.ubx[o[1 + P] :] = np.resize(np.asarray(ocp.u_max, dtype=float), n_u)
         self._solvers: dict[bool, Any] = {}
-
-        # unpacking helpers
-        sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
-        self._offsets = np.concatenate([[0], np.cumsum(sizes)])
 
     def solver(self, verbose: bool) -> Any:
         if verbose not in self._solvers:
@@ -237,6 +277,12 @@ class _PhaseNLP:
 
     def mult(self, lam_g: np.ndarray, name: str) -> list[np.ndarray]:
         return [lam_g[s] for s in self.g_index.get(name, [])]
+
+    def clip_controls(self, U: np.ndarray) -> np.ndarray:
+        """Controls ``(nu, n)`` clipped into the problem's bounds."""
+        lo = np.asarray(self.ocp.u_min, dtype=float)[:, None]
+        hi = np.asarray(self.ocp.u_max, dtype=float)[:, None]
+        return np.clip(U, lo, hi)
 
 
 def _nlp_for(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> _PhaseNLP:
@@ -313,7 +359,7 @@ def _initial_point(
             Xk[:, -1] = matched[k][1].state_before
         X.append(Xk)
         idx = np.clip((times[k][1:] / T * N).astype(int), 0, N - 1)
-        U.append(controls[idx].T)
+        U.append(nlp.clip_controls(np.asarray(controls, dtype=float)[idx].T))
     return nlp.pack(h, X, U), h
 
 
@@ -384,7 +430,9 @@ class DTResult:
         basis = nlp.rad.control_basis(s)  # (n, d)
         U_all = np.concatenate(self.controls, axis=1)  # (nu, total elements * d)
         vals = U_all.reshape(nlp.ocp.nu, -1, d)  # (nu, elements, d)
-        return np.einsum("nj,unj->nu", basis, vals[:, idx, :])
+        u = np.einsum("nj,unj->nu", basis, vals[:, idx, :])
+        # the interpolating polynomial may overshoot a bound between Radau points
+        return np.clip(u, nlp.ocp.u_min, nlp.ocp.u_max)
 
     def cell_averages(self, grid: np.ndarray) -> np.ndarray:
         """Averages of the control over the cells of ``grid`` (exact for polynomial pieces)."""
@@ -439,6 +487,12 @@ def solve_dt_sequence(
         raise ValueError(f"mesh must be a positive int or {P} positive ints")
     nlp = _nlp_for(ocp, guards, degree, mesh_list)
     w0, _ = _initial_point(nlp, guess, guess_controls)
+    return _solve_nlp(nlp, w0, list(sequence), verbose)
+
+
+def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: bool) -> DTResult:
+    """Run IPOPT on a transcribed NLP from ``w0`` and collect the result."""
+    ocp, P = nlp.ocp, nlp.P
     solver = nlp.solver(verbose)
     res = solver(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     stats = solver.stats()
@@ -451,6 +505,7 @@ def solve_dt_sequence(
     w = np.asarray(res["x"]).ravel()
     lam_g = np.asarray(res["lam_g"]).ravel()
     h, X, U = nlp.unpack(w)
+    U = [nlp.clip_controls(Uk) for Uk in U]  # IPOPT may relax a bound by ~1e-8
     times = nlp.node_times(h)
     d, rad = nlp.d, nlp.rad
 
@@ -547,12 +602,102 @@ def _resimulate(ocp: HybridOCP, r: DTResult) -> Evaluation:
     return evaluate_callable(ocp, r.control_function(), breakpoints=r.element_bounds[1:-1])
 
 
-def _sequence_matches(ocp: HybridOCP, r: DTResult, ev: Evaluation, tol: float = 1e-6) -> bool:
-    names = [ocp.guards[e.guard].name for e in ev.events]
-    if names != r.sequence:
-        return False
+def _resimulated_names(ocp: HybridOCP, ev: Evaluation) -> list[str]:
+    return [ocp.guards[e.guard].name for e in ev.events]
+
+
+def _event_time_gap(ocp: HybridOCP, r: DTResult, ev: Evaluation) -> float | None:
+    """Largest gap between modelled and re-simulated event times (``None``: other events)."""
+    if _resimulated_names(ocp, ev) != r.sequence:
+        return None
     times = np.array([e.time for e in ev.events])
-    return bool(np.all(np.abs(times - r.event_times) <= tol * ocp.horizon))
+    return float(np.max(np.abs(times - r.event_times), initial=0.0))
+
+
+def _sequence_matches(ocp: HybridOCP, r: DTResult, ev: Evaluation, tol: float = 1e-6) -> bool:
+    gap = _event_time_gap(ocp, r, ev)
+    return gap is not None and gap <= tol * ocp.horizon
+
+
+def _phase_durations(r: DTResult) -> list[float]:
+    T = r._nlp.ocp.horizon
+    return [float(x) for x in np.diff(np.concatenate([[0.0], r.event_times, [T]]))]
+
+
+def _lagrange_basis(pts: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Lagrange basis through ``pts`` evaluated at ``s``: shape ``(len(s), len(pts))``."""
+    out = np.ones((s.size, pts.size))
+    for j in range(pts.size):
+        for m in range(pts.size):
+            if m != j:
+                out[:, j] *= (s - pts[m]) / (pts[j] - pts[m])
+    return out
+
+
+def _refined(ocp: HybridOCP, r: DTResult, verbose: bool) -> DTResult:
+    """Re-solve ``r``'s sequence with twice the elements per phase, started from ``r``'s
+    state and control polynomials."""
+    coarse = r._nlp
+    d, rad = coarse.d, coarse.rad
+    fine = _nlp_for(ocp, coarse.guards, d, [2 * m for m in coarse.mesh])
+    h, Xc, Uc = coarse.unpack(r._w)
+    X, U = [], []
+    for k in range(coarse.P):
+        Mc, Mf = coarse.mesh[k], fine.mesh[k]
+        loc = (np.arange(Mf)[:, None] + rad.tau[None, 1:]).ravel() / Mf  # in (0, 1]
+        sigma = np.concatenate([[0.0], loc]) * Mc  # node positions in coarse elements
+        e = np.clip(np.floor(sigma).astype(int), 0, Mc - 1)
+        s = sigma - e
+        bx = _lagrange_basis(rad.tau, s)  # (n, d + 1)
+        cols = e[:, None] * d + np.arange(d + 1)[None, :]
+        X.append(np.einsum("nr,xnr->xn", bx, Xc[k][:, cols]))
+        su, eu = s[1:], e[1:]
+        bu = _lagrange_basis(rad.tau[1:], su)  # (n, d)
+        ucols = eu[:, None] * d + np.arange(d)[None, :]
+        U.append(fine.clip_controls(np.einsum("nj,unj->un", bu, Uc[k][:, ucols])))
+    return _solve_nlp(fine, fine.pack(h, X, U), list(r.sequence), verbose)
+
+
+def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndarray, float]:
+    """The judge's evaluation of the guess, its controls and the perturbation used.
+
+    A guess whose events fire at the same instant without an order (a symmetric scene, a
+    :class:`~hybridoc.errors.SimultaneousEventError`) is retried with the controls perturbed
+    by ``1e-6 max(1, |u|) k z`` (``z`` one fixed-seed normal sample, ``k = 1, 2, 3``), so
+    that the contacts happen one after the other and propose an event sequence.
+    """
+    try:
+        return evaluate(ocp, u0), u0, 0.0
+    except SimultaneousEventError as exc:
+        first = exc
+    z = np.random.default_rng(20240601).standard_normal(u0.shape)
+    scale = 1e-6 * max(1.0, float(np.abs(u0).max(initial=0.0)))
+    for k in range(1, _GUESS_PERTURBATIONS + 1):
+        u = np.clip(u0 + scale * k * z, ocp.u_min, ocp.u_max)
+        try:
+            return evaluate(ocp, u), u, scale * k
+        except SimultaneousEventError:
+            continue
+    raise SimultaneousEventError(
+        f"{first} (also with the initial guess perturbed by up to "
+        f"{scale * _GUESS_PERTURBATIONS:.1e}); give another initial guess or a sequence",
+        guards=first.guards,
+        time=first.time,
+    ) from None
+
+
+@dataclass
+class _Judged:
+    """A converged candidate with its re-simulation by the judge."""
+
+    result: DTResult
+    ev: Evaluation | None
+    error: str = ""
+
+    @property
+    def feasible(self) -> bool:
+        assert self.ev is not None
+        return self.ev.bound_violation <= _BOUND_TOL and self.ev.path_violation <= _PATH_TOL
 
 
 def solve_dt(
@@ -580,11 +725,16 @@ def solve_dt(
     initial
         Initial guess: ``None`` (the problem's ``u_guess``), an ``(N, nu)`` control array, or
         a :class:`~hybridoc.solution.Solution` (its controls and its events). The phases are
-        initialised from the guess's simulated trajectory.
+        initialised from the guess's simulated trajectory. A guess whose simulation has two
+        events at the same instant that do not commute (a symmetric scene) is perturbed by
+        about ``1e-6`` so that they happen one after the other.
     degree
         Collocation degree (``>= 3`` recommended; disc optima are cubic, so 3 is exact).
     mesh
-        Collocation elements per phase (one int, or one per phase); default 4.
+        Collocation elements per phase (one int, or one per phase); default 4. With the
+        default, a candidate whose re-simulated events are the modelled ones at times off by
+        a little (more than ``1e-6 T``, at most ``1e-3 T``) is solved once more with twice
+        the elements.
     verbose
         Print IPOPT's log and the candidates to stderr.
 
@@ -599,17 +749,29 @@ def solve_dt(
         tried and IPOPT's counters. The callable control is available through
         :func:`control_function` on the solution.
 
+        The NLP honours the control bounds at its Radau points (``u(t)`` is the Radau
+        polynomial clipped into the bounds) and the path constraints at the Radau points and
+        phase starts. ``status`` is :attr:`~hybridoc.solution.Status.SUCCESS` when the
+        re-simulation reproduces the modelled events and is feasible;
+        :attr:`~hybridoc.solution.Status.INFEASIBLE` when it reproduces them but violates
+        the bounds (by more than ``1e-9``) or the path constraints (by more than ``1e-6``)
+        (a feasible candidate is preferred); :attr:`~hybridoc.solution.Status.EVENTS_DIFFER`
+        when no converged candidate reproduces its events (the one with the lowest judged
+        cost is returned; ``message`` names both sequences).
+
     Raises
     ------
     SceneError
         ``sequence`` names an event that is not a guard of the problem.
     ConvergenceError
-        No candidate sequence converged to a solution whose re-simulation reproduces its
-        modelled events.
+        No candidate sequence's NLP converged.
+    EvaluationError
+        The judge cannot simulate the initial guess, or the control of any converged
+        candidate (e.g. sustained contact).
     """
     import sys
 
-    from hybridoc.solution import Solution
+    from hybridoc.solution import Solution, Status
 
     if isinstance(problem, str):
         from hybridoc.problems import load_scene
@@ -620,7 +782,7 @@ def solve_dt(
     if sequence is not None:
         sequence = ocp.check_sequence(sequence)
     u0, seq_from_initial = _initial_controls(ocp, initial)
-    guess = evaluate(ocp, u0)
+    guess, u0, perturbation = _evaluate_guess(ocp, u0)
     if sequence is not None:
         cands = [list(sequence)]
     else:
@@ -644,25 +806,106 @@ def solve_dt(
             continue
         results.append(r)
         tried.append({"sequence": cand, "nlp_cost": r.nlp_cost, "status": r.status})
-    best: DTResult | None = None
-    best_ev: Evaluation | None = None
-    for r in sorted(results, key=lambda r: r.nlp_cost):
-        ev = _resimulate(ocp, r)
-        ok = _sequence_matches(ocp, r, ev)
-        for t in tried:
-            if t["sequence"] == r.sequence:
-                t["resimulated"] = ok
-        if verbose:
-            print(f"dt: {r.sequence} cost {r.nlp_cost:.12g} valid {ok}", file=sys.stderr)
-        if ok:
-            best, best_ev = r, ev
-            break
-    if best is None or best_ev is None:
+    if not results:
         raise ConvergenceError(
-            "direct transcription found no event sequence whose control reproduces its events "
-            f"when re-simulated (tried {[t['sequence'] for t in tried]}); give an explicit "
-            "sequence or another initial guess"
+            "direct transcription did not converge for any event sequence (tried "
+            f"{[t['sequence'] for t in tried]}); give an explicit sequence or another "
+            "initial guess"
         )
+
+    def judge(r: DTResult) -> _Judged:
+        try:
+            return _Judged(r, _resimulate(ocp, r))
+        except EvaluationError as exc:
+            return _Judged(r, None, str(exc))
+
+    def record(j: _Judged, ok: bool, refined: bool) -> None:
+        for t in tried:
+            if t["sequence"] == j.result.sequence:
+                t["resimulated"] = ok
+                t["refined"] = refined
+                if refined:
+                    t["nlp_cost"] = j.result.nlp_cost
+                    t["status"] = j.result.status
+                if j.ev is None:
+                    t["resimulation_error"] = j.error
+                else:
+                    t["resimulated_sequence"] = _resimulated_names(ocp, j.ev)
+                    t["judged_cost"] = float(j.ev.cost)
+
+    matched: list[_Judged] = []  # reproduce their events, in order of NLP cost
+    differ: list[_Judged] = []  # converged, but re-simulate to other events (or not at all)
+    for r in sorted(results, key=lambda r: r.nlp_cost):
+        j = judge(r)
+        ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
+        refined = False
+        if not ok and mesh is None and j.ev is not None:
+            gap = _event_time_gap(ocp, r, j.ev)
+            if gap is not None and gap <= _NEAR_MISS * ocp.horizon:
+                # a near miss: same events, times off by a little; a finer mesh may fix it
+                try:
+                    rf = _refined(ocp, r, verbose)
+                except ConvergenceError:
+                    rf = None
+                jf = None if rf is None else judge(rf)
+                if jf is not None and jf.ev is not None:
+                    j, refined = jf, True
+                    ok = _sequence_matches(ocp, jf.result, jf.ev)
+        record(j, ok, refined)
+        if verbose:
+            print(
+                f"dt: {j.result.sequence} cost {j.result.nlp_cost:.12g} valid {ok}"
+                + (" (refined mesh)" if refined else ""),
+                file=sys.stderr,
+            )
+        if ok:
+            matched.append(j)
+            if j.feasible:
+                break
+        else:
+            differ.append(j)
+
+    status, message = Status.SUCCESS, ""
+    feasible = [j for j in matched if j.feasible]
+    if feasible:
+        best_j = feasible[0]
+    elif matched:
+        best_j = matched[0]
+        ev = best_j.ev
+        assert ev is not None
+        status = Status.INFEASIBLE
+        parts = []
+        if ev.bound_violation > _BOUND_TOL:
+            parts.append(
+                f"the control bounds by {ev.bound_violation:.3g} (tolerance {_BOUND_TOL:g})"
+            )
+        if ev.path_violation > _PATH_TOL:
+            parts.append(
+                f"the path constraints by {ev.path_violation:.3g} (tolerance {_PATH_TOL:g}; "
+                "they hold at the collocation points only: a finer mesh may help)"
+            )
+        message = "the re-simulated control violates " + " and ".join(parts)
+    else:
+        judged = [j for j in differ if j.ev is not None]
+        if not judged:
+            errors = "; ".join(f"{j.result.sequence}: {j.error}" for j in differ)
+            raise EvaluationError(
+                "the judge cannot re-simulate the control of any converged event sequence "
+                f"({errors})"
+            )
+        best_j = min(judged, key=lambda j: j.ev.cost)  # type: ignore[union-attr]
+        ev = best_j.ev
+        assert ev is not None
+        status = Status.EVENTS_DIFFER
+        message = (
+            f"modelled events {best_j.result.sequence} at t = "
+            f"{[round(float(t), 9) for t in best_j.result.event_times]} but the re-simulated "
+            f"control gives {_resimulated_names(ocp, ev)} at t = "
+            f"{[round(float(e.time), 9) for e in ev.events]}; no candidate sequence "
+            f"reproduced its events (tried {[t['sequence'] for t in tried]})"
+        )
+    best, best_ev = best_j.result, best_j.ev
+    assert best_ev is not None
     solve_time = time.perf_counter() - t_start
     grid = ocp.time_grid()
     controls = best.cell_averages(grid)
@@ -678,8 +921,22 @@ def solve_dt(
         "iterations": best.iterations,
         "ipopt_status": best.status,
         "active_path_multiplier": best.active_path,
+        "mesh": list(best._nlp.mesh),
+        "phase_durations": _phase_durations(best),
+        "bound_violation": float(best_ev.bound_violation),
+        "path_violation": float(best_ev.path_violation),
+        "guess_perturbation": perturbation,
         "candidates": tried,
     }
+    arrays = {
+        "event_times": np.array(best.event_times),
+        "lambda0": np.array(best.lambda0),
+        "element_bounds": best.element_bounds,
+        "radau_controls": np.concatenate(best.controls, axis=1),
+    }
+    if ocp.has_bounds:  # u(t) is clipped into them (also after saving and loading)
+        arrays["u_min"] = np.array(ocp.u_min, dtype=float)
+        arrays["u_max"] = np.array(ocp.u_max, dtype=float)
     sol = Solution(
         method="dt",
         scene=scene_name,
@@ -700,14 +957,9 @@ def solve_dt(
         },
         timings={"solve_time_s": solve_time},
         info=info,
-        arrays={
-            "event_times": np.array(best.event_times),
-            "lambda0": np.array(best.lambda0),
-            "element_bounds": best.element_bounds,
-            "radau_controls": np.concatenate(best.controls, axis=1),
-        },
+        arrays=arrays,
     )
-    return sol
+    return sol.set_status(status, message)
 
 
 class _PiecewisePolynomial:
@@ -724,13 +976,17 @@ class _PiecewisePolynomial:
             ) from None
         self.rad = _Radau.make(self.d)
         self.vals = vals.reshape(vals.shape[0], -1, self.d)  # (nu, elements, d)
+        nu = self.vals.shape[0]
+        self.lo = np.asarray(solution.arrays.get("u_min", np.full(nu, -np.inf)), dtype=float)
+        self.hi = np.asarray(solution.arrays.get("u_max", np.full(nu, np.inf)), dtype=float)
 
     def at(self, t: np.ndarray) -> np.ndarray:
         t = np.atleast_1d(np.asarray(t, dtype=float))
         eb = self.eb
         idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
         s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
-        return np.einsum("nj,unj->nu", self.rad.control_basis(s), self.vals[:, idx, :])
+        u = np.einsum("nj,unj->nu", self.rad.control_basis(s), self.vals[:, idx, :])
+        return np.clip(u, self.lo, self.hi)
 
 
 def _cell_averages(

@@ -28,7 +28,7 @@ import numpy as np
 
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.evaluator import evaluate
-from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.solution import Solution
 
 __all__ = [
@@ -125,7 +125,7 @@ def method_entry(
 
 # ---------------------------------------------------------------------------- validate
 def validate_controls(
-    problem: ProblemLike, controls: Any, *, reference: Solution | None = None
+    problem: ProblemLike, controls: ControlsLike, *, reference: Solution | None = None
 ) -> dict[str, Any]:
     """Judge a user's piecewise-constant control against the reference optimum.
 

@@ -48,3 +48,22 @@ def test_no_compiler_keeps_the_virtual_machine(monkeypatch: pytest.MonkeyPatch) 
     loss = CompiledLoss("head-on")
     assert not loss._value_grad.compiled
     assert np.isfinite(loss.value(hybridoc.as_ocp("head-on").u_guess))
+
+
+def test_compilation_waits_for_hot_calls(compiling: None) -> None:
+    import casadi as ca
+
+    x = ca.SX.sym("x")
+    fn = ca.Function("hot_probe", [x], [ca.sin(x) * x])
+    acc = codegen.Accelerated(fn, hot=3)
+    for _ in range(2):
+        assert float(acc(0.5)) == float(fn(0.5))
+    assert acc._calls_left == 1 and not acc._lib.exists()  # a cold function: no compiler run
+    acc(0.5)
+    assert acc._calls_left == -1
+    deadline = time.time() + 120
+    while not acc.compiled and acc.error is None:
+        assert time.time() < deadline, "compilation did not finish"
+        time.sleep(0.05)
+    assert acc.compiled, acc.error
+    assert float(acc(0.5)) == float(fn(0.5))

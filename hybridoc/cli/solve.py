@@ -58,6 +58,8 @@ _OPTIONS = {
     "mesh": "mesh",
     "degree": "degree",
     "search": "search",
+    "starts": "starts",
+    "seed": "seed",
 }
 
 
@@ -285,6 +287,12 @@ def register(sub: Any) -> None:
     g.add_argument("--iters", type=nonnegative_int, default=None,
                    help="iterations (per continuation stage with lbfgs)")  # fmt: skip
     g.add_argument("--lr", type=positive_float, default=None, help="learning rate")
+    g.add_argument("--starts", type=positive_int, default=None, metavar="K",
+                   help="batched multi-start: K initial controls at once (the guess, its "
+                   "perturbations, random smooth and aimed controls); the best is returned, "
+                   "all K in the JSON (default 1)")  # fmt: skip
+    g.add_argument("--seed", type=nonnegative_int, default=None,
+                   help="seed of the multi-start's random starts (default 0)")  # fmt: skip
     g = p.add_argument_group("dt and reference options")
     g.add_argument("--sequence", metavar="EVENTS", default=None,
                    help="comma-separated guard names in event order ('' for none)")  # fmt: skip
