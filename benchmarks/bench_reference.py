@@ -1,77 +1,176 @@
-"""Timing of the HMP reference (``hybridoc.reference.solve_reference``).
+"""Timing of the HMP reference: in process on every problem, and ``hybridoc reference --search 5``.
 
-For each built-in scene: the discovered sequence, its cost, HMP residual and the median
-wall time over ``--runs`` solves after one warm-up solve (compiled CasADi functions and the
-initial-guess evaluation are cached per problem):
+One table, one row per problem (default: both paper problems and every library problem):
 
-* ``shoot ms``: the explicit sequence without re-simulation (IPOPT + Newton + sampling);
-* ``verified ms``: the explicit sequence with the built-in re-simulation by
-  :func:`hybridoc.evaluate_callable`;
-* ``discover ms``: the full call without a sequence (candidates, solves, verification).
+* ``sequence``, ``cost``: what :func:`hybridoc.reference.solve_reference` finds;
+* ``seq ms``: median of ``--runs`` solves with the found sequence given explicitly (shooting
+  and the judge's re-simulation; no search);
+* ``solve ms``: median of ``--runs`` default solves, ``solve_reference(problem)``: the full
+  search (candidates from the guess, the direct transcription and the batched multi-start,
+  verification). Both after one warm-up solve (CasADi functions are built and cached per
+  problem). Target for the library problems: < 500 ms;
+* ``cli s`` (paper problems): ``hybridoc reference PROBLEM --search 5 --json`` as a whole
+  process (interpreter start-up and imports included), median of ``--repeats`` (default 3).
+  Target: < 10 s. Below the table: its best cost and whether the landscape of
+  multiple-collision holds both the two-event extremal 0.373636350232 and the three-event
+  optimum 0.356279430543.
 
-Run: ``.venv/bin/python benchmarks/bench_reference.py [--runs 20] [SCENE ...]``.
+Run it by path (``--quick``: one timed run each, for a smoke test)::
+
+    .venv/bin/python benchmarks/bench_reference.py [--runs 3] [--repeats 3] [PROBLEM ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import statistics
+import sys
 
-from _timing import median_ms
+from _timing import fmt_ms, hybridoc_command, machine_line, run_process, time_calls, verdict
 
-import hybridoc
-from hybridoc.cli_util import format_table
+from hybridoc.cli._util import format_table
+from hybridoc.problems import library_names, load_problem
 from hybridoc.reference import solve_reference
 
+PAPER = ("single-collision", "multiple-collision")
+LIBRARY_TARGET_S = 0.5
+CLI_TARGET_S = 10.0
+SEARCH = 5
+#: multiple-collision's extremals that ``--search 5`` must list (12 digits)
+LANDSCAPE = {
+    "two-event extremal": 0.373636350232,
+    "three-event optimum": 0.356279430543,
+}
 
-def main() -> None:
+
+def in_process(name: str, runs: int) -> dict:
+    """Warm-up solve, then ``runs`` timed default solves and explicit-sequence solves."""
+    problem = load_problem(name)
+    sol = solve_reference(problem)  # warm-up: builds and caches the CasADi functions
+    seq = list(sol.info["sequence"])
+    full = time_calls(lambda: solve_reference(problem), runs, warmup=0)
+    explicit = time_calls(lambda: solve_reference(problem, sequence=seq), runs, warmup=0)
+    return {
+        "sequence": seq,
+        "cost": float(sol.cost),
+        "status": sol.status.value,
+        "solve_s": statistics.median(full),
+        "seq_s": statistics.median(explicit),
+    }
+
+
+def cli_search(name: str, repeats: int) -> dict:
+    """``hybridoc reference NAME --search 5 --json`` as whole processes."""
+    cmd = [*hybridoc_command(), "reference", name, "--search", str(SEARCH), "--json"]
+    walls, payload, errors = [], None, []
+    for _ in range(repeats):
+        res = run_process(cmd, timeout=600)
+        if res.returncode not in (0, 1) or res.timed_out:
+            errors.append(f"exit {res.returncode}: {res.stderr.strip().splitlines()[-1:]}")
+            continue
+        walls.append(res.wall_s)
+        payload = json.loads(res.stdout.strip().splitlines()[-1])
+    out: dict = {"cmd": " ".join(["hybridoc", *cmd[1:]]), "errors": errors}
+    if walls and payload is not None:
+        costs = [r["cost"] for r in payload["info"].get("landscape", []) if r["cost"] is not None]
+        out.update(
+            wall_s=statistics.median(walls),
+            runs=len(walls),
+            cost=float(payload["cost"]),
+            status=payload["status"],
+            landscape=costs,
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("scenes", nargs="*", default=hybridoc.builtin_names())
-    p.add_argument("--runs", type=int, default=20)
-    p.add_argument("--discover-runs", type=int, default=3)
-    args = p.parse_args()
-    rows = []
-    for name in args.scenes:
-        scene = hybridoc.load_scene(name)
-        sol = solve_reference(scene)  # warm-up, discovery
-        seq = sol.info["sequence"]
-        shoot = median_ms(
-            lambda sc=scene, sq=seq: solve_reference(sc, sequence=sq, verify=False), args.runs
-        )
-        verified = median_ms(
-            lambda sc=scene, sq=seq: solve_reference(sc, sequence=sq), max(3, args.runs // 4)
-        )
-        discover = median_ms(lambda sc=scene: solve_reference(sc), args.discover_runs)
+    p.add_argument("problems", nargs="*", help="default: the paper problems and the library")
+    p.add_argument("--runs", type=int, default=3, help="timed in-process solves (default 3)")
+    p.add_argument("--repeats", type=int, default=3, help="CLI processes (default 3)")
+    p.add_argument("--no-cli", action="store_true", help="skip the --search 5 processes")
+    p.add_argument("--quick", action="store_true", help="one run and one process each")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.runs, args.repeats = 1, 1
+    if args.runs < 1 or args.repeats < 1:
+        p.error("--runs and --repeats must be >= 1")
+    names = args.problems or [*PAPER, *library_names()]
+    library = set(library_names())
+
+    print(machine_line(), flush=True)
+    print(
+        f"HMP reference: in process, median of {args.runs} after 1 warm-up; "
+        f"'hybridoc reference --search {SEARCH}' as a whole process, median of {args.repeats}"
+    )
+    rows, notes, failed = [], [], False
+    for name in names:
+        r = in_process(name, args.runs)
+        cli: dict = {}
+        if name in PAPER and not args.no_cli:
+            cli = cli_search(name, args.repeats)
+        if name in library:
+            target, ok = f"< {1e3 * LIBRARY_TARGET_S:.0f} ms", r["solve_s"] < LIBRARY_TARGET_S
+        elif "wall_s" in cli:
+            target, ok = f"cli < {CLI_TARGET_S:.0f} s", cli["wall_s"] < CLI_TARGET_S
+        else:
+            target, ok = "-", None
         rows.append(
             [
                 name,
-                ",".join(seq) or "(none)",
-                f"{sol.cost:.12f}",
-                f"{sol.info['residual']:.1e}",
-                sol.info["newton_iterations"],
-                f"{shoot:.1f}",
-                f"{verified:.0f}",
-                f"{discover:.0f}",
+                ",".join(r["sequence"]) or "(none)",
+                f"{r['cost']:.12f}",
+                r["status"],
+                fmt_ms(r["seq_s"]),
+                fmt_ms(r["solve_s"]),
+                f"{cli['wall_s']:.2f}" if "wall_s" in cli else "-",
+                target,
+                verdict(ok),
             ]
         )
-        print(f"done {name}", flush=True)
-    print()
+        for err in cli.get("errors", []):
+            failed = True
+            notes.append(f"{name}: {cli['cmd']} failed: {err}")
+        if "wall_s" in cli:
+            line = f"{name}: {cli['cmd']}: best cost {cli['cost']:.12f} ({cli['status']})"
+            if name == "multiple-collision":
+                present = {
+                    label: any(abs(c - value) < 1e-9 for c in cli["landscape"])
+                    for label, value in LANDSCAPE.items()
+                }
+                line += "; landscape: " + ", ".join(
+                    f"{label} {LANDSCAPE[label]:.12f} {'present' if ok else 'ABSENT'}"
+                    for label, ok in present.items()
+                )
+                failed |= not all(present.values())
+            notes.append(line)
+        print(f"  done {name}", file=sys.stderr, flush=True)
     print(
         format_table(
             [
-                "scene",
+                "problem",
                 "sequence",
                 "cost",
-                "residual",
-                "newton",
-                "shoot ms",
-                "verified ms",
-                "discover ms",
+                "status",
+                "seq ms",
+                "solve ms",
+                f"cli --search {SEARCH} s",
+                "target",
+                "result",
             ],
             rows,
-            right=[False, False, True, True, True, True, True, True],
+            right=[False, False, True, False, True, True, True, False, False],
         )
     )
+    print(
+        "seq ms: solve_reference(problem, sequence=found); solve ms: solve_reference(problem) "
+        "(full search); targets apply to solve ms (library) and to the CLI process (paper)"
+    )
+    for line in notes:
+        print(line)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

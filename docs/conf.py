@@ -20,16 +20,24 @@ copyright = "2025, the hybridoc authors"
 release = hybridoc.__version__
 version = ".".join(release.split(".")[:2])
 
-# Local extensions (docs/_ext): cli_help renders the live --help of every subcommand.
+# Local extensions (docs/_ext): cli_help renders the live --help of every subcommand;
+# registry_tables the contact models, solver methods and built-in problems from their
+# registries; reexports links re-exported names (hybridoc.evaluate) to where they are
+# documented (hybridoc.evaluator.evaluate); safe_defaults guards autodoc_preserve_defaults
+# (below) against source files that change while the pages build. safe_defaults goes before
+# sphinx.ext.autodoc: older Sphinx versions connect the hook it wraps while autodoc is set up.
 sys.path.insert(0, str(Path(__file__).parent / "_ext"))
 
 extensions = [
+    "safe_defaults",
     "sphinx.ext.autodoc",
     "sphinx.ext.autosummary",
     "sphinx.ext.mathjax",
     "sphinx.ext.viewcode",
     "numpydoc",
     "cli_help",
+    "registry_tables",
+    "reexports",
 ]
 
 templates_path = ["_templates"]
@@ -54,6 +62,12 @@ autodoc_member_order = "bysource"
 # Signatures stay readable; the types are in the numpydoc Parameters sections.
 autodoc_typehints = "none"
 autodoc_class_signature = "mixed"
+# Defaults as written (``iterations=DEFAULT_PBD_ITERATIONS``, not ``iterations=4``). Autodoc
+# reads them from the source file as it is on disk when it documents the object, which may be
+# a minute after the import; when the file was edited in between, the line it reads belongs to
+# another definition and the build failed with "pop from empty list" (make_step, PBD).
+# docs/_ext/safe_defaults.py checks that the source is the object's own definition first and
+# otherwise keeps the evaluated defaults.
 autodoc_preserve_defaults = True
 
 # --- numpydoc ----------------------------------------------------------------------------

@@ -29,7 +29,13 @@ from hybridoc.problem import as_ocp
 from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
 from hybridoc.solution import Solution, Status
 
-__version__ = "0.2.0"
+try:  # one source of the version: pyproject.toml, through the installed metadata
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as _version
+
+    __version__ = _version("hybridoc")
+except PackageNotFoundError:  # pragma: no cover - imported from a bare source tree
+    __version__ = "0+unknown"
 
 __all__ = [
     "ControlsError",

@@ -163,12 +163,18 @@ def pair_detector(dp: Any, R: Any, ops: Ops) -> Any:
 
 
 def wall_gap(p: Any, point: Any, normal: Any, r: Any, ops: Ops) -> Any:
-    """Signed distance ``(p - a) . n - r`` of a disc of radius ``r`` to a wall."""
+    """Signed distance of a disc of radius ``r`` to a wall through ``point`` with ``normal``.
+
+    ``(p - a) . n - r`` with ``a`` the point and ``n`` the unit normal into free space.
+    """
     return ops.dot(p - point, normal) - r
 
 
 def normal_speed(dv: Any, normal: Any, ops: Ops) -> Any:
-    """``dv . n``: the relative normal speed, negative when approaching."""
+    """The relative normal speed, negative when approaching.
+
+    ``dv . n`` for the relative velocity ``dv`` and the unit normal ``n``.
+    """
     return ops.dot(dv, normal)
 
 

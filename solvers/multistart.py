@@ -4,8 +4,9 @@
 sequences: the problem's guess, smooth perturbations of it, random smooth controls, and (disc
 scenes) constant forces that aim each actuated disc at each other disc and at each wall.
 :func:`batched_lbfgs` minimises a batch of controls together: every iteration is one call of
-the compiled loss mapped over the batch (:meth:`hybridoc.solvers.compiled.CompiledLoss.
-value_and_grad_batch`), not a Python loop over starts; each start keeps its own curvature
+the compiled loss mapped over the batch
+(:meth:`~hybridoc.solvers.compiled.CompiledLoss.value_and_grad_batch`), not a Python loop
+over starts; each start keeps its own curvature
 pairs and its own backtracking step.
 """
 

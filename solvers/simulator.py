@@ -76,6 +76,7 @@ from hybridoc.errors import ControlsError, SceneError
 from hybridoc.problems import disc_scene
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts import TOI_MODES, ContactModel, contact_model
+from hybridoc.solvers.threads import torch_threads
 
 __all__ = ["Simulator", "TOI_MODES", "INTEGRATORS", "NEWTON_ITERATIONS", "disc_scene"]
 
@@ -144,6 +145,7 @@ class Simulator(torch.nn.Module):
         **model_options: Any,
     ) -> None:
         super().__init__()
+        torch_threads()
         scene = disc_scene(scene)
         if isinstance(contact, ContactModel):
             if model_options:

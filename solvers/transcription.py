@@ -33,7 +33,7 @@ import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from math import comb
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -47,7 +47,10 @@ from hybridoc.errors import (
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
-from hybridoc.problem import as_ocp
+from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
+
+if TYPE_CHECKING:
+    from hybridoc.solution import Solution
 
 __all__ = [
     "DTResult",
@@ -701,14 +704,14 @@ class _Judged:
 
 
 def solve_dt(
-    problem: Any,
+    problem: ProblemLike,
     *,
     sequence: Sequence[str] | None = None,
-    initial: Any = None,
+    initial: ControlsLike | None = None,
     degree: int = 3,
     mesh: int | Sequence[int] | None = None,
     verbose: bool = False,
-) -> Any:
+) -> Solution:
     """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
 
     Parameters
@@ -773,10 +776,6 @@ def solve_dt(
 
     from hybridoc.solution import Solution, Status
 
-    if isinstance(problem, str):
-        from hybridoc.problems import load_scene
-
-        problem = load_scene(problem)
     ocp = as_ocp(problem)
     t_start = time.perf_counter()
     if sequence is not None:

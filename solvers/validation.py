@@ -466,6 +466,7 @@ def convergence_figure(report: dict[str, Any]) -> Any:
             ok = err > 0
             label = {
                 "dt": "transcription, cell averages on the N-grid",
+                "gd": "gradient descent at N (true continuous cost)",
             }[name]
             ax.loglog(steps[ok], err[ok], marker=marker, label=label)
     e0 = report["dt"]["error"][0] if report["dt"]["error"][0] > 0 else 1e-6

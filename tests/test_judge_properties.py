@@ -149,6 +149,32 @@ def _spread(a: Any, b: Any) -> tuple[float, float]:
     return dt, float(np.max(np.abs(np.array(a.final_state) - np.array(b.final_state))))
 
 
+CASCADE_SPEED = 1e-6
+"""Bound on the normal speed a truncated cascade may leave (module notes of
+:mod:`hybridoc.events`: the approach threshold near a tangent is ``sqrt(2 sigma psi'')``)."""
+
+
+def _instants(events: list[tuple[float, str]], tol: float) -> list[tuple[float, Any]]:
+    """Events grouped by instant: ``(time, guards in order)``, or ``(time, set of guards)``
+    for a cascade (a guard firing again at the same instant: a disc wedged in a corner at
+    restitution < 1). A cascade is an infinite geometric series of jumps that a simulator
+    stops where the approach speed falls below its rounding-level threshold, so the number of
+    its terms is not part of the answer: the guards that take part are, and so is the state
+    after it (compared by the caller)."""
+    out: list[tuple[float, Any]] = []
+    group: list[str] = []
+    t0 = 0.0
+    for t, name in [*events, (math.inf, "")]:
+        if group and abs(t - t0) > tol:
+            key = frozenset(group) if len(set(group)) < len(group) else tuple(group)
+            out.append((t0, key))
+            group = []
+        if not group:
+            t0 = t
+        group.append(name)
+    return out
+
+
 # ------------------------------------------------------------------ the properties
 @settings(max_examples=examples(150))
 @given(case=scenes())
@@ -184,16 +210,25 @@ def test_judge_agrees_with_the_oracle(case: Any) -> None:
     event("agree: no event" if k == 0 else "agree: 1-9 events" if k < 10 else "agree: 10+ events")
     note(f"judge events {list(zip(names, [e.time for e in ev.events], strict=True))[:8]}")
     note(f"oracle events {ref.events[:8]}")
-    assert names == [n for _, n in ref.events]
     tol_t = 1e-8 * max(1.0, T) + 10 * spread_t
-    np.testing.assert_allclose(
-        [e.time for e in ev.events], [t for t, _ in ref.events], rtol=0, atol=tol_t
-    )
+    mine = _instants([(e.time, e.name) for e in ev.events], tol_t)
+    theirs = _instants(ref.events, tol_t)
+    assert [k for _, k in mine] == [k for _, k in theirs]
+    np.testing.assert_allclose([t for t, _ in mine], [t for t, _ in theirs], rtol=0, atol=tol_t)
     scale = max(1.0, float(np.abs(ref.final_state).max()))
-    np.testing.assert_allclose(
-        ev.final_state, ref.final_state, rtol=0, atol=1e-7 * scale + 10 * spread_x
+    tol_x = 1e-7 * scale + 10 * spread_x
+    cascades = [t for t, k in theirs if isinstance(k, frozenset)]
+    if cascades:
+        # a truncated cascade leaves relative normal speeds below the simulators' thresholds
+        # (rounding level, up to about CASCADE_SPEED near a tangent), which the rest of the
+        # horizon turns into position differences
+        event("agree: cascade")
+        tol_x += CASCADE_SPEED * scale * (T - cascades[0])
+    np.testing.assert_allclose(ev.final_state, ref.final_state, rtol=0, atol=tol_x)
+    slope = 2 * math.sqrt(max(ref.cost, 0.0)) + 1.0  # d cost / d state, roughly, at this cost
+    assert ev.cost == pytest.approx(
+        ref.cost, rel=1e-6, abs=1e-9 + (slope * tol_x if cascades else 0)
     )
-    assert ev.cost == pytest.approx(ref.cost, rel=1e-6, abs=1e-9)
 
 
 @settings(max_examples=examples(60))

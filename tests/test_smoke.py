@@ -28,3 +28,13 @@ def test_import_from_the_repository_root():
     lines = proc.stdout.splitlines()
     assert Path(lines[0]).parent == root / "hybridoc"  # the source folder, not the install
     assert abs(float(lines[1]) - 0.082682740993) < 1e-9
+
+
+def test_version_is_the_package_metadata() -> None:
+    import tomllib
+    from pathlib import Path
+
+    import hybridoc
+
+    meta = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert hybridoc.__version__ == meta["project"]["version"]

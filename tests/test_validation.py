@@ -182,3 +182,15 @@ def test_crossval_multiple_collision_multistart_agrees():
     assert report["agree"] is True, report["reasons"]
     assert report["gd"]["sequence"] == report["reference"]["sequence"]
     assert 0 <= report["gd"]["cost_gap_relative"] < 1e-3
+
+
+def test_convergence_figure_with_gd(tmp_path):
+    """The convergence figure draws both methods (it once failed whenever gd was included)."""
+    from hybridoc.solvers.validation import convergence, convergence_figure
+
+    report = convergence("head-on", steps=(30, 60), gd_options={"iters": 5})
+    assert set(report) >= {"dt", "gd"} and len(report["gd"]["cost"]) == 2
+    fig = convergence_figure(report)
+    labels = [line.get_label() for line in fig.axes[0].get_lines()]
+    assert any("transcription" in s for s in labels) and any("gradient" in s for s in labels)
+    fig.savefig(tmp_path / "c.png")

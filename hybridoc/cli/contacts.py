@@ -145,12 +145,14 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
 
     Uses the paper's learning rate (200 on single-collision, 50 elsewhere) and iterations (500,
     1500 on multiple-collision, 500 elsewhere) unless --iters / --lr are given; the true cost
-    is the event-exact continuous cost of the learned controls.
+    is the event-exact continuous cost of the learned controls. A model whose learned
+    controls make no contact at all is named in one line below the table.
     """
     from hybridoc.cli.evaluate import save
     from hybridoc.solvers.gradcheck import (
         PAPER_OPTIMUM,
         compare_contacts,
+        contact_note,
         paper_gd_settings,
         parse_models,
     )
@@ -188,10 +190,12 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
             "time_s": sol.timings.get("solve_time_s"),
             "message": sol.info.get("message"),
             "events": sol.events,
+            "note": contact_note(name, sol),
             "loss_history": sol.arrays["loss_history"],
         }
         for name, sol in sols.items()
     ]
+    notes = [r["note"] for r in results if r["note"]]
     if args.json:
         emit_json(
             {
@@ -210,6 +214,8 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
     ]
     print(f"{scene.name}: plain gradient descent, lr {lr:g}, {iters} iterations")
     print(format_table(["model", "loss", "true cost", "events", "time s"], rows))
+    for note in notes:
+        print(note)
     if scene.name in PAPER_OPTIMUM:
         print(
             f"the paper's grid-search optimum: {PAPER_OPTIMUM[scene.name]} (the exact optimum: "

@@ -71,7 +71,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
             [
                 ",".join(r["sequence"]) or "(none)",
                 "-" if r["cost"] is None else repr(r["cost"]),
-                r["verdict"],
+                _short(r["verdict"]),
                 f"{r['time_s']:.3f}",
             ]
             for r in landscape
@@ -80,6 +80,12 @@ def cmd_reference(args: argparse.Namespace) -> int:
     for f in files:
         say(args, f"wrote {f}")
     return exit_code(sol.status, sol.message)
+
+
+def _short(text: str, width: int = 72) -> str:
+    """A verdict cut to one table cell (the JSON and ``--verbose`` keep the whole text)."""
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[: width - 3].rstrip() + "..."
 
 
 def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
