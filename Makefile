@@ -8,7 +8,7 @@ STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
 PKG_DIRS := hybridoc hybridoc/cli reference solvers solvers/contacts problems problems/library problems/scenes
 
-.PHONY: run test fuzz lint format docs bench install clean
+.PHONY: run test test-all fuzz lint format docs bench install clean
 
 # The main job: cross-validation of reference, transcription and gradient descent on both
 # of the paper's problems; tables on stdout, figures and JSON reports in ./out.
@@ -16,7 +16,11 @@ run: $(STAMP)
 	$(BIN)/hybridoc crossval single-collision --out out
 	$(BIN)/hybridoc crossval multiple-collision --out out
 
+# CI's tier: every test but those marked slow (a few minutes each), which `make test-all` adds.
 test: $(STAMP)
+	$(BIN)/pytest -q -p no:cacheprovider -m "not slow"
+
+test-all: $(STAMP)
 	$(BIN)/pytest -q -p no:cacheprovider
 
 # The property tests of the judge with a hundred times more random cases (and random seeds).

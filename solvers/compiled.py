@@ -4,8 +4,8 @@ A :class:`CompiledLoss` builds the discrete objective ``phi(s_N) + sum_n c_n`` o
 from one step function ``(s, u) -> (s_next, c)``:
 
 * disc scenes: the simulator's step in CasADi (:func:`hybridoc.solvers.casadi_step.make_step`,
-  symplectic Euler or the exact flow, with the time-of-impact corrections) and the running
-  cost ``eps |u|^2 dt``;
+  any contact model; symplectic Euler or the exact flow, with the time-of-impact corrections)
+  and the running cost ``eps |u|^2 dt``;
 * any other problem (or a disc scene with ``simulation="generic"``): the generic
   time-of-impact step of :func:`hybridoc.solvers.toi_sim.toi_step`.
 
@@ -20,7 +20,6 @@ so it plugs into torch optimisers.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import casadi as ca
@@ -37,17 +36,10 @@ generic TOI step otherwise), ``disc`` or ``generic``."""
 
 
 def _threads() -> int:
-    """CasADi map threads: the user's HYBRIDOC_THREADS, else the usable cores."""
-    env = os.environ.get("HYBRIDOC_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            pass
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    """CasADi map threads (:func:`hybridoc.solvers.threads.casadi_threads`)."""
+    from hybridoc.solvers.threads import casadi_threads
+
+    return casadi_threads()
 
 
 class CompiledLoss:
@@ -58,9 +50,11 @@ class CompiledLoss:
     problem
         Any problem (:func:`hybridoc.problem.as_ocp`).
     contact
-        Contact model of the disc step (must have a CasADi form: ``direct``).
+        Contact model of the disc step: any registered model
+        (:func:`hybridoc.solvers.casadi_step.make_step` says which settings and scenes it
+        serves).
     toi
-        Time-of-impact correction of the disc step.
+        Time-of-impact correction of the disc step (impulse models; ignored by the others).
     integrator
         ``"symplectic-euler"`` (the paper's, the default of the disc step) or ``"exact"``;
         the generic step is always ``"exact"`` (the closed-form flow, or RK4 sub-steps).

@@ -8,9 +8,11 @@ controls.
 Which simulation
     Disc scenes use the disc simulator with a contact model of
     :mod:`hybridoc.solvers.contacts` (the paper's Eq. 8 objective): the compiled CasADi path
-    (:class:`~hybridoc.solvers.compiled.CompiledLoss`) for models with a CasADi form, else the
-    torch :class:`~hybridoc.solvers.simulator.Simulator`. Every other problem uses the generic
-    time-of-impact simulation (:mod:`hybridoc.solvers.toi_sim`), compiled the same way.
+    (:class:`~hybridoc.solvers.compiled.CompiledLoss`) where the model's CasADi step serves
+    the scene (every model, within limits such as the number of contacts of ``lcp`` and
+    ``convex``), else the torch :class:`~hybridoc.solvers.simulator.Simulator`. Every other
+    problem uses the generic time-of-impact simulation (:mod:`hybridoc.solvers.toi_sim`),
+    compiled the same way.
 
 Integrator
     ``"exact"`` (the default): the exact flow of the piecewise-constant control with
@@ -39,9 +41,14 @@ from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.solution import Solution, Status
+from hybridoc.solvers.threads import torch_threads
 
 __all__ = [
     "DEFAULT_SMOOTHING",
+    "HOP_BATCH",
+    "HOP_ITERS",
+    "HOP_PATIENCE",
+    "HOP_SCALES",
     "INTEGRATORS",
     "OPTIMIZERS",
     "PAPER_SETTINGS",
@@ -144,13 +151,12 @@ def make_loss(
         )
     if is_disc:
         model = contact_model(contact, toi=toi)
-        compilable = model.compiled
-        if path == "compiled" and not compilable:
-            raise SceneError(
-                f"the compiled path exists only for contact models with a CasADi form; "
-                f"{model.name!r} runs on the torch simulator (path='torch')"
-            )
-        use_compiled = path == "compiled" or (path == "auto" and compilable)
+        # every registered model has a CasADi step, within limits (e.g. the scene's number of
+        # contacts for the coupled impulse models): auto falls back to torch outside them
+        reason = model.casadi_unsupported(ocp.meta["scene"], integrator)
+        if path == "compiled" and reason is not None:
+            raise SceneError(f"no compiled path: {reason}")
+        use_compiled = path == "compiled" or (path == "auto" and reason is None)
     else:
         if contact != "direct" or toi != "both":
             raise SceneError(
@@ -225,6 +231,7 @@ def solve_gd(
     path_weight: float = 1e5,
     starts: int = 1,
     seed: int | None = 0,
+    hops: int = 0,
     _penalty: float = 0.0,
 ) -> Solution:
     """Minimise the discrete objective by gradient descent through the simulation.
@@ -256,7 +263,8 @@ def solve_gd(
     progress
         Show a progress bar on stderr (quiet by default).
     path
-        ``"auto"`` (the compiled CasADi path where the model has one, else torch),
+        ``"auto"`` (the compiled CasADi path where the model's CasADi step serves the scene,
+        else torch),
         ``"compiled"`` or ``"torch"`` (disc scenes).
     max_step
         ``lbfgs`` only: the largest change of any control value in one iteration (longer
@@ -277,9 +285,19 @@ def solve_gd(
         controls, controls aimed at each body and wall; :mod:`hybridoc.solvers.multistart`)
         descend together, one batched rollout per iteration, on a coarse grid; the best
         distinct results are refined by the single-start method at full resolution and the
-        best of them returned. ``info["starts"]`` lists every start's result.
+        best of them returned. ``info["starts"]`` lists every start's result (its loss on
+        the coarse grid; the judge's cost and events of each distinct optimum).
     seed
-        Seed of the random starts.
+        Seed of the random starts (and of the hops' perturbations).
+    hops
+        Batched restarts after the descent, for losses with kinks (the symplectic Euler
+        loss kinks wherever a contact moves to another step, and gradient descent stalls at
+        a kink that is not a minimum, or in a shallow local minimum beside a lower one): in
+        each round, :data:`HOP_BATCH` perturbations of the best control, at sizes spread
+        geometrically from 1e-3 to 1 of its largest value, descend together by the batched
+        L-BFGS of :mod:`hybridoc.solvers.multistart`; the lowest replaces the best when it is
+        lower. Stops after ``hops`` rounds or :data:`HOP_PATIENCE` rounds without
+        improvement. ``info["hops"]`` lists the rounds. Compiled path only.
 
     Returns
     -------
@@ -293,6 +311,7 @@ def solve_gd(
     from hybridoc.solution import Solution
 
     ocp = as_ocp(problem)
+    torch_threads()  # the optimisers run in torch: one thread unless HYBRIDOC_THREADS says
     if optimizer not in OPTIMIZERS:
         raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     lr0, it0 = default_settings(ocp, optimizer)
@@ -310,6 +329,23 @@ def solve_gd(
         integrator = default_integrator(ocp, contact, toi)
     if isinstance(starts, bool) or not isinstance(starts, numbers.Integral) or starts < 1:
         raise SceneError(f"starts must be an integer >= 1, got {starts!r}")
+    if isinstance(hops, bool) or not isinstance(hops, numbers.Integral) or hops < 0:
+        raise SceneError(f"hops must be an integer >= 0, got {hops!r}")
+    if hops:
+        t_hop = time.perf_counter()
+        loss_obj, used_path = make_loss(ocp, contact, toi, integrator, path, path_weight)
+        if not hasattr(loss_obj, "value_and_grad_batch"):
+            raise SceneError(
+                f"hops run batched rollouts on the compiled path; the {used_path} path of "
+                f"contact {contact!r} has none"
+            )
+        base = solve_gd(
+            ocp, contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
+            iters=iters, lr=lr, initial=initial, callback=callback, progress=progress,
+            path=path, max_step=max_step, smoothing=smoothing, path_weight=path_weight,
+            starts=starts, seed=seed,
+        )  # fmt: skip
+        return _hop(ocp, base, loss_obj, int(hops), seed, t_hop)
     if starts > 1:
         return _multistart(
             ocp, int(starts), seed, dict(
@@ -408,6 +444,76 @@ def solve_gd(
     return sol.set_status(status, status_message)
 
 
+#: hops: perturbations per round, iterations of their batched descent, rounds without
+#: improvement before stopping, and the range of perturbation sizes (relative to max |u|)
+HOP_BATCH = 32
+HOP_ITERS = 150
+HOP_PATIENCE = 2
+HOP_SCALES = (1e-3, 1.0)
+
+
+def _hop(
+    ocp: HybridOCP, base: Solution, loss_obj: Any, hops: int, seed: int | None, t0: float
+) -> Solution:
+    """:func:`solve_gd` with ``hops`` (see there): batched restarts around the best control."""
+    from hybridoc.evaluator import evaluate
+    from hybridoc.solvers.multistart import batched_lbfgs, smooth_noise
+
+    if base.status is Status.NOT_CONVERGED:
+        return base
+    dt = ocp.horizon / ocp.steps
+    lower = upper = None
+    if ocp.has_bounds:
+        lower, upper = ocp.u_min, ocp.u_max
+
+    def vg(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        J, gU, _ = loss_obj.value_and_grad_batch(U)
+        return J / dt, gU / dt  # the batched L-BFGS's scaling, as in the multi-start
+
+    x = np.array(base.controls, dtype=float)
+    f = float(loss_obj.value_and_grad(x)[0])
+    rng = np.random.default_rng(seed)
+    rounds: list[dict[str, Any]] = []
+    stale = 0
+    for _ in range(hops):
+        size = max(float(np.abs(x).max()), 1e-3)
+        scales = size * np.geomspace(*HOP_SCALES, HOP_BATCH)
+        P = np.stack([x + sc * smooth_noise(rng, *x.shape, modes=8) for sc in scales])
+        if lower is not None:
+            P = np.clip(P, lower, upper)
+        X, F, _ = batched_lbfgs(vg, P, iters=HOP_ITERS, lower=lower, upper=upper)
+        F = np.where(np.isfinite(F), F * dt, np.inf)
+        k = int(np.argmin(F))
+        improved = bool(F[k] < f - 1e-13 * max(abs(f), 1.0))
+        rounds.append({"loss": float(F[k]), "improved": improved, "size": float(scales[k] / size)})
+        if improved:
+            x, f, stale = X[k], float(F[k]), 0
+        else:
+            stale += 1
+            if stale >= HOP_PATIENCE:
+                break
+    ev = evaluate(ocp, x)
+    info = dict(base.info, loss=f, hops=rounds, loss_before_hops=base.info.get("loss"))
+    sol = Solution.from_evaluation(
+        ev,
+        method="gd",
+        scene=ocp.name,
+        settings=dict(base.settings, hops=hops),
+        timings=dict(base.timings, hop_time_s=time.perf_counter() - t0 - base.timings.get(
+            "solve_time_s", 0.0), solve_time_s=time.perf_counter() - t0),
+        info=info,
+        arrays=dict(base.arrays),
+    )  # fmt: skip
+    status, message = Status.SUCCESS, ""
+    if not ev.feasible:
+        status = Status.INFEASIBLE
+        message = (
+            f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
+            f"constraints by {ev.path_violation:.3g}"
+        )
+    return sol.set_status(status, message)
+
+
 #: multi-start: the coarse grid of the batched phase, its iterations, and how many distinct
 #: results are refined at full resolution
 MULTISTART_STEPS = 60
@@ -421,13 +527,14 @@ def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str
     from hybridoc.solvers.multistart import explore
 
     t0 = time.perf_counter()
-    if "scene" in ocp.meta and (options["contact"] != "direct" or options["integrator"] != "exact"):
+    if "scene" in ocp.meta and options["contact"] != "direct":
         raise SceneError(
-            "the batched multi-start runs the compiled exact simulation (contact 'direct', "
-            "integrator 'exact')"
+            "the batched multi-start explores with the compiled exact simulation of contact "
+            "'direct'; other contact models start from its result with --initial"
         )
     coarse = min(ocp.steps, MULTISTART_STEPS)
-    found = explore(ocp, starts, seed=seed, steps=coarse, iters=MULTISTART_ITERS)
+    rows: list[dict[str, Any]] = []
+    found = explore(ocp, starts, seed=seed, steps=coarse, iters=MULTISTART_ITERS, report=rows)
     t_explore = time.perf_counter() - t0
     refined: list[Solution] = []
     seen: set[tuple[str, ...]] = set()
@@ -450,9 +557,8 @@ def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str
     best = min(refined, key=lambda s: s.cost)
     best.settings["starts"] = starts
     best.settings["seed"] = seed
-    best.info["starts"] = [
-        {"cost": r["cost"], "sequence": r["sequence"], "steps": coarse} for r in found
-    ]
+    best.info["starts"] = rows  # every start: coarse loss, judged cost and events
+    best.info["explore_steps"] = coarse
     best.info["refined"] = [{"cost": s.cost, "sequence": s.sequence} for s in refined]
     best.timings["explore_time_s"] = t_explore
     best.timings["solve_time_s"] = time.perf_counter() - t0

@@ -25,6 +25,7 @@ __all__ = [
     "PAPER_OPTIMUM",
     "compare_contacts",
     "compared_models",
+    "contact_note",
     "gradcheck_points",
     "gradient_errors",
     "paper_gd_settings",
@@ -171,24 +172,66 @@ def compare_contacts(
 ) -> dict[str, Any]:
     """Plain gradient descent (the paper's settings, symplectic Euler) with every model.
 
-    Returns ``{model label: hybridoc.solution.Solution}`` in the order of ``models``; each
-    Solution carries the discrete loss (``info["loss"]``), the true continuous cost
-    (``cost``) and the learning curve (``arrays["loss_history"]``).
+    Every model runs on the compiled CasADi path where it has one for ``scene``
+    (:func:`hybridoc.solvers.gd.make_loss`), else on the torch simulator.
+
+    Parameters
+    ----------
+    scene
+        A :class:`~hybridoc.problems.Scene`.
+    models
+        The contact models (default :func:`compared_models`).
+    iters, lr
+        Iterations and learning rate (default :func:`paper_gd_settings`).
+    progress
+        Show on stderr a progress line per model, named after the model.
+
+    Returns
+    -------
+    dict
+        ``{model label: hybridoc.solution.Solution}`` in the order of ``models``; each
+        Solution carries the discrete loss (``info["loss"]``), the true continuous cost
+        (``cost``), the events of its controls (``events``, see :func:`contact_note`) and the
+        learning curve (``arrays["loss_history"]``).
     """
-    from hybridoc.solvers.gd import solve_gd
+    from hybridoc.solvers.gd import _Progress, solve_gd
 
     lr0, it0 = paper_gd_settings(scene)
+    iters = it0 if iters is None else iters
+    models = list(models or compared_models())
     out = {}
-    for model in models or compared_models():
+    for k, model in enumerate(models, 1):
         toi = getattr(model, "toi", "both")
-        out[model.label] = solve_gd(
-            scene,
-            contact=model.name,
-            toi=toi,
-            integrator="symplectic-euler",
-            optimizer="gd",
-            lr=lr0 if lr is None else lr,
-            iters=it0 if iters is None else iters,
-            progress=progress,
-        )
+        bar = _Progress(iters, f"{model.label} ({k}/{len(models)})") if progress else None
+
+        def show(it: int, loss: float, _u: Any, bar: Any = bar) -> bool:
+            bar.update(it, loss)
+            return False
+
+        try:
+            sol = solve_gd(
+                scene,
+                contact=model.name,
+                toi=toi,
+                integrator="symplectic-euler",
+                optimizer="gd",
+                lr=lr0 if lr is None else lr,
+                iters=iters,
+                callback=show if bar is not None else None,
+            )
+            if bar is not None:
+                bar.update(sol.info["iterations"], sol.info["loss"], force=True)
+        finally:
+            if bar is not None:
+                bar.close()
+        out[model.label] = sol
     return out
+
+
+def contact_note(label: str, sol: Any) -> str | None:
+    """``"<label>: no contact in the final trajectory"`` when the event-exact evaluation of a
+    solution's controls has no contact event (the models were not compared on a collision),
+    else ``None``."""
+    if sol.events:
+        return None
+    return f"{label}: no contact in the final trajectory"

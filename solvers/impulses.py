@@ -49,6 +49,8 @@ import torch
 from torch import Tensor
 
 from hybridoc.errors import ConvergenceError, EvaluationError
+from hybridoc.solvers.contacts.base import SIGN_TOLERANCE
+from hybridoc.solvers.contacts.convex import REGULARIZATION
 
 __all__ = ["IMPULSE_METHODS", "solve_impulses", "solve_direct", "solve_lcp", "solve_convex"]
 
@@ -60,7 +62,7 @@ _SINGULAR_SHIFT = 1e-12
 
 def _tolerance(dtype: torch.dtype) -> float:
     """Relative tolerance for sign decisions (active set, complementarity) in ``dtype``."""
-    return 1e3 * torch.finfo(dtype).eps
+    return SIGN_TOLERANCE * torch.finfo(dtype).eps
 
 
 def _broadcast_restitution(restitution: float | Tensor, like: Tensor) -> Tensor:
@@ -233,7 +235,7 @@ def solve_convex(
     active: Tensor,
     e: Tensor,
     *,
-    regularization: float = 1e-9,
+    regularization: float = REGULARIZATION,
     max_iter: int = 100,
 ) -> Tensor:
     """MuJoCo-style convex impulse QP with regulariser ``R = regularization * diag(W)``.
@@ -259,7 +261,7 @@ def solve_impulses(
     active: Tensor,
     restitution: float | Tensor,
     *,
-    regularization: float = 1e-9,
+    regularization: float = REGULARIZATION,
 ) -> Tensor:
     """Normal contact impulses of ``C`` simultaneous frictionless contacts (batched).
 

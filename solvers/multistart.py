@@ -19,13 +19,20 @@ import numpy as np
 
 from hybridoc.ocp import HybridOCP
 
-__all__ = ["EXPLORE_SMOOTHING", "batched_lbfgs", "explore", "resample", "starting_controls"]
+__all__ = [
+    "EXPLORE_SMOOTHING",
+    "batched_lbfgs",
+    "explore",
+    "resample",
+    "smooth_noise",
+    "starting_controls",
+]
 
 EXPLORE_SMOOTHING = 1e-3
 """Weight of the smoothness penalty in the first stage of :func:`explore`."""
 
 
-def _smooth_noise(rng: np.random.Generator, N: int, nu: int, modes: int = 4) -> np.ndarray:
+def smooth_noise(rng: np.random.Generator, N: int, nu: int, modes: int = 4) -> np.ndarray:
     """A random smooth control shape on N cells (a few cosine modes), unit scale."""
     t = (np.arange(N) + 0.5) / N
     out = np.zeros((N, nu))
@@ -109,12 +116,12 @@ def starting_controls(ocp: HybridOCP, count: int, *, seed: int | None = 0) -> np
     while len(pool) < count:
         kind = k % 8
         if kind < 6 and a < len(aimed):
-            pool.append(aimed[int(order[a])] + 0.05 * scale * _smooth_noise(rng, N, nu))
+            pool.append(aimed[int(order[a])] + 0.05 * scale * smooth_noise(rng, N, nu))
             a += 1
         elif kind == 6 or (kind < 6 and k % 2 == 0):
-            pool.append(u0 + 0.3 * scale * _smooth_noise(rng, N, nu))
+            pool.append(u0 + 0.3 * scale * smooth_noise(rng, N, nu))
         else:
-            pool.append(scale * _smooth_noise(rng, N, nu))
+            pool.append(scale * smooth_noise(rng, N, nu))
         k += 1
     U = np.stack(pool[:count])
     if ocp.has_bounds:

@@ -214,8 +214,8 @@ def test_input_errors() -> None:
         Simulator(sc, toi="sometimes")
     with pytest.raises(SceneError, match="contact"):
         Simulator(sc, contact="glue")
-    with pytest.raises(SceneError, match="direct"):
-        make_step(sc, contact="lcp")
+    with pytest.raises(SceneError, match="unknown contact model"):
+        make_step(sc, contact="glue")
     with pytest.raises(ControlsError, match="shape"):
         CompiledLoss(sc).value(np.zeros((3, 2)))
 

@@ -60,6 +60,7 @@ _OPTIONS = {
     "search": "search",
     "starts": "starts",
     "seed": "seed",
+    "hops": "hops",
 }
 
 
@@ -293,6 +294,9 @@ def register(sub: Any) -> None:
                    "all K in the JSON (default 1)")  # fmt: skip
     g.add_argument("--seed", type=nonnegative_int, default=None,
                    help="seed of the multi-start's random starts (default 0)")  # fmt: skip
+    g.add_argument("--hops", type=nonnegative_int, default=None, metavar="K",
+                   help="up to K rounds of batched restarts around the result, to get past "
+                   "the kinks of the symplectic Euler loss (default 0)")  # fmt: skip
     g = p.add_argument_group("dt and reference options")
     g.add_argument("--sequence", metavar="EVENTS", default=None,
                    help="comma-separated guard names in event order ('' for none)")  # fmt: skip

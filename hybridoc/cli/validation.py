@@ -100,6 +100,17 @@ def cmd_crossval(args: argparse.Namespace) -> int:
         for name in names:
             if "events" in report[name]:
                 say(args, f"  {name:9s} events: {_events_text(report[name]['events'])}")
+        gd = report.get("gd", {})
+        if "discrete_optimum" in gd:
+            say(
+                args,
+                f"discrete objective (N = {ocp.steps}, symplectic Euler): gd's loss "
+                f"{fmt(gd['discrete_loss'], 12)}, its optimum {fmt(gd['discrete_optimum'], 12)} "
+                f"(N-step transcription from gd's control), gap "
+                f"{gd['discrete_gap_relative']:+.2e}",
+            )
+        elif "discrete_error" in gd:
+            say(args, f"discrete objective: its transcription failed: {gd['discrete_error']}")
         say(args, "agree: " + ("yes" if report["agree"] else "NO"))
     for p in written:
         say(args, f"wrote {p}")

@@ -11,10 +11,14 @@ from hybridoc.problems import physics as ph
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
+    from hybridoc.problems import Scene
+    from hybridoc.solvers.casadi_step import ImpulseInputs
     from hybridoc.solvers.simulator import Simulator
 
 __all__ = [
     "CONTACT_MODELS",
+    "INTEGRATORS",
+    "SIGN_TOLERANCE",
     "TOI_MODES",
     "ContactModel",
     "ImpulseModel",
@@ -26,6 +30,15 @@ __all__ = [
 TOI_MODES: tuple[str, ...] = ("none", "position", "velocity", "both")
 """Time-of-impact corrections of the impulse models (DESIGN.md section 3): ``none``,
 ``position`` (Hu et al. 2020), ``velocity`` (the paper's) and ``both`` (the paper's method)."""
+
+INTEGRATORS: tuple[str, ...] = ("symplectic-euler", "exact")
+"""The simulator's integrators: the paper's symplectic Euler and the exact flow of the
+piecewise-constant force (impulse models with ``toi="both"`` only)."""
+
+SIGN_TOLERANCE = 1e3
+"""Sign decisions of the coupled impulse solvers (active sets, complementarity) allow
+``SIGN_TOLERANCE * eps * max|q|``; the torch solvers and their CasADi forms share it so that
+both pick the same active set."""
 
 CONTACT_MODELS: dict[str, type[ContactModel]] = {}
 """Every registered contact model, by name, in registration order."""
@@ -73,13 +86,17 @@ class ContactModel(ABC):
 
     Subclasses set :attr:`name` and :attr:`summary`, implement :meth:`torch_step`, and are
     registered with :func:`register`. Model options are keyword arguments of ``__init__``.
+    For the compiled path a model sets :attr:`compiled` and implements :meth:`casadi_step`
+    (an :class:`ImpulseModel`: :meth:`ImpulseModel.casadi_impulses`), equal to
+    :meth:`torch_step` to rounding, and :meth:`casadi_unsupported` names any limits.
     """
 
     name: ClassVar[str] = ""
     summary: ClassVar[str] = ""
     impulse_based: ClassVar[bool] = False
     compiled: ClassVar[bool] = False
-    """Whether the model has a CasADi step (the compiled fast path of gradient descent)."""
+    """Whether the model has a CasADi step (:meth:`casadi_step`, the compiled fast path of
+    gradient descent)."""
 
     def __init__(self, **options: Any) -> None:
         if options:
@@ -101,6 +118,59 @@ class ContactModel(ABC):
         self, sim: Simulator, p: torch.Tensor, v: torch.Tensor, acc: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One step of ``sim`` from positions and velocities ``(B, n, 2)`` under ``acc``."""
+
+    def casadi_unsupported(self, scene: Scene, integrator: str) -> str | None:
+        """Why this model has no CasADi step for ``scene`` and ``integrator``, or ``None``.
+
+        Parameters
+        ----------
+        scene : Scene
+            The disc scene.
+        integrator : str
+            ``"symplectic-euler"`` or ``"exact"``.
+
+        Returns
+        -------
+        str or None
+            A one-line reason (the message of the :class:`~hybridoc.errors.SceneError` that
+            :func:`hybridoc.solvers.casadi_step.make_step` raises), ``None`` when supported.
+        """
+        if integrator not in INTEGRATORS:
+            return f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
+        if not self.compiled:
+            have = ", ".join(name for name, cls in CONTACT_MODELS.items() if cls.compiled)
+            return (
+                f"contact model {self.name!r} has no CasADi form ({have} have one); use the "
+                "torch Simulator (path='torch')"
+            )
+        if integrator == "exact" and not (
+            self.impulse_based and getattr(self, "toi", None) == "both"
+        ):
+            return f"integrator 'exact' needs an impulse model with toi='both', not {self.label}"
+        return None
+
+    def casadi_step(
+        self, scene: Scene, s: Any, u: Any, integrator: str = "symplectic-euler"
+    ) -> Any:
+        """The state after one step as a CasADi expression of the state and control symbols.
+
+        Parameters
+        ----------
+        scene : Scene
+            The disc scene.
+        s, u : casadi.SX
+            State ``(4 n,)`` in the layout ``[p_1, ..., p_n, v_1, ..., v_n]`` and control
+            ``(nu,)`` symbols.
+        integrator : str
+            ``"symplectic-euler"`` or ``"exact"``.
+
+        Returns
+        -------
+        casadi.SX
+            The next state, equal to :meth:`torch_step` on the same numbers to rounding.
+        """
+        reason = self.casadi_unsupported(scene, integrator)
+        raise SceneError(reason or f"contact model {self.name!r} has no CasADi step")
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.label!r})"
@@ -124,12 +194,18 @@ class ImpulseModel(ContactModel):
         the impulse of ``velocity`` and the correction of ``position`` (the paper's method).
 
     A subclass is named after its impulse solver in
-    :func:`hybridoc.solvers.impulses.solve_impulses` (or overrides :meth:`contact_impulses`).
+    :func:`hybridoc.solvers.impulses.solve_impulses` (or overrides :meth:`contact_impulses`);
+    its CasADi form (:meth:`casadi_impulses`) plugs into the shared CasADi step
+    :func:`hybridoc.solvers.casadi_step.step_parts`.
     With the simulator's exact integrator the time of impact is refined by Newton's method on
     the exact flow and the impulse taken at the exact contact state.
     """
 
     impulse_based = True
+    coupled: ClassVar[bool] = False
+    """Whether the impulses of a step are solved together (an LCP): the CasADi form then
+    enumerates active sets, which limits the number of contacts
+    (:func:`hybridoc.solvers.casadi_step.enumeration_unsupported`)."""
 
     def __init__(self, toi: str = "both", **options: Any) -> None:
         super().__init__(**options)
@@ -155,6 +231,29 @@ class ImpulseModel(ContactModel):
         J = sim.incidence[None, :, :, None] * nrm[:, :, None, :]  # (B, C, n, 2)
         W = torch.einsum("bcka,k,bdka->bcd", J, 1.0 / sim.masses, J)
         return solve_impulses(self.name, W, w, active, sim.restitution)
+
+    def casadi_unsupported(self, scene: Scene, integrator: str) -> str | None:
+        from hybridoc.solvers.casadi_step import enumeration_unsupported
+
+        reason = super().casadi_unsupported(scene, integrator)
+        if reason is None and self.coupled:
+            reason = enumeration_unsupported(self.label, scene)
+        return reason
+
+    def casadi_step(
+        self, scene: Scene, s: Any, u: Any, integrator: str = "symplectic-euler"
+    ) -> Any:
+        from hybridoc.solvers.casadi_step import step_parts
+
+        reason = self.casadi_unsupported(scene, integrator)
+        if reason is not None:
+            raise SceneError(reason)
+        return step_parts(scene, s, u, self.toi, integrator, impulses=self.casadi_impulses).s_next
+
+    def casadi_impulses(self, inputs: ImpulseInputs) -> list[Any]:
+        """The impulses of one step in CasADi, one per contact (the CasADi form of
+        :meth:`contact_impulses`; :class:`~hybridoc.solvers.casadi_step.ImpulseInputs`)."""
+        raise SceneError(f"contact model {self.name!r} has no CasADi impulse solver")
 
     def impulses(
         self, W: torch.Tensor, w: torch.Tensor, active: torch.Tensor, restitution: torch.Tensor

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay light
     from torch import Tensor
 
-from hybridoc.errors import EvaluationError
+from hybridoc.errors import EvaluationError, SceneError
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts._penalty_common import MIN_DISTANCE, pairs, prepare
 from hybridoc.solvers.contacts.base import ContactModel, register
@@ -37,8 +37,10 @@ __all__ = [
     "Compliant",
     "DEFAULT_DAMPING",
     "DEFAULT_STIFFNESS",
+    "compliant_casadi_step",
     "compliant_step",
     "damping_for_restitution",
+    "penalty_force",
 ]
 
 DEFAULT_STIFFNESS = 2.0e4
@@ -106,6 +108,14 @@ def damping_for_restitution(restitution: float, stiffness: float, effective_mass
     return 2.0 * zeta * math.sqrt(stiffness * effective_mass)
 
 
+def penalty_force(depth: Any, w: Any, stiffness: Any, damping: Any, ops: ph.Ops) -> Any:
+    """The contact force ``max(k depth - c w, 0)`` where ``depth > 0``, else 0 (either backend).
+
+    The one force law of :func:`compliant_step` (torch) and :func:`compliant_casadi_step`.
+    """
+    return ops.where(depth > 0, ops.clip(stiffness * depth - damping * w, 0.0, math.inf), 0.0)
+
+
 def compliant_step(
     p: Tensor,
     v: Tensor,
@@ -149,7 +159,6 @@ def compliant_step(
     )
     n = p.shape[1]
     force = torch.zeros_like(p)
-    zero = torch.zeros((), dtype=p.dtype, device=p.device)
     if n > 1:
         i, j = pairs(n, p.device)
         gap, normal = ph.pair_gap(
@@ -157,19 +166,81 @@ def compliant_step(
         )
         depth = -gap
         w = ph.normal_speed(v[:, i] - v[:, j], normal, ph.TORCH)
-        f = torch.where(depth > 0, torch.clamp(stiffness * depth - damping * w, min=0.0), zero)
-        fn = f.unsqueeze(-1) * normal
+        fn = penalty_force(depth, w, stiffness, damping, ph.TORCH).unsqueeze(-1) * normal
         force = force.index_add(1, i, fn).index_add(1, j, -fn)
     if wall_points.shape[0] > 0:
         # (B, n, W): gap of each disc to each wall
         gap = ph.wall_gap(p[:, :, None, :], wall_points, wall_normals, radii[:, None], ph.TORCH)
         depth = -gap
         w = torch.einsum("bnk,wk->bnw", v, wall_normals)
-        f = torch.where(depth > 0, torch.clamp(stiffness * depth - damping * w, min=0.0), zero)
+        f = penalty_force(depth, w, stiffness, damping, ph.TORCH)
         force = force + torch.einsum("bnw,wk->bnk", f, wall_normals)
     v_next = v + (acc + inv_mass.unsqueeze(-1) * force) * dt
     p_next = p + v_next * dt
     return p_next, v_next
+
+
+def compliant_casadi_step(
+    scene: Any,
+    s: Any,
+    u: Any,
+    *,
+    stiffness: float = DEFAULT_STIFFNESS,
+    damping: float = DEFAULT_DAMPING,
+) -> Any:
+    """:func:`compliant_step` of a scene in CasADi: the next state as an expression.
+
+    Parameters
+    ----------
+    scene : Scene
+        The disc scene.
+    s, u : casadi.SX
+        State ``(4 n,)`` and control ``(nu,)`` symbols.
+    stiffness, damping : float, optional
+        As in :func:`compliant_step`.
+
+    Returns
+    -------
+    casadi.SX
+        The state after one step; the forces are summed in :func:`compliant_step`'s order
+        (pairs on their first disc, then on their second, then the walls).
+    """
+    import casadi as ca
+
+    from hybridoc.solvers.casadi_step import disc_kinematics
+
+    ops = ph.CASADI
+    n, dt = scene.n_discs, scene.dt
+    p, v, a = disc_kinematics(scene, s, u)
+    radii = [d.radius for d in scene.discs]
+    plus: list[list[Any]] = [[] for _ in range(n)]
+    minus: list[list[Any]] = [[] for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1, n):
+            gap, normal = ph.pair_gap(
+                p[i] - p[j], radii[i] + radii[j], ops, min_distance=MIN_DISTANCE
+            )
+            w = ph.normal_speed(v[i] - v[j], normal, ops)
+            fn = penalty_force(-gap, w, stiffness, damping, ops) * normal
+            plus[i].append(fn)
+            minus[j].append(-fn)
+    p_next, v_next = [], []
+    for i in range(n):
+        force: Any = 0.0
+        for f in plus[i] + minus[i]:
+            force = force + f
+        if scene.walls:
+            wall_sum: Any = 0.0
+            for wall in scene.walls:
+                nw = ca.DM(wall.normal)
+                gap = ph.wall_gap(p[i], ca.DM(wall.point), nw, radii[i], ops)
+                w = ph.normal_speed(v[i], nw, ops)
+                wall_sum = wall_sum + penalty_force(-gap, w, stiffness, damping, ops) * nw
+            force = force + wall_sum
+        vi = v[i] + (a[i] + (1.0 / scene.discs[i].mass) * force) * dt
+        v_next.append(vi)
+        p_next.append(p[i] + vi * dt)
+    return ca.vertcat(*p_next, *v_next)
 
 
 @register
@@ -185,6 +256,7 @@ class Compliant(ContactModel):
 
     name = "compliant"
     summary = "penalty spring-damper (not an impulse model)"
+    compiled = True
 
     def __init__(
         self, stiffness: float = DEFAULT_STIFFNESS, damping: float = DEFAULT_DAMPING, **options: Any
@@ -202,3 +274,9 @@ class Compliant(ContactModel):
             p, v, acc, sim.dt, sim.radii, 1.0 / sim.masses, sim.wall_points, sim.wall_normals,
             stiffness=self.stiffness, damping=self.damping,
         )  # fmt: skip
+
+    def casadi_step(self, scene: Any, s: Any, u: Any, integrator: str = "symplectic-euler") -> Any:
+        reason = self.casadi_unsupported(scene, integrator)
+        if reason is not None:
+            raise SceneError(reason)
+        return compliant_casadi_step(scene, s, u, stiffness=self.stiffness, damping=self.damping)

@@ -27,3 +27,8 @@ class Direct(ImpulseModel):
         hit = active & (w < 0)
         lam = ph.impulse(w, inv_mass_sum, sim.restitution)
         return torch.where(hit, lam, torch.zeros_like(w))
+
+    def casadi_impulses(self, inputs: Any) -> list[Any]:
+        from hybridoc.solvers.casadi_step import direct_impulses
+
+        return direct_impulses(inputs)
