@@ -444,12 +444,14 @@ def solve_gd(
     return sol.set_status(status, status_message)
 
 
-#: hops: perturbations per round, iterations of their batched descent, rounds without
-#: improvement before stopping, and the range of perturbation sizes (relative to max |u|)
 HOP_BATCH = 32
+"""Hops (:func:`solve_gd`): perturbations of the best control per round."""
 HOP_ITERS = 150
+"""Hops: iterations of the batched L-BFGS of each round."""
 HOP_PATIENCE = 2
+"""Hops: rounds without improvement before stopping."""
 HOP_SCALES = (1e-3, 1.0)
+"""Hops: smallest and largest perturbation size, relative to ``max |u|`` (geometric spread)."""
 
 
 def _hop(
