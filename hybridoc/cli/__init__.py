@@ -1,9 +1,9 @@
 """The ``hybridoc`` command: every command in one package.
 
 One module per group of commands (:mod:`.problems`, :mod:`.evaluate`, :mod:`.reference`,
-:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`), each with ``register(subparsers)``;
-what they share (arguments, the output convention, exit codes) is in :mod:`._util`. The
-modules hold no library code: they parse, call the library, and print.
+:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`), each with
+``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
+in :mod:`._util`. The modules hold no library code: they parse, call the library, and print.
 """
 
 from __future__ import annotations
@@ -20,7 +20,15 @@ from hybridoc.errors import HybridocError
 __all__ = ["COMMAND_MODULES", "build_parser", "main"]
 
 #: The command modules, in the order their commands are listed.
-COMMAND_MODULES = ("problems", "evaluate", "reference", "solve", "validation", "contacts")
+COMMAND_MODULES = (
+    "problems",
+    "evaluate",
+    "reference",
+    "solve",
+    "validation",
+    "datasets",
+    "contacts",
+)
 
 
 def build_parser() -> HybridocArgumentParser:

@@ -75,14 +75,32 @@ def _timed(fn: Any, *args: Any, repeat: int = 1) -> tuple[Any, float]:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    """Evaluate controls with the event-exact judge: true cost and events."""
+    """Evaluate controls (or a feedback policy, --policy) with the event-exact judge: true cost
+    and events."""
     from hybridoc.evaluator import evaluate
     from hybridoc.solution import Solution
 
     ocp = load_problem_arg(args.problem)
-    controls, source = load_controls_arg(args.controls, ocp)
+    if args.policy is not None:
+        from hybridoc.policies import load_policy
+
+        if args.controls is not None:
+            raise HybridocError("give --controls or --policy, not both")
+        policy = load_policy(args.policy)
+        controls, source = None, f"policy {args.policy} (hold {args.hold})"
+    else:
+        if args.hold != "zoh":
+            raise HybridocError("--hold applies to --policy only")
+        policy = None
+        controls, source = load_controls_arg(args.controls, ocp)
     out = None if args.out is None else ensure_dir(args.out)
-    ev, seconds = _timed(evaluate, ocp, controls)
+    ev, seconds = _timed(
+        lambda: (
+            evaluate(ocp, controls, policy=policy, hold=args.hold)
+            if policy is not None
+            else evaluate(ocp, controls)
+        )
+    )
     events = ev.event_dicts()
     payload = {
         "problem": ocp.name,
@@ -120,7 +138,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             written = list(sol.save(stem))
         except OSError as exc:
             raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
-        label = "initial guess" if args.controls is None else Path(source).name
+        label = (
+            "initial guess"
+            if args.controls is None and policy is None
+            else (f"policy {Path(args.policy).name}" if policy is not None else Path(source).name)
+        )
         written += write_figures(ocp, ev, stem, label=label)
         for p in written:
             say(args, f"wrote {p}")
@@ -210,6 +232,15 @@ def register(sub: Any) -> None:
     )
     problem_arg(p)
     add_controls_arg(p)
+    p.add_argument(
+        "--policy", metavar="SPEC", default=None,
+        help="a feedback policy instead of controls: a TorchScript file (.pt) or "
+        "path/to/file.py:name, a callable (t, state) -> u",
+    )  # fmt: skip
+    p.add_argument(
+        "--hold", choices=("zoh", "continuous"), default="zoh",
+        help="with --policy: sampled at the grid times and held (zoh, default) or continuous",
+    )  # fmt: skip
     add_json_out(
         p,
         out_help="write DIR/<problem>_evaluate.npz + .json and its trajectory and controls figures",

@@ -1,0 +1,243 @@
+"""``hybridoc dataset`` and ``validate-policy``: references over a scene's distribution
+(library: :mod:`hybridoc.dataset`, :mod:`hybridoc.policies`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.cli._util import (
+    add_json_out,
+    emit_json,
+    ensure_dir,
+    fmt,
+    format_table,
+    nonnegative_int,
+    output_stem,
+    positive_float,
+    positive_int,
+    problem_arg,
+    say,
+    to_jsonable,
+    warn,
+)
+from hybridoc.errors import HybridocError
+
+__all__ = ["register"]
+
+
+def _add_engine(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--samples", type=positive_int, required=True, metavar="M",
+        help="number of initial states drawn from the scene's [distribution]",
+    )  # fmt: skip
+    p.add_argument(
+        "--seed", type=nonnegative_int, default=None, metavar="S",
+        help="seed of the draws (default: the distribution's)",
+    )  # fmt: skip
+    p.add_argument(
+        "--workers", type=positive_int, default=None, metavar="K",
+        help="worker processes (default: the usable cores; 1: no pool)",
+    )  # fmt: skip
+    p.add_argument(
+        "--dask", default=None, metavar="ADDRESS",
+        help="run on a dask.distributed cluster: a scheduler address (tcp://host:port) or "
+        "'local' for a LocalCluster of --workers processes",
+    )  # fmt: skip
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def _scene_arg(text: str) -> Any:
+    from hybridoc.dataset import _scene_of
+
+    return _scene_of(text)
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    """Exact optimal controls, events, costates and costs of M draws of a scene's
+    [distribution]: DIR/dataset.npz (one row per draw) and DIR/manifest.json.
+
+    An interrupted run resumes when started again with the same options. Draws whose
+    reference failed are kept with status 'failed' (exit code 1, with a warning line).
+    """
+    from hybridoc.dataset import DATA_FILE, MANIFEST_FILE, make_dataset
+
+    scene = _scene_arg(args.problem)
+    ensure_dir(args.out)
+    ds = make_dataset(
+        scene, args.samples, args.out, seed=args.seed, workers=args.workers, dask=args.dask,
+        tol=args.tol, full=args.full, progress=not args.no_progress,
+    )  # fmt: skip
+    m = ds.manifest
+    counts, methods = m.get("counts", {}), m.get("methods", {})
+    run = m.get("last_run", {})
+    payload = {
+        "problem": scene.name,
+        "samples": len(ds),
+        "seed": m["settings"]["seed"],
+        "counts": counts,
+        "methods": methods,
+        "data": str(Path(args.out) / DATA_FILE),
+        "manifest": str(Path(args.out) / MANIFEST_FILE),
+        "sha256": m.get("sha256"),
+        "wall_time_s": run.get("wall_time_s"),
+        "nominal": None if m.get("nominal") is None else {
+            k: m["nominal"][k] for k in ("sequence", "cost")
+        },
+    }  # fmt: skip
+    if args.json:
+        emit_json(payload)
+    else:
+        say(args, f"problem   {scene.name} ({len(ds)} draws, seed {payload['seed']})")
+        say(args, "status    " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+        say(args, "method    " + ", ".join(f"{k} {v}" for k, v in methods.items()))
+        if run.get("wall_time_s") is not None:
+            t = float(run["wall_time_s"])
+            say(args, f"time      {t:.3g} s ({run.get('engine')}, {run.get('workers')} workers)")
+        say(args, f"wrote {payload['data']}")
+        say(args, f"wrote {payload['manifest']}")
+    bad = sum(v for k, v in counts.items() if k != "success")
+    if bad:
+        warn(f"{bad} of {len(ds)} draws have no verified optimum (see the status column)")
+        return 1
+    return 0
+
+
+def cmd_validate_policy(args: argparse.Namespace) -> int:
+    """Judge a feedback policy in closed loop on M draws of a scene's [distribution] against
+    the exact reference of each: the cost gap (mean, median, p95, max), how often the event
+    sequence differs from the optimal one, the worst cases with their initial states.
+
+    Exit code 1 when some draw's policy beats its reference (a reference that is not
+    optimal) or no draw could be compared.
+    """
+    from hybridoc.policies import report_figures, validate_policy
+
+    scene = _scene_arg(args.problem)
+    out = None if args.out is None else ensure_dir(args.out)
+    report = validate_policy(
+        scene, args.policy, args.samples, seed=args.seed, dataset=args.dataset,
+        dataset_out=None if out is None else output_stem(out, scene.name, "dataset"),
+        hold=args.hold, workers=args.workers, dask=args.dask, progress=not args.no_progress,
+    )  # fmt: skip
+    s = report.summary
+    payload = {"problem": scene.name, **report.to_json()}
+    written: list[Path] = []
+    if out is not None:
+        stem = output_stem(out, scene.name, "validate-policy")
+        try:
+            p = Path(f"{stem}.json")
+            p.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
+            written.append(p)
+            cols: dict[str, Any] = {k: np.asarray(v) for k, v in report.columns.items()}
+            np.savez(f"{stem}.npz", **cols)
+            written.append(Path(f"{stem}.npz"))
+        except OSError as exc:
+            raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
+        ocp = scene.to_ocp()
+        try:
+            written += report_figures(report, list(ocp.state_labels), stem, title=scene.name)
+        except OSError as exc:
+            raise HybridocError(f"cannot write figures: {exc.strerror or exc}") from None
+    if args.json:
+        emit_json(payload)
+    else:
+        say(args, f"problem    {scene.name} ({s['samples']} draws, hold {args.hold})")
+        say(args, f"policy     {args.policy}")
+        say(args, f"compared   {s['compared']} (reference failed {s['reference_failed']}, "
+                  f"rollout failed {s['rollout_failed']})")  # fmt: skip
+        rows = [
+            ["absolute", fmt(s["gap_mean"], 6), fmt(s["gap_median"], 6), fmt(s["gap_p95"], 6),
+             fmt(s["gap_max"], 6)],
+            ["relative", fmt(s["rel_gap_mean"], 6), fmt(s["rel_gap_median"], 6),
+             fmt(s["rel_gap_p95"], 6), fmt(s["rel_gap_max"], 6)],
+        ]  # fmt: skip
+        say(args, "gap to the reference (policy - optimum)")
+        for line in format_table(["gap", "mean", "median", "p95", "max"], rows).splitlines():
+            say(args, "  " + line)
+        rate = s["sequence_mismatch_rate"]
+        pct = fmt(float("nan") if rate is None else 100 * rate, 4)
+        say(args, f"events differ from the optimum in {pct}% of the draws")
+        say(args, f"rollouts   {s['rollout_time_s']:.3g} s")
+        if report.worst:
+            say(args, "worst cases")
+            rows = [
+                [w["index"], fmt(w["gap"], 6), fmt(w["rel_gap"], 4),
+                 "(" + ", ".join(f"{x:.4g}" for x in w["x0"]) + ")",
+                 w["policy_sequence"] or "-", w["reference_sequence"] or "-"]
+                for w in report.worst
+            ]  # fmt: skip
+            table = format_table(
+                ["draw", "gap", "rel", "x0", "policy events", "optimal events"], rows
+            )
+            for line in table.splitlines():
+                say(args, "  " + line)
+        for p in written:
+            say(args, f"wrote {p}")
+    if s["reference_failed"]:
+        warn(f"{s['reference_failed']} draw(s) without a verified reference are not compared")
+    if s["rollout_failed"]:
+        warn(f"{s['rollout_failed']} rollout(s) the judge could not simulate are not compared")
+    if s["compared"] == 0:
+        warn("no draw could be compared (see the status column)")
+        return 1
+    if s["negative_gaps"]:
+        warn(f"the policy beats the reference on {s['negative_gaps']} draw(s): those references "
+             "are not optimal")  # fmt: skip
+        return 1
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add ``dataset`` and ``validate-policy``."""
+    p = sub.add_parser(
+        "dataset",
+        help="exact references for M draws of a scene's [distribution] (resumable)",
+        description=cmd_dataset.__doc__,
+    )
+    problem_arg(p)
+    _add_engine(p)
+    p.add_argument(
+        "--out", metavar="DIR", type=Path, required=True,
+        help="directory of dataset.npz and manifest.json (a rerun resumes there)",
+    )  # fmt: skip
+    p.add_argument(
+        "--tol", type=positive_float, default=1e-10, help="HMP residual required (default 1e-10)"
+    )
+    p.add_argument(
+        "--full", action="store_true",
+        help="solve every draw with the reference's full discovery (no warm start; slower)",
+    )  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=cmd_dataset)
+
+    p = sub.add_parser(
+        "validate-policy",
+        help="a feedback policy's cost gap to the exact references over a distribution",
+        description=cmd_validate_policy.__doc__,
+    )
+    problem_arg(p)
+    p.add_argument(
+        "policy", metavar="POLICY",
+        help="a TorchScript file (.pt) or path/to/file.py:name, a callable (t, state) -> u",
+    )  # fmt: skip
+    _add_engine(p)
+    p.add_argument(
+        "--dataset", metavar="DIR", type=Path, default=None,
+        help="reuse the references of 'hybridoc dataset' (same scene and seed, >= M draws)",
+    )  # fmt: skip
+    p.add_argument(
+        "--hold", choices=("zoh", "continuous"), default="zoh",
+        help="zoh: the policy sampled at the grid times and held (default); continuous",
+    )  # fmt: skip
+    add_json_out(
+        p,
+        out_help="write DIR/<problem>_validate-policy.json/.npz, the figures "
+        "..._gap_hist.png and ..._gap_scatter.png, and the references computed "
+        "(DIR/<problem>_dataset/)",
+    )
+    p.set_defaults(func=cmd_validate_policy)

@@ -1,0 +1,815 @@
+"""Reference datasets: the exact optimal control of many initial states of one scene.
+
+:func:`make_dataset` draws ``M`` concrete scenes from a scene's ``[distribution]`` table
+(:class:`~hybridoc.problems.scene.Distribution`) and solves each with the HMP reference;
+:func:`load_dataset` reads the result back.
+
+How each draw is solved
+    The nominal scene is solved once with the reference's full discovery
+    (:func:`~hybridoc.reference.solve_reference`). Each draw is then solved by Newton on the
+    HMP system of the nominal's event sequence, started from the nominal's solution
+    (``method = "warm"``), and accepted only when
+
+    1. Newton converges (HMP residual below ``tol``, event times in order);
+    2. the judge re-simulates the extremal's ``u(t)`` to exactly its events and its cost
+       (:func:`~hybridoc.reference.verify_reference`);
+    3. no sequence of at most one event can beat it (the reference's lower bound), and the
+       scene's initial guess, judged, is not cheaper.
+
+    Every other draw is solved with the full discovery (``method = "full"``); with
+    ``full=True`` every draw is. Draws that fail are kept with status ``failed`` and the
+    reason in ``message``; nothing is dropped.
+
+Files (in the output directory)
+    ``dataset.npz``
+        One row per draw (columns below), written deterministically (fixed zip
+        timestamps), so equal data give byte-identical files.
+    ``manifest.json``
+        Versions, settings (the scene as TOML, samples, seed, chunk size, tol), the nominal
+        solution, counts per status, the data file's SHA-256, timings.
+    ``shards/``
+        Finished chunks while a run is in progress; a run started again with the same
+        settings skips them (resumable), and they are removed once ``dataset.npz`` is
+        written.
+
+Columns
+    ``index``, ``x0`` ``(M, nx)``, ``targets`` ``(M, n_discs, 2)`` (NaN: no target),
+    ``status`` (``success``, ``not-optimal``, ``infeasible``, ``failed``), ``method``
+    (``warm``, ``full``, ``""`` for a failure), ``message``, ``cost``, ``terminal_cost``,
+    ``running_cost``, ``residual``, ``sequence`` (guard names joined by ``,``),
+    ``n_events``, ``event_times`` ``(M, K)``, ``multipliers`` ``(M, K)``,
+    ``approach_speeds`` ``(M, K)``, ``controls`` ``(M, N, nu)`` (cell averages of the
+    optimal ``u(t)``), ``control_coefficients`` ``(M, K + 1, 2, nu)`` (``u = c0 + c1 (t -
+    t_k)`` on phase ``k``), ``phase_starts`` ``(M, K + 1)``, ``phase_states`` and
+    ``phase_costates`` ``(M, K + 1, nx)`` (after each jump), ``states_minus`` and
+    ``costates_minus`` ``(M, K, nx)`` (before each jump), ``final_state``,
+    ``final_costate`` and ``lambda0`` ``(M, nx)``. ``K`` is the largest number of events
+    of any draw; shorter rows are padded with NaN.
+
+Scale-out
+    Chunks of draws run in a local process pool over the usable cores (default), in the
+    calling process (``workers=1``), or on a ``dask.distributed`` cluster (``dask=``
+    an address, ``"local"`` or a ``Client``). Draw ``i`` has its own random stream and
+    every draw starts from the same nominal point, so the data do not depend on the engine,
+    the number of workers or the order in which chunks finish.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import multiprocessing as mp
+import os
+import shutil
+import sys
+import time
+import zipfile
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.errors import HybridocError, SceneError
+
+__all__ = [
+    "DATA_FILE",
+    "MANIFEST_FILE",
+    "Dataset",
+    "load_dataset",
+    "make_dataset",
+    "run_chunks",
+    "usable_cores",
+]
+
+DATA_FILE = "dataset.npz"
+MANIFEST_FILE = "manifest.json"
+SHARD_DIR = "shards"
+FORMAT = "hybridoc-dataset/1"
+CHUNK = 25
+"""Draws per chunk (one shard file, one task of the pool or of Dask)."""
+
+_OPT_RTOL = 1e-9
+CONTINUATION = (4, 16)
+"""Steps of the continuations in the initial state tried when Newton from the nominal
+point fails."""
+_VARIABLE_K = {  # column -> number of extra rows beyond K (K events, K + 1 phases)
+    "event_times": 0,
+    "multipliers": 0,
+    "approach_speeds": 0,
+    "states_minus": 0,
+    "costates_minus": 0,
+    "phase_starts": 1,
+    "phase_states": 1,
+    "phase_costates": 1,
+    "control_coefficients": 1,
+}
+_STRINGS = ("status", "method", "message", "sequence")
+
+
+def usable_cores() -> int:
+    """The number of cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+# ---------------------------------------------------------------------------- the scene
+
+
+def _scene_of(problem: Any) -> Any:
+    """The :class:`Scene` with a distribution named by ``problem``."""
+    from hybridoc.problems import load_problem
+    from hybridoc.problems.scene import Scene
+
+    obj = load_problem(problem)
+    if not isinstance(obj, Scene):
+        raise HybridocError(
+            f"datasets need a disc scene with a [distribution] table; {obj.name!r} is a "
+            "generic HybridOCP"
+        )
+    if obj.distribution is None:
+        raise SceneError(
+            f"scene {obj.name!r} has no [distribution] table: add one to draw initial states "
+            "(see docs: datasets)"
+        )
+    return obj
+
+
+def _check_count(value: Any, what: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise HybridocError(f"{what} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+# ---------------------------------------------------------------------------- one draw
+
+
+@dataclass
+class _Context:
+    """What a worker needs for every draw of one dataset (built once per process)."""
+
+    scene: Any
+    ocp: Any
+    seed: int
+    sequence: list[str] | None
+    z: np.ndarray | None
+    tol: float
+    full: bool
+
+
+_CONTEXTS: dict[str, _Context] = {}
+
+
+def _context(spec: dict[str, Any]) -> _Context:
+    key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
+    ctx = _CONTEXTS.get(key)
+    if ctx is None:
+        import tomllib
+
+        from hybridoc.problems.scene import Scene
+
+        scene = Scene.from_dict(tomllib.loads(spec["scene"]), default_name="scene")
+        nominal = spec.get("nominal")
+        ctx = _Context(
+            scene=scene,
+            ocp=scene.to_ocp(),
+            seed=int(spec["seed"]),
+            sequence=None if nominal is None else list(nominal["sequence"]),
+            z=None if nominal is None else np.array(nominal["z"], dtype=float),
+            tol=float(spec["tol"]),
+            full=bool(spec["full"]),
+        )
+        _CONTEXTS.clear()  # one dataset at a time per process
+        _CONTEXTS[key] = ctx
+    return ctx
+
+
+def draw_ocp(ctx_scene: Any, ocp: Any, scene_i: Any) -> Any:
+    """The problem of one draw: the nominal's compiled structure with another ``x0`` when
+    only positions and velocities changed, a fresh compile when a target did."""
+    same = all(a.target == b.target for a, b in zip(ctx_scene.discs, scene_i.discs, strict=True))
+    if same:
+        meta = dict(ocp.meta)
+        meta["scene"] = scene_i
+        return ocp.replace(x0=scene_i.initial_state(), name=scene_i.name, meta=meta)
+    return scene_i.to_ocp()
+
+
+def _record_of(res: Any, status: str, method: str, message: str) -> dict[str, Any]:
+    C = res.control_coefficients()
+    nu = res.system.nu
+    return {
+        "status": status,
+        "method": method,
+        "message": message,
+        "cost": float(res.cost),
+        "terminal_cost": float(res.terminal_cost),
+        "running_cost": float(res.running_cost),
+        "residual": float(res.residual),
+        "sequence": ",".join(res.sequence),
+        "n_events": len(res.sequence),
+        "event_times": np.asarray(res.event_times, dtype=float),
+        "multipliers": np.asarray(res.multipliers, dtype=float),
+        "approach_speeds": np.asarray(res.approach_speeds, dtype=float),
+        "controls": res.cell_averages(),
+        "control_coefficients": (
+            np.full((len(res.sequence) + 1, 2, nu), np.nan) if C is None else C
+        ),
+        "phase_starts": np.asarray(res.phase_starts, dtype=float),
+        "phase_states": np.asarray(res.phase_states, dtype=float),
+        "phase_costates": np.asarray(res.phase_costates, dtype=float),
+        "states_minus": np.asarray(res.states_minus, dtype=float).reshape(-1, res.system.nx),
+        "costates_minus": np.asarray(res.costates_minus, dtype=float).reshape(-1, res.system.nx),
+        "final_state": np.asarray(res.final_state, dtype=float),
+        "final_costate": np.asarray(res.final_costate, dtype=float),
+        "lambda0": np.asarray(res.phase_costates[0], dtype=float),
+    }
+
+
+def _failed_record(ocp: Any, message: str) -> dict[str, Any]:
+    nx, nu, N = ocp.nx, ocp.nu, ocp.steps
+    nan = float("nan")
+    return {
+        "status": "failed",
+        "method": "",
+        "message": " ".join(message.split()),
+        "cost": nan,
+        "terminal_cost": nan,
+        "running_cost": nan,
+        "residual": nan,
+        "sequence": "",
+        "n_events": -1,
+        "event_times": np.zeros(0),
+        "multipliers": np.zeros(0),
+        "approach_speeds": np.zeros(0),
+        "controls": np.full((N, nu), nan),
+        "control_coefficients": np.full((1, 2, nu), nan),
+        "phase_starts": np.full(1, nan),
+        "phase_states": np.full((1, nx), nan),
+        "phase_costates": np.full((1, nx), nan),
+        "states_minus": np.zeros((0, nx)),
+        "costates_minus": np.zeros((0, nx)),
+        "final_state": np.full(nx, nan),
+        "final_costate": np.full(nx, nan),
+        "lambda0": np.full(nx, nan),
+    }
+
+
+def _warm(ctx: _Context, ocp: Any) -> tuple[Any, str]:
+    """The nominal sequence's extremal from the nominal point, verified; or why not."""
+    from hybridoc.evaluator import evaluate
+    from hybridoc.reference import verify_reference
+    from hybridoc.reference.candidates import enumerate_sequences, lower_bound
+    from hybridoc.reference.result import make_result
+    from hybridoc.reference.shooting import newton, shooting_system
+
+    assert ctx.sequence is not None and ctx.z is not None
+    S = shooting_system(ocp, ctx.sequence)
+    nr = newton(S, ctx.z, tol=ctx.tol)
+    if not nr.converged:
+        # continuation in the initial state from the nominal one (deterministic per draw)
+        x_nom, x_i = np.asarray(ctx.ocp.x0, dtype=float), np.asarray(ocp.x0, dtype=float)
+        for steps in CONTINUATION:
+            z = ctx.z
+            for k in range(1, steps + 1):
+                Sk = shooting_system(
+                    ocp.replace(x0=x_nom + (k / steps) * (x_i - x_nom)), ctx.sequence
+                )
+                nr = newton(Sk, z, tol=ctx.tol)
+                if not nr.converged:
+                    break
+                z = nr.z
+            if nr.converged:
+                nr = newton(S, z, tol=ctx.tol)
+                if nr.converged:
+                    break
+    if not nr.converged:
+        return None, f"Newton from the nominal point: residual {nr.residual:.2e}"
+    res = make_result(S, nr, "warm")
+    ok, _, msg = verify_reference(res)
+    if not ok:
+        return None, msg
+    bound = res.cost * (1 - _OPT_RTOL)
+    for seq in enumerate_sequences(ocp, 1):
+        if seq != ctx.sequence and lower_bound(ocp, seq) < bound:
+            return None, f"the sequence {seq} is not ruled out by its lower bound"
+    guess = evaluate(ocp, ocp.u_guess)
+    if guess.cost < bound:
+        return None, "the initial guess is cheaper"
+    if ocp.has_bounds and ocp.bound_violation(res.cell_averages()) > 1e-9:
+        return None, "the extremal violates the control bounds"
+    return res, ""
+
+
+def _solve_draw(ctx: _Context, index: int) -> dict[str, Any]:
+    """The record of draw ``index``: warm start, then the full discovery."""
+    from hybridoc.reference import solve_reference
+
+    scene_i = ctx.scene.distribution.draw(ctx.scene, index, ctx.seed)
+    scene_i = dataclasses.replace(scene_i, name=f"{ctx.scene.name}#{index}")
+    ocp = draw_ocp(ctx.scene, ctx.ocp, scene_i)
+    head = {"index": index, "x0": scene_i.initial_state(), "targets": scene_i.targets()}
+    why = "full discovery requested"
+    if not ctx.full and ctx.sequence is not None:
+        try:
+            res, why = _warm(ctx, ocp)
+        except Exception as exc:  # whatever went wrong, the full discovery decides
+            res, why = None, f"{type(exc).__name__}: {exc}"
+        if res is not None:
+            return {**head, **_record_of(res, "success", "warm", "")}
+    try:
+        sol = solve_reference(ocp)
+    except Exception as exc:  # kept as a failed row, never lost (e.g. a worker that may
+        # not fork the reference's own pool on a remote Dask cluster)
+        return {**head, **_failed_record(ocp, f"{type(exc).__name__}: {exc}")}
+    rec = _record_of(sol.reference, sol.status.value, "full", sol.message)
+    return {**head, **rec, "message": sol.message or f"warm start not accepted: {why}"}
+
+
+def _solve_chunk(spec: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
+    """A worker's task: the stacked records of ``indices``."""
+    ctx = _context(spec)
+    return _stack([_solve_draw(ctx, i) for i in indices])
+
+
+# ---------------------------------------------------------------------------- columns
+
+
+def _pad_rows(arrays: list[np.ndarray], rows: int) -> np.ndarray:
+    out = []
+    for a in arrays:
+        a = np.asarray(a, dtype=float)
+        if a.shape[0] < rows:
+            pad = np.full((rows - a.shape[0], *a.shape[1:]), np.nan)
+            a = np.concatenate([a, pad])
+        out.append(a)
+    return np.stack(out)
+
+
+def _stack(records: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """Records -> columns (variable-length ones padded with NaN)."""
+    K = max((len(r["event_times"]) for r in records), default=0)
+    out: dict[str, np.ndarray] = {}
+    for key in records[0]:
+        vals = [r[key] for r in records]
+        if key in _VARIABLE_K:
+            out[key] = _pad_rows(vals, K + _VARIABLE_K[key])
+        elif key in _STRINGS:
+            out[key] = np.array(vals, dtype=str)
+        elif key in ("index", "n_events"):
+            out[key] = np.array(vals, dtype=np.int64)
+        else:
+            out[key] = np.array(vals, dtype=float)
+    return out
+
+
+def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Columns of several chunks, in order, re-padded to the largest ``K``."""
+    K = max(p["event_times"].shape[1] for p in parts)
+    out = {}
+    for key in parts[0]:
+        if key in _VARIABLE_K:
+            rows = K + _VARIABLE_K[key]
+            arrs = []
+            for p in parts:
+                a = p[key]
+                if a.shape[1] < rows:
+                    pad = np.full((a.shape[0], rows - a.shape[1], *a.shape[2:]), np.nan)
+                    a = np.concatenate([a, pad], axis=1)
+                arrs.append(a)
+            out[key] = np.concatenate(arrs)
+        elif key in _STRINGS:
+            out[key] = np.concatenate([p[key].astype(object) for p in parts]).astype(str)
+        else:
+            out[key] = np.concatenate([p[key] for p in parts])
+    return out
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write ``arrays`` as ``.npz`` byte for byte reproducibly (fixed zip timestamps, sorted
+    names), atomically; returns the SHA-256 of the file."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name in sorted(arrays):
+            arr = np.ascontiguousarray(arrays[name])
+            body = io.BytesIO()
+            np.lib.format.write_array(body, arr, allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, body.getvalue())
+    data = buf.getvalue()
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return hashlib.sha256(data).hexdigest()
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+# ---------------------------------------------------------------------------- engines
+
+
+class Progress:
+    """A one-line progress bar on stderr: samples done, failures and rate."""
+
+    def __init__(self, label: str, total: int, done: int = 0, *, enabled: bool = True) -> None:
+        self.label, self.total, self.done, self.failed = label, total, done, 0
+        self.enabled = enabled
+        self.start_done = done
+        self.t0 = time.perf_counter()
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+
+    def update(self, n: int, failed: int) -> None:
+        """Count ``n`` more samples, ``failed`` of them not successful."""
+        self.done += n
+        self.failed += failed
+        now = time.perf_counter()
+        if not self.enabled or (not self.tty and now - self.last < 5 and self.done < self.total):
+            return
+        self.last = now
+        rate = (self.done - self.start_done) / max(now - self.t0, 1e-9)
+        left = (self.total - self.done) / rate if rate > 0 else math.inf
+        eta = f", {left:.0f} s left" if math.isfinite(left) and self.done < self.total else ""
+        width = 24
+        fill = int(width * self.done / max(self.total, 1))
+        bar = "#" * fill + "." * (width - fill)
+        line = (
+            f"{self.label} [{bar}] {self.done}/{self.total} samples, {self.failed} failed, "
+            f"{rate:.1f}/s{eta}"
+        )
+        end = "" if self.tty and self.done < self.total else "\n"
+        print(("\r" if self.tty else "") + line, end=end, file=sys.stderr, flush=True)
+
+
+def _dask_client(dask: Any, workers: int) -> tuple[Any, Callable[[], None]]:
+    """A ``distributed.Client`` for ``dask`` and a function that closes what was opened."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover
+        raise HybridocError(
+            "--dask needs dask.distributed: pip install 'dask[distributed]'"
+        ) from None
+    if isinstance(dask, Client):
+        return dask, lambda: None
+    check_dask(dask)
+    if dask == "local":
+        import dask as dask_module
+
+        # non-daemonic workers, so that the reference's full search may run its own pool
+        with dask_module.config.set({"distributed.worker.daemon": False}):
+            cluster = LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+            )
+        client = Client(cluster)
+
+        def close() -> None:
+            client.close()
+            cluster.close()
+
+        return client, close
+    try:
+        client = Client(dask, timeout="5s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise HybridocError(f"cannot connect to the Dask scheduler at {dask!r}: {exc}") from None
+    return client, client.close
+
+
+def check_dask(dask: Any) -> None:
+    """Raise :class:`~hybridoc.errors.HybridocError` for a ``dask`` argument that is neither
+    ``None``, ``"local"``, an address ``[scheme://]host:port`` nor a ``Client``."""
+    if dask is None or dask == "local" or type(dask).__name__ == "Client":
+        return
+    if not isinstance(dask, str) or not dask.strip():
+        raise HybridocError(f"dask must be 'local', a scheduler address or a Client, got {dask!r}")
+    rest = dask.split("://", 1)[-1]
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit():
+        raise HybridocError(
+            f"bad Dask scheduler address {dask!r}: expected 'local' or [tcp://]host:port "
+            "(e.g. tcp://10.0.0.5:8786)"
+        )
+
+
+def run_chunks(
+    fn: Callable[..., Any],
+    common: Any,
+    chunks: list[tuple[int, list[int]]],
+    *,
+    workers: int,
+    dask: Any = None,
+    on_result: Callable[[int, Any], None],
+    initializer: Callable[[], None] | None = None,
+) -> None:
+    """Run ``fn(common, indices)`` for each ``(chunk id, indices)`` and hand each result to
+    ``on_result(chunk id, result)`` in the calling process, as chunks finish.
+
+    ``workers == 1`` and no ``dask``: in this process. Otherwise a process pool of
+    ``workers`` (fork where available) or the Dask cluster ``dask``.
+    """
+    if not chunks:
+        return
+    if dask is not None:
+        client, close = _dask_client(dask, workers)
+        try:
+            from distributed import as_completed as dask_completed
+
+            futs = {client.submit(fn, common, idx, pure=False): cid for cid, idx in chunks}
+            for fut in dask_completed(futs):
+                on_result(futs[fut], fut.result())
+        finally:
+            close()
+        return
+    if workers <= 1 or len(chunks) == 1:
+        for cid, idx in chunks:
+            on_result(cid, fn(common, idx))
+        return
+    method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(
+        min(workers, len(chunks)), mp_context=mp.get_context(method), initializer=initializer
+    ) as pool:
+        futs = {pool.submit(fn, common, idx): cid for cid, idx in chunks}
+        try:
+            for fut in as_completed(futs):
+                on_result(futs[fut], fut.result())
+        except BaseException:
+            for f in futs:
+                f.cancel()
+            raise
+
+
+# ---------------------------------------------------------------------------- datasets
+
+
+@dataclass
+class Dataset:
+    """A reference dataset read by :func:`load_dataset`.
+
+    Attributes
+    ----------
+    path
+        Its directory.
+    columns
+        Column name -> array, one row per draw (module notes).
+    manifest
+        The JSON manifest.
+    """
+
+    path: Path
+    columns: dict[str, np.ndarray]
+    manifest: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.columns["index"].shape[0])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.columns[key]
+
+    @property
+    def scene(self) -> Any:
+        """The scene (with its distribution) the dataset was drawn from."""
+        import tomllib
+
+        from hybridoc.problems.scene import Scene
+
+        return Scene.from_dict(tomllib.loads(self.manifest["settings"]["scene"]))
+
+    @property
+    def ok(self) -> np.ndarray:
+        """Rows whose status is ``success``."""
+        return self.columns["status"] == "success"
+
+
+def _settings(scene: Any, samples: int, seed: int, tol: float, full: bool) -> dict[str, Any]:
+    from hybridoc import __version__
+
+    return {
+        "format": FORMAT,
+        "hybridoc": __version__,
+        "scene": scene.to_toml(),
+        "samples": samples,
+        "seed": seed,
+        "chunk": CHUNK,
+        "tol": tol,
+        "full": full,
+    }
+
+
+def _nominal(scene: Any, tol: float, say: Callable[[str], None]) -> dict[str, Any] | None:
+    from hybridoc.reference import solve_reference
+
+    t0 = time.perf_counter()
+    try:
+        sol = solve_reference(dataclasses.replace(scene, distribution=None), tol=tol)
+    except HybridocError as exc:
+        say(f"nominal scene: no reference ({exc}); every draw gets the full discovery")
+        return None
+    res = sol.reference
+    say(
+        f"nominal scene: {sol.status.value}, cost {sol.cost:.12g}, events {sol.sequence} "
+        f"({time.perf_counter() - t0:.2f} s)"
+    )
+    if not sol.success:
+        return None
+    return {
+        "sequence": list(res.sequence),
+        "z": [float(x) for x in res.z],
+        "cost": float(sol.cost),
+        "status": sol.status.value,
+    }
+
+
+def make_dataset(
+    problem: Any,
+    samples: int,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    workers: int | None = None,
+    dask: Any = None,
+    tol: float = 1e-10,
+    full: bool = False,
+    progress: bool = True,
+    verbose: bool = True,
+) -> Dataset:
+    """Solve the reference for ``samples`` draws of a scene's distribution; write and return
+    the dataset (module notes).
+
+    Parameters
+    ----------
+    problem
+        A disc scene with a ``[distribution]`` table (a name, a ``.toml`` path,
+        ``file.py:function`` or a :class:`~hybridoc.problems.scene.Scene`).
+    samples
+        ``M`` >= 1.
+    out
+        Output directory (created). A run interrupted there resumes when started again
+        with the same settings; other settings there are an error.
+    seed
+        Overrides the distribution's seed.
+    workers
+        Processes of the local pool (default: the usable cores; 1: this process), or Dask
+        workers of ``dask="local"``.
+    dask
+        ``None`` (local pool), ``"local"`` (a ``LocalCluster``), a scheduler address or a
+        ``distributed.Client``.
+    tol
+        HMP residual required of every extremal.
+    full
+        Solve every draw with the full discovery (no warm start).
+    progress, verbose
+        The progress bar and the nominal solve's line on stderr.
+
+    Returns
+    -------
+    Dataset
+
+    Raises
+    ------
+    HybridocError
+        Bad arguments, a scene without a distribution, an output directory holding another
+        dataset, an unreachable Dask scheduler.
+    """
+    samples = _check_count(samples, "samples", 1)
+    scene = _scene_of(problem)
+    seed = scene.distribution.seed if seed is None else _check_count(seed, "seed", 0)
+    workers = usable_cores() if workers is None else _check_count(workers, "workers", 1)
+    check_dask(dask)
+    if not (isinstance(tol, int | float) and math.isfinite(tol) and tol > 0):
+        raise HybridocError(f"tol must be a positive number, got {tol!r}")
+    # the first draw fails here, in this process, if the distribution cannot be drawn
+    scene.distribution.draw(scene, 0, seed)
+
+    def say(text: str) -> None:
+        if verbose:
+            print(f"dataset: {text}", file=sys.stderr, flush=True)
+
+    out = Path(out)
+    try:
+        (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HybridocError(
+            f"cannot create output directory {str(out)!r}: {exc.strerror}"
+        ) from None
+    settings = _settings(scene, samples, seed, float(tol), bool(full))
+    mpath = out / MANIFEST_FILE
+    manifest: dict[str, Any] | None = None
+    if mpath.exists():
+        try:
+            manifest = json.loads(mpath.read_text())
+        except (OSError, ValueError) as exc:
+            raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
+        if manifest.get("settings") != settings:
+            raise HybridocError(
+                f"{str(out)!r} holds a dataset with other settings (scene, samples, seed, tol "
+                "or version); choose another --out or remove it"
+            )
+        if manifest.get("complete") and (out / DATA_FILE).exists():
+            say(f"{out / DATA_FILE} is complete already")
+            return load_dataset(out)
+    t0 = time.perf_counter()
+    if manifest is None:
+        nominal = None if full else _nominal(scene, float(tol), say)
+        manifest = {
+            "format": FORMAT,
+            "complete": False,
+            "settings": settings,
+            "nominal": nominal,
+        }
+        _write_json(mpath, manifest)
+    nominal = manifest.get("nominal")
+    spec = {
+        "scene": settings["scene"],
+        "seed": seed,
+        "tol": float(tol),
+        "full": bool(full),
+        "nominal": nominal,
+    }
+    chunks = list(iter_chunks(samples, CHUNK))
+    shard = {cid: out / SHARD_DIR / f"chunk-{cid:06d}.npz" for cid, _ in chunks}
+    todo = [(cid, idx) for cid, idx in chunks if not shard[cid].exists()]
+    done = samples - sum(len(idx) for _, idx in todo)
+    if done:
+        say(f"resuming: {done} of {samples} samples already done")
+    bar = Progress("dataset", samples, done, enabled=progress)
+
+    def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
+        _write_npz(shard[cid], cols)
+        bar.update(len(cols["index"]), int(np.sum(cols["status"] != "success")))
+
+    engine = "dask" if dask is not None else ("serial" if workers == 1 else "process-pool")
+    run_chunks(_solve_chunk, spec, todo, workers=workers, dask=dask, on_result=on_result)
+    data = _concat([_read_npz(shard[cid]) for cid, _ in chunks])
+    digest = _write_npz(out / DATA_FILE, data)
+    status, counts = data["status"], {}
+    for s in sorted(set(status.tolist())):
+        counts[s] = int(np.sum(status == s))
+    methods = {
+        m or "none": int(np.sum(data["method"] == m)) for m in sorted(set(data["method"].tolist()))
+    }
+    from hybridoc.solution import package_versions
+
+    manifest.update(
+        complete=True,
+        versions=package_versions(),
+        counts=counts,
+        methods=methods,
+        sha256=digest,
+        columns={k: list(v.shape) for k, v in sorted(data.items())},
+        last_run={"engine": engine, "workers": workers, "wall_time_s": time.perf_counter() - t0},
+    )
+    _write_json(mpath, manifest)
+    shutil.rmtree(out / SHARD_DIR, ignore_errors=True)
+    return Dataset(out, data, manifest)
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(obj, indent=1) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+
+
+def load_dataset(path: str | Path) -> Dataset:
+    """Read a dataset written by :func:`make_dataset` (a directory or its ``dataset.npz``).
+
+    Raises
+    ------
+    HybridocError
+        Not a dataset, or an incomplete one (run ``hybridoc dataset`` again to finish it).
+    """
+    p = Path(path)
+    if p.is_file():
+        p = p.parent
+    mpath, dpath = p / MANIFEST_FILE, p / DATA_FILE
+    if not mpath.exists():
+        raise HybridocError(f"{str(p)!r} is not a dataset directory (no {MANIFEST_FILE})")
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (OSError, ValueError) as exc:
+        raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
+    if manifest.get("format") != FORMAT:
+        raise HybridocError(f"{str(mpath)!r} is not a {FORMAT} manifest")
+    if not manifest.get("complete") or not dpath.exists():
+        raise HybridocError(
+            f"the dataset in {str(p)!r} is incomplete: run the same 'hybridoc dataset' command "
+            "again to resume it"
+        )
+    return Dataset(p, _read_npz(dpath), manifest)
+
+
+def iter_chunks(n: int, size: int) -> Iterator[tuple[int, list[int]]]:
+    """``(chunk id, indices)`` of ``range(n)`` in chunks of ``size``."""
+    for k, a in enumerate(range(0, n, size)):
+        yield k, list(range(a, min(a + size, n)))

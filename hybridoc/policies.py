@@ -1,0 +1,481 @@
+"""Feedback policies ``u = pi(t, s)`` from files, and their validation over a distribution.
+
+:func:`load_policy` reads a policy from a spec: a TorchScript file (``.pt``/``.pth``, read
+with :func:`torch.jit.load`) or ``path/to/file.py:name`` (a callable in a Python file; a
+name that is a class or a factory taking no arguments is not called: give the callable
+itself). The judge calls a policy with ``(t, state)`` (torch modules with float64
+tensors) and checks what it returns (:func:`hybridoc.evaluate`).
+
+:func:`validate_policy` judges a policy in closed loop on ``M`` draws of a scene's
+``[distribution]`` and compares each with the exact reference of the same draw (from a
+dataset of :mod:`hybridoc.dataset`, computed when not given): the cost gap, whether the
+event sequence differs from the optimal one, the worst cases. Rollouts run in the same
+engines as datasets (a local process pool, or Dask), one chunk of draws per task.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridoc.errors import ControlsError, EvaluationError, HybridocError
+
+__all__ = ["PolicyError", "PolicyReport", "load_policy", "validate_policy"]
+
+_TORCH_SUFFIXES = (".pt", ".pth", ".ts")
+WORST = 5
+"""Worst cases listed in a report."""
+
+
+class PolicyError(HybridocError, ValueError):
+    """A policy spec that cannot be loaded (missing file, no such name, not callable)."""
+
+
+def load_policy(spec: Any) -> Callable[..., Any]:
+    """The policy named by ``spec``.
+
+    Parameters
+    ----------
+    spec
+        ``path/to/model.pt`` (TorchScript), ``path/to/file.py:name`` (a callable
+        ``(t, state) -> u`` in a Python file), or a callable, returned as is.
+
+    Returns
+    -------
+    callable
+        ``(t, state) -> u``.
+
+    Raises
+    ------
+    PolicyError
+        A missing or unreadable file, a missing name, an object that is not callable.
+    """
+    if callable(spec) and not isinstance(spec, str | Path):
+        return spec
+    if not isinstance(spec, str | Path):
+        raise PolicyError(
+            f"a policy is a .pt TorchScript file, path/to/file.py:name or a callable, got {spec!r}"
+        )
+    text = str(spec)
+    path_text, _, name = text.rpartition(":") if ".py:" in text else (text, "", "")
+    if not name and text.endswith(".py"):
+        raise PolicyError(f"policy {text!r}: name the callable, as {text}:NAME")
+    path = Path(path_text)
+    if name:
+        return _load_python(path, name, text)
+    if path.suffix.lower() in _TORCH_SUFFIXES:
+        return _load_torchscript(path)
+    raise PolicyError(f"policy {text!r}: expected a TorchScript file (.pt) or path/to/file.py:name")
+
+
+def _load_torchscript(path: Path) -> Callable[..., Any]:
+    if not path.is_file():
+        raise PolicyError(f"policy file {str(path)!r} does not exist")
+    import warnings
+
+    import torch
+
+    try:
+        with warnings.catch_warnings():  # torch >= 2.9 deprecates TorchScript
+            warnings.simplefilter("ignore", DeprecationWarning)
+            module = torch.jit.load(str(path), map_location="cpu")
+    except Exception as exc:  # torch raises RuntimeError or ValueError for bad files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise PolicyError(f"cannot load {str(path)!r} as TorchScript: {first}") from None
+    module.eval()
+    return module
+
+
+def _load_python(path: Path, name: str, text: str) -> Callable[..., Any]:
+    if not path.is_file():
+        raise PolicyError(f"policy file {str(path)!r} does not exist")
+    if not name.isidentifier():
+        raise PolicyError(f"policy {text!r}: {name!r} is not a Python name")
+    mod_name = f"_hybridoc_policy_{abs(hash(str(path.resolve())))}"
+    spec = importlib.util.spec_from_file_location(mod_name, path)
+    if spec is None or spec.loader is None:
+        raise PolicyError(f"cannot import {str(path)!r}")
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        raise PolicyError(f"importing {str(path)!r} raised {type(exc).__name__}: {exc}") from None
+    if not hasattr(module, name):
+        public = sorted(k for k, v in vars(module).items() if callable(v) and not k.startswith("_"))
+        raise PolicyError(
+            f"{str(path)!r} has no {name!r}"
+            + (f" (callables: {', '.join(public)})" if public else "")
+        )
+    obj = getattr(module, name)
+    if not callable(obj) or isinstance(obj, type):
+        raise PolicyError(
+            f"{text!r} is {'a class' if isinstance(obj, type) else type(obj).__name__}, "
+            "not a callable policy (t, state) -> u"
+        )
+    sys.modules.setdefault(mod_name, module)
+    return obj
+
+
+# ---------------------------------------------------------------------------- validation
+
+
+@dataclass
+class PolicyReport:
+    """What :func:`validate_policy` found.
+
+    Attributes
+    ----------
+    summary
+        Scalars: ``samples``, ``judged`` (rollouts the judge could simulate), ``compared``
+        (with a successful reference as well), gap statistics ``gap_mean``,
+        ``gap_median``, ``gap_p95``, ``gap_max`` (absolute, ``J_policy - J*``) and the same
+        of the relative gap ``rel_gap_*`` (``(J_policy - J*) / J*``), ``sequence_mismatch_rate``,
+        ``rollout_time_s``.
+    columns
+        Per draw: ``index``, ``x0``, ``policy_cost``, ``reference_cost``, ``gap``,
+        ``rel_gap``, ``policy_sequence``, ``reference_sequence``, ``mismatch``, ``status``
+        (``ok``, ``reference-failed``, ``rollout-failed``), ``message``.
+    worst
+        The ``WORST`` largest gaps with their initial states.
+    """
+
+    summary: dict[str, Any]
+    columns: dict[str, np.ndarray]
+    worst: list[dict[str, Any]] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON shape (summary, worst cases, settings)."""
+        return {"summary": self.summary, "worst": self.worst, "settings": self.settings}
+
+
+_ROLLOUT_POLICY: dict[str, Any] = {}
+
+
+def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
+    """A worker's task: closed-loop rollouts of ``indices``."""
+    from hybridoc.dataset import _context, draw_ocp
+    from hybridoc.evaluator import evaluate
+
+    ctx = _context(common["dataset"])
+    key = common["policy"]
+    if key is None:
+        policy = _ROLLOUT_POLICY["policy"]
+    else:
+        policy = _ROLLOUT_POLICY.get(key)
+        if policy is None:
+            policy = load_policy(key)
+            _ROLLOUT_POLICY.clear()
+            _ROLLOUT_POLICY[key] = policy
+    costs, seqs, status, msgs = [], [], [], []
+    for i in indices:
+        sc = ctx.scene.distribution.draw(ctx.scene, i, ctx.seed)
+        sc = dataclasses.replace(sc, name=f"{ctx.scene.name}#{i}")
+        ocp = draw_ocp(ctx.scene, ctx.ocp, sc)
+        try:
+            ev = evaluate(ocp, policy=policy, hold=common["hold"])
+        except ControlsError as exc:
+            raise ControlsError(f"sample {i}: {exc}") from None
+        except EvaluationError as exc:
+            costs.append(np.nan)
+            seqs.append("")
+            status.append("rollout-failed")
+            msgs.append(" ".join(str(exc).split()))
+            continue
+        costs.append(float(ev.cost))
+        seqs.append(",".join(ev.sequence))
+        status.append("ok")
+        msgs.append("")
+    return {
+        "index": np.array(indices, dtype=np.int64),
+        "policy_cost": np.array(costs, dtype=float),
+        "policy_sequence": np.array(seqs, dtype=str),
+        "rollout_status": np.array(status, dtype=str),
+        "rollout_message": np.array(msgs, dtype=str),
+    }
+
+
+def validate_policy(
+    problem: Any,
+    policy: Any,
+    samples: int,
+    *,
+    seed: int | None = None,
+    dataset: Any = None,
+    dataset_out: str | Path | None = None,
+    hold: str = "zoh",
+    workers: int | None = None,
+    dask: Any = None,
+    progress: bool = True,
+) -> PolicyReport:
+    """Judge a feedback policy against the exact references over a scene's distribution.
+
+    Parameters
+    ----------
+    problem
+        A disc scene with a ``[distribution]`` table.
+    policy
+        A callable ``(t, state) -> u``, a ``torch.nn.Module``, or a spec for
+        :func:`load_policy`. With ``dask`` or a process pool without ``fork``, a spec.
+    samples
+        ``M`` >= 1: the first ``M`` draws.
+    seed
+        Overrides the distribution's seed.
+    dataset
+        A :class:`~hybridoc.dataset.Dataset` or its directory with at least ``M`` rows of
+        the same scene and seed; default: computed (into ``dataset_out``, or a temporary
+        directory).
+    hold
+        ``"zoh"`` or ``"continuous"`` (:func:`hybridoc.evaluate`).
+    workers, dask
+        As in :func:`~hybridoc.dataset.make_dataset`.
+    progress
+        Progress bars on stderr.
+
+    Returns
+    -------
+    PolicyReport
+
+    Raises
+    ------
+    HybridocError
+        Bad arguments, a dataset of another scene or seed, a bad policy (a
+        :class:`~hybridoc.errors.ControlsError` naming the sample: wrong output shape,
+        non-finite output, an exception inside the policy).
+    """
+    import tempfile
+
+    from hybridoc.dataset import (
+        CHUNK,
+        Progress,
+        _check_count,
+        _scene_of,
+        check_dask,
+        iter_chunks,
+        load_dataset,
+        make_dataset,
+        run_chunks,
+        usable_cores,
+    )
+
+    samples = _check_count(samples, "samples", 1)
+    if hold not in ("zoh", "continuous"):
+        raise HybridocError(f"hold must be 'zoh' or 'continuous', got {hold!r}")
+    scene = _scene_of(problem)
+    seed = scene.distribution.seed if seed is None else _check_count(seed, "seed", 0)
+    workers = usable_cores() if workers is None else _check_count(workers, "workers", 1)
+    check_dask(dask)
+    spec_text = str(policy) if isinstance(policy, str | Path) else None
+    pol = load_policy(policy)  # errors here, before any work
+    if dask is not None and spec_text is None:
+        raise HybridocError(
+            "with dask, give the policy as a spec (model.pt or file.py:name) so that the "
+            "workers can load it"
+        )
+    # references
+    tmp = None
+    if dataset is None:
+        if dataset_out is None:
+            tmp = tempfile.TemporaryDirectory(prefix="hybridoc-refs-")
+            dataset_out = tmp.name
+        ds = make_dataset(
+            scene, samples, dataset_out, seed=seed, workers=workers, dask=dask, progress=progress
+        )
+    else:
+        ds = dataset if hasattr(dataset, "columns") else load_dataset(dataset)
+        settings = ds.manifest.get("settings", {})
+        if settings.get("scene") != scene.to_toml() or int(settings.get("seed", -1)) != seed:
+            raise HybridocError(
+                f"the dataset in {str(ds.path)!r} was drawn from another scene or seed than "
+                f"{scene.name!r} with seed {seed}"
+            )
+        if len(ds) < samples:
+            raise HybridocError(
+                f"the dataset in {str(ds.path)!r} has {len(ds)} samples; {samples} requested"
+            )
+    ref = {k: v[:samples] for k, v in ds.columns.items()}
+    ref_settings = dict(ds.manifest.get("settings", {}))
+    if tmp is not None:
+        tmp.cleanup()
+    # rollouts
+    common = {
+        "dataset": {
+            "scene": ref_settings.get("scene", scene.to_toml()),
+            "seed": seed,
+            "tol": 1e-10,
+            "full": False,
+            "nominal": None,
+        },
+        "policy": spec_text,
+        "hold": hold,
+    }
+    _ROLLOUT_POLICY.clear()
+    if spec_text is None:
+        _ROLLOUT_POLICY["policy"] = pol
+    else:
+        _ROLLOUT_POLICY[spec_text] = pol
+    parts: dict[int, dict[str, np.ndarray]] = {}
+    bar = Progress("rollouts", samples, enabled=progress)
+
+    def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
+        parts[cid] = cols
+        bar.update(len(cols["index"]), int(np.sum(cols["rollout_status"] != "ok")))
+
+    t0 = time.perf_counter()
+    chunks = list(iter_chunks(samples, CHUNK))
+    try:
+        run_chunks(_rollout_chunk, common, chunks, workers=workers, dask=dask, on_result=on_result)
+    finally:
+        _ROLLOUT_POLICY.clear()
+    rollout_time = time.perf_counter() - t0
+    roll = {k: np.concatenate([parts[c][k] for c, _ in chunks]) for k in parts[chunks[0][0]]}
+    report = _report(ref, roll, rollout_time)
+    report.settings = {
+        "scene": scene.name,
+        "policy": spec_text or repr(policy),
+        "samples": samples,
+        "seed": seed,
+        "hold": hold,
+        "dataset": str(ds.path) if tmp is None else None,
+    }
+    return report
+
+
+def _report(
+    ref: dict[str, np.ndarray], roll: dict[str, np.ndarray], seconds: float
+) -> PolicyReport:
+    ref_ok = ref["status"] == "success"
+    roll_ok = roll["rollout_status"] == "ok"
+    both = ref_ok & roll_ok
+    gap = np.where(both, roll["policy_cost"] - ref["cost"], np.nan)
+    rel = np.where(both, gap / np.where(both, ref["cost"], 1.0), np.nan)
+    mismatch = both & (roll["policy_sequence"] != ref["sequence"])
+    status = np.where(~ref_ok, "reference-failed", np.where(~roll_ok, "rollout-failed", "ok"))
+    message = np.where(~ref_ok, ref["message"], roll["rollout_message"])
+    cols = {
+        "index": ref["index"],
+        "x0": ref["x0"],
+        "targets": ref["targets"],
+        "policy_cost": roll["policy_cost"],
+        "reference_cost": ref["cost"],
+        "gap": gap,
+        "rel_gap": rel,
+        "policy_sequence": roll["policy_sequence"],
+        "reference_sequence": ref["sequence"],
+        "mismatch": mismatch,
+        "status": status.astype(str),
+        "message": message.astype(str),
+    }
+
+    def stats(x: np.ndarray, prefix: str) -> dict[str, float | None]:
+        x = x[np.isfinite(x)]
+        if not x.size:
+            return {f"{prefix}_{k}": None for k in ("mean", "median", "p95", "max")}
+        return {
+            f"{prefix}_mean": float(np.mean(x)),
+            f"{prefix}_median": float(np.median(x)),
+            f"{prefix}_p95": float(np.percentile(x, 95)),
+            f"{prefix}_max": float(np.max(x)),
+        }
+
+    n_both = int(both.sum())
+    summary: dict[str, Any] = {
+        "samples": int(ref_ok.size),
+        "judged": int(roll_ok.sum()),
+        "compared": n_both,
+        "reference_failed": int((~ref_ok).sum()),
+        "rollout_failed": int((~roll_ok).sum()),
+        **stats(gap, "gap"),
+        **stats(rel, "rel_gap"),
+        "sequence_mismatch_rate": (float(mismatch.sum()) / n_both) if n_both else None,
+        "negative_gaps": int(np.sum(gap < -1e-9 * np.abs(np.nan_to_num(ref["cost"])))),
+        "rollout_time_s": seconds,
+    }
+    order = np.argsort(-np.nan_to_num(gap, nan=-np.inf), kind="stable")[: min(WORST, n_both)]
+    worst = [
+        {
+            "index": int(cols["index"][i]),
+            "x0": [float(x) for x in cols["x0"][i]],
+            "policy_cost": float(cols["policy_cost"][i]),
+            "reference_cost": float(cols["reference_cost"][i]),
+            "gap": float(gap[i]),
+            "rel_gap": float(rel[i]),
+            "policy_sequence": str(cols["policy_sequence"][i]),
+            "reference_sequence": str(cols["reference_sequence"][i]),
+        }
+        for i in order
+    ]
+    return PolicyReport(summary, cols, worst)
+
+
+def varying_coordinates(x0: np.ndarray, labels: list[str]) -> list[tuple[int, str]]:
+    """The (index, label) of the state components that vary across draws, widest first."""
+    spread = np.ptp(x0, axis=0) if x0.size else np.zeros(len(labels))
+    order = np.argsort(-spread, kind="stable")
+    return [(int(i), labels[i]) for i in order if spread[i] > 0]
+
+
+def report_figures(report: PolicyReport, labels: list[str], stem: Path, title: str) -> list[Path]:
+    """The gap histogram and the gap over the initial-state space, ``stem_<figure>.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hybridoc.plotting import save_figure
+
+    c = report.columns
+    ok = np.isfinite(c["gap"])
+    paths = []
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    rel = c["rel_gap"][ok]
+    if rel.size:
+        ax.hist(100 * rel, bins=min(50, max(10, rel.size // 10)), color="tab:blue", alpha=0.8)
+        med = float(np.median(rel))
+        ax.axvline(100 * med, color="k", ls="--", lw=1, label=f"median {100 * med:.3g}%")
+        ax.legend()
+    ax.set_xlabel("relative cost gap to the reference [%]")
+    ax.set_ylabel("draws")
+    ax.set_title(f"{title}: gap over {int(ok.sum())} draws", fontsize=10)
+    fig.tight_layout()
+    paths.append(save_figure(fig, f"{stem}_gap_hist.png"))
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    coords = varying_coordinates(c["x0"], labels)
+    if coords:
+        i = coords[0][0]
+        j = coords[1][0] if len(coords) > 1 else None
+        x = c["x0"][:, i]
+        y = c["x0"][:, j] if j is not None else c["gap"]
+        sc = ax.scatter(
+            x[ok], y[ok], c=100 * c["rel_gap"][ok], cmap="viridis", s=14, label="draw (colour: gap)"
+        )
+        fig.colorbar(sc, ax=ax, label="relative gap [%]")
+        mm = ok & c["mismatch"]
+        if mm.any():
+            ax.scatter(x[mm], y[mm], marker="x", c="red", s=36, lw=1.2,
+                       label=f"events differ from the optimum ({int(mm.sum())})")  # fmt: skip
+        bad = ~ok
+        if bad.any():
+            ax.scatter(x[bad], np.nan_to_num(y[bad]), marker="s", facecolors="none",
+                       edgecolors="k", s=30, label=f"not compared ({int(bad.sum())})")  # fmt: skip
+        ax.set_xlabel(f"initial {labels[i]}")
+        ax.set_ylabel(f"initial {labels[j]}" if j is not None else "gap")
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3,
+                  frameon=False)  # fmt: skip
+    else:
+        ax.text(0.5, 0.5, "the initial state does not vary", ha="center", transform=ax.transAxes)
+    ax.set_title(f"{title}: gap over the initial states", fontsize=10)
+    fig.tight_layout()
+    paths.append(save_figure(fig, f"{stem}_gap_scatter.png"))
+    plt.close(fig)
+    return paths
