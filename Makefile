@@ -8,7 +8,7 @@ STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
 PKG_DIRS := hybridoc hybridoc/cli reference solvers solvers/contacts problems problems/library problems/scenes
 
-.PHONY: run test test-all fuzz lint format docs bench install clean
+.PHONY: run test test-all fuzz lint format docs screenshots bench install clean
 
 # The main job: cross-validation of reference, transcription and gradient descent on both
 # of the paper's problems; tables on stdout, figures and JSON reports in ./out.
@@ -38,6 +38,28 @@ format: $(STAMP)
 
 docs: $(STAMP)
 	$(BIN)/sphinx-build -E -W --keep-going -b html docs docs/_build/html
+
+# Headless Chromium screenshots of the landing page and every tutorial page of the built
+# docs, in docs/_build/screenshots (not part of `make test`; installs Debian's chromium when
+# it is missing). Run `make docs` first.
+CHROMIUM ?= /usr/bin/chromium
+SHOTS := docs/_build/screenshots
+SHOT_SIZE ?= 1280,2400
+screenshots:
+	@test -f docs/_build/html/index.html || { echo "run 'make docs' first"; exit 2; }
+	@test -x $(CHROMIUM) || { apt-get update -qq && apt-get install -y -qq chromium; }
+	@mkdir -p $(SHOTS)
+	@set -e; for page in docs/_build/html/index.html docs/_build/html/auto_tutorials/[0-9][0-9]_*.html; do \
+		name=$$(basename $$page .html); \
+		profile=$$(mktemp -d); \
+		timeout 120 $(CHROMIUM) --headless --no-sandbox --disable-gpu \
+			--disable-background-networking --disable-component-update --disable-sync \
+			--no-first-run --hide-scrollbars --user-data-dir=$$profile \
+			--virtual-time-budget=5000 --window-size=$(SHOT_SIZE) \
+			--screenshot=$(SHOTS)/$$name.png file://$(CURDIR)/$$page 2>/dev/null; \
+		rm -rf $$profile; \
+		echo "$(SHOTS)/$$name.png"; \
+	done
 
 bench: $(STAMP)
 	@set -e; for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f; done

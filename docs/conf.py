@@ -33,15 +33,18 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.autosummary",
     "sphinx.ext.mathjax",
+    # MathJax 3 shipped in a wheel and copied into _static: formulas render without network
+    "sphinx-mathjax-offline",
     "sphinx.ext.viewcode",
     "numpydoc",
     "cli_help",
     "registry_tables",
     "reexports",
+    "sphinx_gallery.gen_gallery",
 ]
 
 templates_path = ["_templates"]
-exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "tutorials"]
 source_suffix = {".rst": "restructuredtext"}
 root_doc = "index"
 language = "en"
@@ -84,8 +87,9 @@ html_title = f"hybridoc {release}"
 html_theme_options = {
     "description": "Optimal control of hybrid systems, with an event-exact judge",
     "fixed_sidebar": True,
-    "page_width": "1100px",
-    "sidebar_width": "240px",
+    "page_width": "1240px",  # room for 100-character code lines (tutorials)
+    "sidebar_width": "220px",
+    "body_max_width": "none",  # the default 800px cuts code lines and figures
 }
 
 # --- API module list ---------------------------------------------------------------------
@@ -99,3 +103,29 @@ for _name in API_PACKAGES:
 
 # Plot backend for any docstring example that draws: never open a window.
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+# --- tutorial gallery (sphinx-gallery) -----------------------------------------------------
+# The tutorials are plain Python scripts in docs/tutorials (tests/test_tutorials.py runs each
+# one); sphinx-gallery executes them at every build and renders their printed output and
+# figures into docs/auto_tutorials (generated, ignored by git), with a download of each as a
+# script and as a notebook. Files are run in the order of their names (01_..., 02_...), so a
+# later tutorial slots in by its number.
+sphinx_gallery_conf = {
+    "examples_dirs": ["tutorials"],
+    "gallery_dirs": ["auto_tutorials"],
+    "filename_pattern": r"/\d\d_",  # execute every numbered tutorial
+    "ignore_pattern": r"/_",  # helper modules next to the tutorials
+    "within_subsection_order": "FileNameSortKey",
+    "download_all_examples": False,
+    "remove_config_comments": True,
+    "plot_gallery": "True",
+    "abort_on_example_error": True,
+    "only_warn_on_example_error": False,
+    "image_scrapers": ("matplotlib", "gallery_figures.scrape_figures"),
+    "matplotlib_animations": False,
+    "capture_repr": (),  # only what a tutorial prints
+    "show_memory": False,
+    "show_signature": False,
+    "min_reported_time": 1,
+    "write_computation_times": False,  # its page loads scripts from CDNs
+}
