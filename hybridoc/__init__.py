@@ -56,6 +56,7 @@ __all__ = [
     "Wall",
     "as_ocp",
     "builtin_names",
+    "closed_loop_cost",
     "crossval",
     "evaluate",
     "evaluate_callable",
@@ -71,4 +72,8 @@ def __getattr__(name: str) -> Any:
         from hybridoc.solvers import registry
 
         return getattr(registry, name) if name == "solve" else registry.crossval
+    if name == "closed_loop_cost":  # torch: imported on demand, like the solvers
+        from hybridoc.solvers.policy_training import closed_loop_cost
+
+        return closed_loop_cost
     raise AttributeError(f"module 'hybridoc' has no attribute {name!r}")

@@ -466,8 +466,30 @@ def gradient(
     return adjoint(ev)
 
 
-def adjoint(ev: Evaluation) -> Gradient:
-    """The adjoint pass of :func:`gradient` on an existing evaluation."""
+def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
+    """The adjoint pass of :func:`gradient` on an existing evaluation.
+
+    Parameters
+    ----------
+    ev
+        An evaluation of piecewise-constant controls, or of a feedback policy with
+        zero-order hold (``evaluate(problem, policy=pi, hold="zoh")``).
+    feedback
+        ``None`` (default): the open-loop gradient, the controls held fixed. An
+        ``(N, nu, nx)`` array: the Jacobians ``d pi / d s`` of a zero-order-hold feedback
+        ``u_n = pi(t_n, s(t_n))`` at the evaluated grid states, for the *closed-loop*
+        gradient by the discrete adjoint of ``s_{n+1} = F_n(s_n, u_n)``: at each grid time
+        the costate gains ``(d pi / d s)^T dJ/du_n``.
+
+    Returns
+    -------
+    Gradient
+        With ``feedback``, ``d_controls[n]`` is the total derivative of the closed-loop cost
+        with respect to a perturbation of ``u_n`` alone (the policy's reaction to it in later
+        intervals included), so that a policy parameter ``theta`` has
+        ``dJ/dtheta = sum_n (d pi / d theta (t_n, s_n))^T d_controls[n]``, and
+        ``d_initial_state`` is ``dJ/ds(0)`` of the closed loop.
+    """
     ocp = ev.ocp
     k = kernels(ocp)
     num = k.numeric()
@@ -500,13 +522,28 @@ def adjoint(ev: Evaluation) -> Gradient:
     lam_end = np.empty((M, nx))  # lambda at each segment's end, after any jump there
     lam_start = np.empty((M, nx))
     lam_jump: dict[int, np.ndarray] = {}  # lambda(gamma-) at the event ending segment i
+    if feedback is not None:
+        feedback = np.asarray(feedback, dtype=float)
+        if feedback.shape != (ocp.steps, nu, nx):
+            raise ControlsError(
+                f"feedback Jacobians must have shape (N, nu, nx) = ({ocp.steps}, {nu}, {nx}), "
+                f"got {feedback.shape}"
+            )
+        # the first segment of each grid interval starts at the grid time t_n
+        first = np.r_[True, idx[1:] != idx[:-1]]
+        d_closed = np.zeros_like(u_all)
     for i in range(M - 1, -1, -1):
         seg = segs[i]
         if seg.event is not None:
             lam = _costate_jump(num, seg, u_all[seg.interval], lam)
             lam_jump[i] = lam
         lam_end[i] = lam
+        if feedback is not None:
+            d_closed[idx[i]] += Cu_a[i] + FuT_a[i] @ lam
         lam = Cs_a[i] + FsT_a[i] @ lam
+        if feedback is not None and first[i]:
+            # u_n = pi(t_n, s_n): s_n also acts through the control of its interval
+            lam = lam + feedback[idx[i]].T @ d_closed[idx[i]]
         lam_start[i] = lam
     # in time order: each segment's start, lambda(gamma-) after a segment ending in an
     # event (lambda(gamma+) is the next segment's start), and lambda(T)
@@ -522,10 +559,13 @@ def adjoint(ev: Evaluation) -> Gradient:
         t_rec[pos[i] + 1] = segs[i].t0 + segs[i].h
     lam_rec[-1] = num.phi_grad(ev.final_state)[1]
     t_rec[-1] = ocp.horizon
-    contrib = Cu_a + np.einsum("kij,kj->ki", FuT_a, lam_end)
-    d_u = np.zeros_like(u_all)
-    # later segments first, as the recursion visits them
-    np.add.at(d_u, idx[::-1], contrib[::-1])
+    if feedback is not None:
+        d_u = d_closed
+    else:
+        contrib = Cu_a + np.einsum("kij,kj->ki", FuT_a, lam_end)
+        d_u = np.zeros_like(u_all)
+        # later segments first, as the recursion visits them
+        np.add.at(d_u, idx[::-1], contrib[::-1])
     return Gradient(
         cost=ev.cost,
         d_initial_state=lam,

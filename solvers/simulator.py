@@ -67,6 +67,7 @@ Contact models
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -395,3 +396,136 @@ class Simulator(torch.nn.Module):
         u, batched = self._check_controls(controls)
         out = self.terminal_cost(self.rollout(u, x0)) + self.running_cost(u)
         return out if batched else out[0]
+
+    # ------------------------------------------------------------------ feedback policies
+    def policy_controls(
+        self, policy: Callable[..., Any], t: float, x: torch.Tensor
+    ) -> torch.Tensor:
+        """Call a batched feedback policy at time ``t`` on states ``x`` ``(B, nx)``.
+
+        Parameters
+        ----------
+        policy
+            ``(t, state) -> u`` taking ``t`` of shape ``(B,)`` and ``state`` of shape
+            ``(B, nx)`` (torch tensors of :attr:`dtype`) and returning ``(B, nu)``.
+        t
+            The time.
+        x
+            The states.
+
+        Returns
+        -------
+        torch.Tensor
+            ``(B, nu)`` controls.
+
+        Raises
+        ------
+        ControlsError
+            When the policy raises, returns another shape, or a non-finite value.
+        """
+        B = x.shape[0]
+        tt = torch.full((B,), float(t), dtype=self.dtype, device=self.device)
+        try:
+            u = policy(tt, x)
+        except Exception as exc:  # the user's code: report it as a user error
+            raise ControlsError(
+                f"the policy raised {type(exc).__name__} at t = {t:.6g}: {exc}"
+            ) from exc
+        if not isinstance(u, torch.Tensor):
+            raise ControlsError(
+                f"the policy must return a torch tensor of shape (B, nu) = ({B}, {self.nu}) in "
+                f"the simulator, got {type(u).__name__} at t = {t:.6g}"
+            )
+        if tuple(u.shape) != (B, self.nu):
+            raise ControlsError(
+                f"the policy returned shape {tuple(u.shape)} at t = {t:.6g}; expected "
+                f"(B, nu) = ({B}, {self.nu}) for states of shape {tuple(x.shape)}"
+            )
+        if u.is_complex() or not u.is_floating_point():
+            raise ControlsError(f"the policy returned {u.dtype} values; expected real numbers")
+        u = u.to(self.dtype)
+        if not bool(torch.isfinite(u).all()):
+            raise ControlsError(f"the policy returned a non-finite control at t = {t:.6g}")
+        return u
+
+    def rollout_policy(
+        self, policy: Callable[..., Any], x0: Any = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Simulate the N steps in closed loop under a feedback policy (zero-order hold).
+
+        At each grid time ``t_n = n dt`` the policy is called on the current states,
+        ``u_n = pi(t_n, s_n)``, and the control is held over the step, as the judge's
+        ``hold="zoh"`` does. The rollout is differentiable with respect to the policy's
+        parameters (and ``x0``).
+
+        Parameters
+        ----------
+        policy
+            A batched policy ``(t, state) -> u``: ``t`` of shape ``(B,)`` and ``state`` of
+            shape ``(B, nx)`` in, ``(B, nu)`` out (e.g. a ``torch.nn.Module``).
+        x0
+            Initial states ``(B, nx)`` or ``(nx,)``; default :attr:`x0`.
+
+        Returns
+        -------
+        states : torch.Tensor
+            ``(B, N + 1, nx)`` states.
+        controls : torch.Tensor
+            ``(B, N, nu)`` controls the policy returned.
+
+        Raises
+        ------
+        ControlsError
+            A wrong ``x0`` shape or non-finite ``x0``, or a policy that raises, returns the
+            wrong shape or a non-finite value.
+        """
+        if x0 is None:
+            x = self.x0[None, :]
+        else:
+            if not isinstance(x0, torch.Tensor):
+                from hybridoc.ocp import as_float_array
+
+                x0 = as_float_array(x0, "x0", error=ControlsError)
+            x = torch.as_tensor(x0).to(dtype=self.dtype, device=self.device)
+            if x.ndim == 1:
+                x = x[None, :]
+            if x.ndim != 2 or x.shape[1] != self.nx or x.shape[0] < 1:
+                raise ControlsError(
+                    f"x0 must have shape ({self.nx},) or (B, {self.nx}), got {tuple(x0.shape)}"
+                )
+            if not bool(torch.isfinite(x).all()):
+                raise ControlsError("x0 contains NaN or infinite values")
+        B, n = x.shape[0], self.n
+        p = x[:, : 2 * n].reshape(B, n, 2)
+        v = x[:, 2 * n :].reshape(B, n, 2)
+        grid = self.scene.time_grid()
+        states, controls = [x], []
+        for k in range(self.steps):
+            u = self.policy_controls(policy, float(grid[k]), x)
+            controls.append(u)
+            p, v = self.step(p, v, self.accelerations(u))
+            x = torch.cat([p.reshape(B, -1), v.reshape(B, -1)], 1)
+            states.append(x)
+        return torch.stack(states, 1), torch.stack(controls, 1)
+
+    def policy_loss(self, policy: Callable[..., Any], x0: Any = None) -> torch.Tensor:
+        """Mean over the batch of the discrete objective of the closed-loop rollout.
+
+        The same objective as :meth:`loss`, ``phi(s_N) + sum_n eps |u_n|^2 dt``, with the
+        controls ``u_n = pi(t_n, s_n)`` of :meth:`rollout_policy`.
+
+        Parameters
+        ----------
+        policy
+            A batched policy, as in :meth:`rollout_policy`.
+        x0
+            Initial states ``(B, nx)`` or ``(nx,)``; default :attr:`x0`.
+
+        Returns
+        -------
+        torch.Tensor
+            A scalar: the mean loss over the ``B`` initial states.
+        """
+        states, u = self.rollout_policy(policy, x0)
+        running = self.control_weight * self.dt * (u**2).sum((1, 2))
+        return (self.terminal_cost(states) + running).mean()
