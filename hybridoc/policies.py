@@ -16,8 +16,6 @@ engines as datasets (a local process pool, or Dask), one chunk of draws per task
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc._pyfile import import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
 
 __all__ = ["PolicyError", "PolicyReport", "load_policy", "validate_policy"]
@@ -95,19 +94,9 @@ def _load_torchscript(path: Path) -> Callable[..., Any]:
 
 
 def _load_python(path: Path, name: str, text: str) -> Callable[..., Any]:
-    if not path.is_file():
-        raise PolicyError(f"policy file {str(path)!r} does not exist")
     if not name.isidentifier():
         raise PolicyError(f"policy {text!r}: {name!r} is not a Python name")
-    mod_name = f"_hybridoc_policy_{abs(hash(str(path.resolve())))}"
-    spec = importlib.util.spec_from_file_location(mod_name, path)
-    if spec is None or spec.loader is None:
-        raise PolicyError(f"cannot import {str(path)!r}")
-    module = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(module)
-    except Exception as exc:
-        raise PolicyError(f"importing {str(path)!r} raised {type(exc).__name__}: {exc}") from None
+    module = import_file(path, "policy", PolicyError)
     if not hasattr(module, name):
         public = sorted(k for k, v in vars(module).items() if callable(v) and not k.startswith("_"))
         raise PolicyError(
@@ -120,7 +109,6 @@ def _load_python(path: Path, name: str, text: str) -> Callable[..., Any]:
             f"{text!r} is {'a class' if isinstance(obj, type) else type(obj).__name__}, "
             "not a callable policy (t, state) -> u"
         )
-    sys.modules.setdefault(mod_name, module)
     return obj
 
 

@@ -9,14 +9,13 @@ hybrid OCPs (installed as ``hybridoc.problems``).
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridoc._pyfile import import_file
 from hybridoc.errors import SceneError
 from hybridoc.problems.scene import Disc, Scene, Wall
 
@@ -129,21 +128,7 @@ def _from_python(path: Path, func: str, *, explicit: bool) -> Any:
     from hybridoc.ocp import HybridOCP
 
     where = f"{str(path)}:{func}"
-    if not path.is_file():
-        raise SceneError(f"problem file {str(path)!r} does not exist")
-    name = f"_hybridoc_problem_{abs(hash(str(path.resolve())))}"
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SceneError(f"cannot import {str(path)!r}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    try:
-        spec.loader.exec_module(module)
-    except SceneError:
-        raise
-    except Exception as exc:
-        del sys.modules[name]
-        raise SceneError(f"importing {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+    module = import_file(path, "problem", SceneError)
     fn = getattr(module, func, None)
     if fn is None:
         hint = "" if explicit else " (name one as file.py:function)"

@@ -1,0 +1,45 @@
+"""Import a user's Python file (a problem or a policy) as a fresh module."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+from hybridoc.errors import HybridocError
+
+__all__ = ["import_file"]
+
+
+def import_file(path: Path, kind: str, error: type[HybridocError]) -> ModuleType:
+    """Run ``path`` as a module of its own; every failure is one ``error`` naming the file.
+
+    Parameters
+    ----------
+    path
+        The ``.py`` file.
+    kind
+        What the file holds (``"problem"``, ``"policy"``), for the messages and the module name.
+    error
+        The error raised for a missing or failing file; the same error raised by the file's
+        own code passes through unchanged.
+    """
+    if not path.is_file():
+        raise error(f"{kind} file {str(path)!r} does not exist")
+    name = f"_hybridoc_{kind}_{abs(hash(str(path.resolve())))}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise error(f"cannot import {str(path)!r}")
+    module = importlib.util.module_from_spec(spec)
+    # registered before it runs: dataclasses and pickling look their module up by name
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except error:
+        del sys.modules[name]
+        raise
+    except Exception as exc:
+        del sys.modules[name]
+        raise error(f"importing {str(path)!r} raised {type(exc).__name__}: {exc}") from exc
+    return module
