@@ -86,8 +86,9 @@ class ContactModel(ABC):
 
     Subclasses set :attr:`name` and :attr:`summary`, implement :meth:`torch_step`, and are
     registered with :func:`register`. Model options are keyword arguments of ``__init__``.
-    For the compiled path a model sets :attr:`compiled` and implements :meth:`casadi_step`
-    (an :class:`ImpulseModel`: :meth:`ImpulseModel.casadi_impulses`), equal to
+    For the compiled path a model sets :attr:`compiled` and implements
+    :meth:`casadi_next_state`, the expression behind :meth:`casadi_step` (an
+    :class:`ImpulseModel`: :meth:`ImpulseModel.casadi_impulses`), equal to
     :meth:`torch_step` to rounding, and :meth:`casadi_unsupported` names any limits.
     """
 
@@ -168,9 +169,22 @@ class ContactModel(ABC):
         -------
         casadi.SX
             The next state, equal to :meth:`torch_step` on the same numbers to rounding.
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            With the reason of :meth:`casadi_unsupported` for a setting the model does not
+            serve.
         """
         reason = self.casadi_unsupported(scene, integrator)
-        raise SceneError(reason or f"contact model {self.name!r} has no CasADi step")
+        if reason is not None:
+            raise SceneError(reason)
+        return self.casadi_next_state(scene, s, u, integrator)
+
+    def casadi_next_state(self, scene: Scene, s: Any, u: Any, integrator: str) -> Any:
+        """:meth:`casadi_step` for a setting it serves (checked there): the next state as a
+        CasADi expression, what a compiled model implements."""
+        raise SceneError(f"contact model {self.name!r} has no CasADi step")
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.label!r})"
@@ -240,14 +254,9 @@ class ImpulseModel(ContactModel):
             reason = enumeration_unsupported(self.label, scene)
         return reason
 
-    def casadi_step(
-        self, scene: Scene, s: Any, u: Any, integrator: str = "symplectic-euler"
-    ) -> Any:
+    def casadi_next_state(self, scene: Scene, s: Any, u: Any, integrator: str) -> Any:
         from hybridoc.solvers.casadi_step import step_parts
 
-        reason = self.casadi_unsupported(scene, integrator)
-        if reason is not None:
-            raise SceneError(reason)
         return step_parts(scene, s, u, self.toi, integrator, impulses=self.casadi_impulses).s_next
 
     def casadi_impulses(self, inputs: ImpulseInputs) -> list[Any]:

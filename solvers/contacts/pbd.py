@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay light
     from torch import Tensor
 
-from hybridoc.errors import EvaluationError, SceneError
+from hybridoc.errors import EvaluationError
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts._penalty_common import MIN_DISTANCE, prepare
 from hybridoc.solvers.contacts.base import ContactModel, register
@@ -262,8 +262,5 @@ class PBD(ContactModel):
             sim.restitution, iterations=self.iterations,
         )  # fmt: skip
 
-    def casadi_step(self, scene: Any, s: Any, u: Any, integrator: str = "symplectic-euler") -> Any:
-        reason = self.casadi_unsupported(scene, integrator)
-        if reason is not None:
-            raise SceneError(reason)
+    def casadi_next_state(self, scene: Any, s: Any, u: Any, integrator: str) -> Any:
         return pbd_casadi_step(scene, s, u, iterations=self.iterations)
