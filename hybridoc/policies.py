@@ -27,7 +27,14 @@ import numpy as np
 from hybridoc._pyfile import import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
 
-__all__ = ["PolicyError", "PolicyReport", "load_policy", "validate_policy"]
+__all__ = [
+    "PolicyError",
+    "PolicyReport",
+    "load_policy",
+    "policy_figures",
+    "report_figures",
+    "validate_policy",
+]
 
 _TORCH_SUFFIXES = (".pt", ".pth", ".ts")
 WORST = 5
@@ -411,19 +418,30 @@ def varying_coordinates(x0: np.ndarray, labels: list[str]) -> list[tuple[int, st
     return [(int(i), labels[i]) for i in order if spread[i] > 0]
 
 
-def report_figures(report: PolicyReport, labels: list[str], stem: Path, title: str) -> list[Path]:
-    """The gap histogram and the gap over the initial-state space, ``stem_<figure>.png``."""
-    import matplotlib
+def policy_figures(report: PolicyReport, labels: list[str], title: str) -> dict[str, Any]:
+    """The gap histogram and the gap over the initial-state space of a report.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Parameters
+    ----------
+    report
+        A :class:`PolicyReport`.
+    labels
+        The state labels (``HybridOCP.state_labels``), naming the scatter plot's axes.
+    title
+        The start of each figure's title.
 
-    from hybridoc.plotting import save_figure
+    Returns
+    -------
+    dict
+        ``{"gap_hist": Figure, "gap_scatter": Figure}``: matplotlib figures made without
+        pyplot, so no backend is chosen or changed.
+    """
+    from matplotlib.figure import Figure
 
     c = report.columns
     ok = np.isfinite(c["gap"])
-    paths = []
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig = Figure(figsize=(6.4, 4.2), layout="tight")
+    ax = fig.add_subplot()
     rel = c["rel_gap"][ok]
     if rel.size:
         ax.hist(100 * rel, bins=min(50, max(10, rel.size // 10)), color="tab:blue", alpha=0.8)
@@ -433,11 +451,10 @@ def report_figures(report: PolicyReport, labels: list[str], stem: Path, title: s
     ax.set_xlabel("relative cost gap to the reference [%]")
     ax.set_ylabel("draws")
     ax.set_title(f"{title}: gap over {int(ok.sum())} draws", fontsize=10)
-    fig.tight_layout()
-    paths.append(save_figure(fig, f"{stem}_gap_hist.png"))
-    plt.close(fig)
+    hist = fig
 
-    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    fig = Figure(figsize=(6.4, 5.2), layout="tight")
+    ax = fig.add_subplot()
     coords = varying_coordinates(c["x0"], labels)
     if coords:
         i = coords[0][0]
@@ -463,7 +480,12 @@ def report_figures(report: PolicyReport, labels: list[str], stem: Path, title: s
     else:
         ax.text(0.5, 0.5, "the initial state does not vary", ha="center", transform=ax.transAxes)
     ax.set_title(f"{title}: gap over the initial states", fontsize=10)
-    fig.tight_layout()
-    paths.append(save_figure(fig, f"{stem}_gap_scatter.png"))
-    plt.close(fig)
-    return paths
+    return {"gap_hist": hist, "gap_scatter": fig}
+
+
+def report_figures(report: PolicyReport, labels: list[str], stem: Path, title: str) -> list[Path]:
+    """:func:`policy_figures` written as ``<stem>_gap_hist.png`` and ``<stem>_gap_scatter.png``."""
+    from hybridoc.plotting import save_figure
+
+    figs = policy_figures(report, labels, title)
+    return [save_figure(fig, f"{stem}_{name}.png") for name, fig in figs.items()]

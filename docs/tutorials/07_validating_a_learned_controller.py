@@ -33,11 +33,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from matplotlib.figure import Figure
-from matplotlib.image import imread
 
 import hybridoc
 from hybridoc.dataset import make_dataset
-from hybridoc.policies import report_figures, validate_policy
+from hybridoc.policies import policy_figures, validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Spread
 from hybridoc.solvers.policy_training import mlp_policy, train_policy
@@ -232,36 +231,23 @@ for name, rep in reports.items():
 #
 # The figures
 # -----------
-# :func:`~hybridoc.policies.report_figures` draws what ``hybridoc validate-policy --out``
-# saves: the histogram of the relative gap and the gap over the initial-state coordinates
-# that vary. It writes PNG files into our temporary folder; here they are read back.
+# :func:`~hybridoc.policies.policy_figures` draws what ``hybridoc validate-policy --out``
+# saves (through :func:`~hybridoc.policies.report_figures`): the histogram of the relative
+# gap and the gap over the initial-state coordinates that vary.
 labels = list(scene.to_ocp().state_labels)
-
-
-def show(png: Path) -> Figure:
-    """A figure that shows a PNG file at its size."""
-    image = imread(png)
-    fig = Figure(figsize=(image.shape[1] / 110, image.shape[0] / 110))
-    ax = fig.add_axes((0, 0, 1, 1))
-    ax.imshow(image)
-    ax.set_axis_off()
-    return fig
-
-
-figures = {}
-for name in ("toi=both", "toi=none"):
-    stem = out / name.replace("=", "_")
-    for png in report_figures(reports[name], labels, stem, f"single-collision, {name}"):
-        figures[png.stem] = png
-fig_hist = show(figures["toi_both_gap_hist"])
+figures = {
+    name: policy_figures(reports[name], labels, f"single-collision, {name}")
+    for name in ("toi=both", "toi=none")
+}
+fig_hist = figures["toi=both"]["gap_hist"]
 
 # %%
 # Over the initial states, the gap of the policy trained with the corrections:
-fig_map = show(figures["toi_both_gap_scatter"])
+fig_map = figures["toi=both"]["gap_scatter"]
 
 # %%
 # and of the one trained without them (mind the colour scale):
-fig_map_none = show(figures["toi_none_gap_scatter"])
+fig_map_none = figures["toi=none"]["gap_scatter"]
 tmp.cleanup()
 
 # %%

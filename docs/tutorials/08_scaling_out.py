@@ -30,12 +30,10 @@ from pathlib import Path
 
 import numpy as np
 from distributed import Client, LocalCluster
-from matplotlib.figure import Figure
-from matplotlib.image import imread
 
 import hybridoc
 from hybridoc.dataset import make_dataset
-from hybridoc.policies import report_figures, validate_policy
+from hybridoc.policies import policy_figures, validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Spread
 
@@ -236,39 +234,27 @@ print("same rollouts on Dask and on the pool:", same)
 # %%
 # The figures
 # -----------
-# :func:`~hybridoc.policies.report_figures` draws what ``hybridoc validate-policy --out``
-# saves: the histogram of the relative gap and the gap over the two initial-state
-# coordinates that vary (red crosses: a rollout whose events differ from the optimum's).
-# It writes PNG files; here they are read back to show them.
+# :func:`~hybridoc.policies.policy_figures` draws what ``hybridoc validate-policy --out``
+# saves (through :func:`~hybridoc.policies.report_figures`): the histogram of the relative
+# gap and the gap over the two initial-state coordinates that vary (red crosses: a rollout
+# whose events differ from the optimum's).
 labels = list(scene.to_ocp().state_labels)
-
-
-def show(png: Path) -> Figure:
-    """A figure that shows a PNG file at its size."""
-    image = imread(png)
-    fig = Figure(figsize=(image.shape[1] / 110, image.shape[0] / 110))
-    ax = fig.add_axes((0, 0, 1, 1))
-    ax.imshow(image)
-    ax.set_axis_off()
-    return fig
-
-
-figures = {}
-for name, rep in reports.items():
-    for png in report_figures(rep, labels, out / name, f"single-collision, {name}"):
-        figures[png.stem] = png
-fig_open_scatter = show(figures["open_loop_gap_scatter"])
+figures = {
+    name: policy_figures(rep, labels, f"single-collision, {name}")
+    for name, rep in reports.items()
+}
+fig_open_scatter = figures["open_loop"]["gap_scatter"]
 # sphinx_gallery_thumbnail_number = 3
 
 # %%
 # Open loop, the gap grows quickly as ``ball2`` moves to the right of its nominal start,
 # and the crosses (every one a rollout without a collision) lie there. Following
 # ``ball2``, the histogram of the gap:
-fig_follow_hist = show(figures["follow_gap_hist"])
+fig_follow_hist = figures["follow"]["gap_hist"]
 
 # %%
 # and its map: small near the nominal start, largest where ``ball2`` starts to the right.
-fig_follow_scatter = show(figures["follow_gap_scatter"])
+fig_follow_scatter = figures["follow"]["gap_scatter"]
 
 # %%
 # Closing
