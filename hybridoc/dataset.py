@@ -76,6 +76,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.errors import HybridocError, SceneError
+from hybridoc.solvers.threads import usable_cores
 
 __all__ = [
     "DATA_FILE",
@@ -110,13 +111,6 @@ _VARIABLE_K = {  # column -> number of extra rows beyond K (K events, K + 1 phas
     "control_coefficients": 1,
 }
 _STRINGS = ("status", "method", "message", "sequence")
-
-
-def usable_cores() -> int:
-    """The number of cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
 
 
 # ---------------------------------------------------------------------------- the scene

@@ -588,11 +588,11 @@ def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluat
     """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning, in
     worker processes (one per core) where the platform can fork."""
     import multiprocessing as mp
-    import os
     from concurrent.futures import ProcessPoolExecutor
 
     from hybridoc.reference.result import make_result
     from hybridoc.reference.shooting import newton, shooting_system
+    from hybridoc.solvers.threads import usable_cores
 
     verified = [r.cost for k, r in book.results.items() if book.verdicts.get(k, (False,))[0]]
     best = min(verified, default=math.inf)
@@ -609,7 +609,7 @@ def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluat
             continue
         todo.append(seq)
     _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol)
-    workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1, 8)
+    workers = min(usable_cores(), 8)
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
