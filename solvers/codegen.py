@@ -9,35 +9,100 @@ time, into a cache folder keyed by a hash of the function's serialisation: a lat
 the library at once. Without a compiler,
 or when compilation fails, the virtual machine simply stays in use.
 
+The cache is private and checked: its folder is created with mode 0700 and used only while
+it is owned by the user and writable by nobody else, and a library is loaded only when its
+SHA-256 matches the one hybridoc recorded beside it when it built it (``<lib>.sha256``);
+anything else is not loaded. The least recently used libraries are deleted when the cache
+outgrows its bound. :func:`cache_info` and :func:`clear_cache` (``hybridoc cache info`` and
+``hybridoc cache clear``) show and empty it.
+
 Settings (environment): ``HYBRIDOC_CODEGEN=0`` turns it off; ``HYBRIDOC_CACHE`` sets the
-cache folder (default ``~/.cache/hybridoc``).
+cache folder (default ``~/.cache/hybridoc``); ``HYBRIDOC_CACHE_MAX_MB`` bounds its size
+(default 500; ``0`` keeps no library on disk).
 """
+
+# Threat model. Loading a library runs its machine code (constructors included) in this
+# process, so a library is loaded only when
+#   1. the cache folder is owned by the effective uid and has no group or world write bit:
+#      no other local user can then create, replace or rename a file in it;
+#   2. its bytes hash to the SHA-256 that hybridoc wrote, in that same folder, when it built
+#      it: a file hybridoc did not write (planted while the folder was open to others, left
+#      by an older hybridoc, cut short by a full disk) has no record or a wrong one, is not
+#      loaded, and is deleted.
+# Every file operation goes through a descriptor of the folder that was checked, and on
+# Linux the library is loaded through /proc/self/fd/<folder>, so renaming the folder or
+# swapping a parent after the check changes nothing. A process of the same user can rewrite
+# both a library and its record; that is out of scope (it could as well edit hybridoc).
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import os
+import re
 import shutil
+import stat
 import subprocess
 import tempfile
 import threading
+import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import casadi as ca
 
-__all__ = ["HOT_CALLS", "Accelerated", "cache_dir", "compiler", "enabled"]
+__all__ = [
+    "DEFAULT_MAX_MB",
+    "HOT_CALLS",
+    "Accelerated",
+    "CacheWarning",
+    "cache_dir",
+    "cache_info",
+    "cache_limit",
+    "check_cache_dir",
+    "clear_cache",
+    "compiler",
+    "enabled",
+    "evict",
+]
 
 _QUEUE_LOCK = threading.Lock()  # one compilation at a time: two cores are often all there is
 HOT_CALLS = 50
 """Calls after which a function is compiled (see :class:`Accelerated`)."""
+DEFAULT_MAX_MB = 500.0
+"""Default bound of the cache's size in megabytes (``HYBRIDOC_CACHE_MAX_MB``)."""
 _FLAGS = ["-O1", "-ffp-contract=off", "-fPIC", "-shared"]
+_RECORD = ".sha256"
+# the only names hybridoc writes: <function>_<24 hex>.so, its record, and their temporaries
+_LIB_RE = re.compile(r"[A-Za-z_]\w*_[0-9a-f]{24}\.so")
+_RECORD_RE = re.compile(_LIB_RE.pattern + re.escape(_RECORD))
+_TMP_RE = re.compile(_LIB_RE.pattern + rf"(?:{re.escape(_RECORD)})?\.\d+\.tmp")
+_STALE_TMP_S = 3600.0  # a temporary this old belongs to a build that died
+_WARNED: set[str] = set()
+_WARN_LOCK = threading.Lock()
+
+
+class CacheWarning(UserWarning):
+    """The code cache is not used (an unsafe folder) or a setting is ignored."""
+
+
+def _warn_once(text: str) -> None:
+    with _WARN_LOCK:
+        if text in _WARNED:
+            return
+        _WARNED.add(text)
+    warnings.warn(text, CacheWarning, stacklevel=2)
 
 
 def enabled() -> bool:
     """Whether background compilation is on (``HYBRIDOC_CODEGEN`` not ``0``) and possible."""
-    return os.environ.get("HYBRIDOC_CODEGEN", "1") not in ("0", "false", "no") and (
-        compiler() is not None
+    return (
+        os.environ.get("HYBRIDOC_CODEGEN", "1") not in ("0", "false", "no")
+        and os.name == "posix"  # the ownership checks and the .so libraries are POSIX
+        and compiler() is not None
     )
 
 
@@ -50,9 +115,317 @@ def compiler() -> str | None:
 
 
 def cache_dir() -> Path:
-    """The folder of compiled libraries."""
+    """The folder of compiled libraries (``HYBRIDOC_CACHE``, default ``~/.cache/hybridoc``)."""
     root = os.environ.get("HYBRIDOC_CACHE")
     return Path(root) if root else Path.home() / ".cache" / "hybridoc"
+
+
+def cache_limit() -> int:
+    """The bound of the cache's size in bytes (``HYBRIDOC_CACHE_MAX_MB``, default 500)."""
+    text = os.environ.get("HYBRIDOC_CACHE_MAX_MB", "").strip()
+    if not text:
+        return int(DEFAULT_MAX_MB * 1e6)
+    try:
+        mb = float(text)
+    except ValueError:
+        mb = -1.0
+    if not (0.0 <= mb < float("inf")):
+        _warn_once(
+            f"HYBRIDOC_CACHE_MAX_MB={text!r} is not a number of megabytes >= 0; "
+            f"using {DEFAULT_MAX_MB:g}"
+        )
+        mb = DEFAULT_MAX_MB
+    return int(mb * 1e6)
+
+
+def _unsafe(st: os.stat_result) -> str | None:
+    """Why a folder with this status must not be loaded from, or ``None``."""
+    if not stat.S_ISDIR(st.st_mode):
+        return "it is not a directory"
+    if not hasattr(os, "geteuid"):
+        return "its owner cannot be checked on this system"
+    if st.st_uid != os.geteuid():
+        return f"it is owned by uid {st.st_uid}, not by this user (uid {os.geteuid()})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"other users can write to it (mode {stat.S_IMODE(st.st_mode):04o})"
+    return None
+
+
+def check_cache_dir(path: str | Path | None = None) -> str | None:
+    """Why the cache folder is unsafe to load libraries from, or ``None`` when it is safe.
+
+    Parameters
+    ----------
+    path
+        The folder; default :func:`cache_dir`. A folder that does not exist yet is safe
+        (hybridoc creates it with mode 0700).
+    """
+    p = cache_dir() if path is None else Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"it cannot be read: {exc.strerror or exc}"
+    return _unsafe(st)
+
+
+@contextmanager
+def _private_dir(create: bool) -> Iterator[tuple[int | None, bool]]:
+    """A descriptor of the checked cache folder and whether it was refused: ``(fd, False)``,
+    ``(None, False)`` when it does not exist, ``(None, True)`` when it is unsafe or
+    unreadable (warned once)."""
+    path = cache_dir()
+    try:
+        if create:
+            # 0700: the libraries are nobody else's business, and nobody else may add one
+            path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except FileNotFoundError:
+        yield None, False
+        return
+    except OSError as exc:
+        _warn_once(f"the code cache {str(path)!r} cannot be opened ({exc}); compiled code is off")
+        yield None, True
+        return
+    try:
+        reason = _unsafe(os.fstat(fd))
+        if reason is not None:
+            _warn_once(
+                f"the code cache {str(path)!r} is not private: {reason}; compiled code is "
+                "not loaded from it (fix it with 'chmod 700' on a folder of your own, or "
+                "set HYBRIDOC_CACHE to another folder)"
+            )
+            yield None, True
+        else:
+            yield fd, False
+    finally:
+        os.close(fd)
+
+
+def _load_path(dfd: int, name: str) -> str:
+    """The path that loads ``name`` from the folder open as ``dfd``: through /proc/self/fd
+    where it exists (Linux), so that it is that folder and not whatever sits at its path now."""
+    proc = f"/proc/self/fd/{dfd}"
+    return f"{proc}/{name}" if os.path.isdir(proc) else str(cache_dir() / name)
+
+
+def _read_own(dfd: int, name: str) -> tuple[bytes, int] | None:
+    """The bytes of a regular file of this user in the folder, and its descriptor (open)."""
+    try:
+        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=dfd)
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        if (
+            not stat.S_ISREG(st.st_mode)
+            or st.st_uid != os.geteuid()
+            or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+        ):
+            os.close(fd)
+            return None
+        chunks = []
+        while chunk := os.read(fd, 1 << 20):
+            chunks.append(chunk)
+        return b"".join(chunks), fd
+    except OSError:
+        os.close(fd)
+        return None
+
+
+def _verified(dfd: int, name: str, *, touch: bool = True) -> bool:
+    """Whether library ``name`` matches the SHA-256 recorded when hybridoc built it; with
+    ``touch``, a verified library's mtime is set to now (eviction goes by it)."""
+    record = _read_own(dfd, name + _RECORD)
+    if record is None:
+        return False
+    os.close(record[1])
+    expected = record[0].split(b" ", 1)[0].strip()
+    lib = _read_own(dfd, name)
+    if lib is None:
+        return False
+    data, fd = lib
+    try:
+        ok = hmac.compare_digest(hashlib.sha256(data).hexdigest().encode(), expected)
+        if ok and touch:
+            try:
+                os.utime(fd)
+            except OSError:
+                pass  # a read-only cache still works; its eviction order is then by age
+        return ok
+    finally:
+        os.close(fd)
+
+
+def _unlink(dfd: int, name: str) -> int:
+    """Remove ``name`` from the folder; its size in bytes (0 if it was not there)."""
+    try:
+        size = os.stat(name, dir_fd=dfd, follow_symlinks=False).st_size
+        os.unlink(name, dir_fd=dfd)
+        return size
+    except OSError:
+        return 0
+
+
+def _write_atomic(dfd: int, name: str, data: bytes) -> None:
+    """Write ``name`` so that no reader ever sees it half-written."""
+    tmp = f"{name}.{os.getpid()}.tmp"
+    _unlink(dfd, tmp)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600, dir_fd=dfd)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+    finally:
+        os.close(fd)
+    os.replace(tmp, name, src_dir_fd=dfd, dst_dir_fd=dfd)
+
+
+def _entries(dfd: int) -> Iterator[tuple[str, os.stat_result]]:
+    """The files hybridoc made in the folder (libraries, records, temporaries) that belong to
+    this user, with their status."""
+    with os.scandir(dfd) as it:
+        for entry in it:
+            name = entry.name
+            if not (
+                _LIB_RE.fullmatch(name) or _RECORD_RE.fullmatch(name) or _TMP_RE.fullmatch(name)
+            ):
+                continue
+            try:
+                st = entry.stat(follow_symlinks=False)
+            except OSError:
+                continue
+            if stat.S_ISREG(st.st_mode) and st.st_uid == os.geteuid():
+                yield name, st
+
+
+def _evict(dfd: int, limit: int) -> list[str]:
+    now = time.time()
+    libs: dict[str, os.stat_result] = {}
+    records: dict[str, os.stat_result] = {}
+    removed: list[str] = []
+    for name, st in list(_entries(dfd)):
+        if _TMP_RE.fullmatch(name):
+            if now - st.st_mtime > _STALE_TMP_S:
+                _unlink(dfd, name)
+                removed.append(name)
+        elif name.endswith(_RECORD):
+            records[name[: -len(_RECORD)]] = st
+        else:
+            libs[name] = st
+    for lib, st in list(records.items()):
+        # a record without its library: a build that died (the record is written first)
+        if lib not in libs and now - st.st_mtime > _STALE_TMP_S:
+            _unlink(dfd, lib + _RECORD)
+            removed.append(lib + _RECORD)
+            del records[lib]
+    total = sum(st.st_size for st in (*libs.values(), *records.values()))
+    for name in sorted(libs, key=lambda n: (libs[n].st_mtime, n)):  # least recently used first
+        if total <= limit:
+            break
+        total -= _unlink(dfd, name) + _unlink(dfd, name + _RECORD)
+        removed.append(name)
+    return removed
+
+
+def evict(limit: int | None = None) -> list[str]:
+    """Delete the least recently used libraries until the cache holds at most ``limit``.
+
+    A library's last use is its modification time, which a load sets to now. Runs after
+    every compilation; only files hybridoc made are counted and deleted.
+
+    Parameters
+    ----------
+    limit
+        Bytes; default :func:`cache_limit`.
+
+    Returns
+    -------
+    list of str
+        The names of the files deleted (their records go with them).
+    """
+    limit = cache_limit() if limit is None else int(limit)
+    with _private_dir(create=False) as (dfd, _):
+        return [] if dfd is None else _evict(dfd, limit)
+
+
+def cache_info() -> dict[str, Any]:
+    """The state of the cache: what ``hybridoc cache info`` prints.
+
+    Returns
+    -------
+    dict
+        ``path``, ``exists``, ``mode`` (octal text or ``None``), ``safe`` and ``problem`` (why
+        it is not safe, or ``None``), ``libraries`` (count), ``unverified`` (libraries
+        without a matching record: they would not be loaded), ``size_bytes`` (libraries and
+        records), ``limit_bytes``, ``other_files`` (files hybridoc did not make, left alone),
+        ``enabled`` (whether compilation is on).
+    """
+    path = cache_dir()
+    problem = check_cache_dir(path)
+    info: dict[str, Any] = {
+        "path": str(path),
+        "exists": path.is_dir(),
+        "mode": None,
+        "safe": problem is None,
+        "problem": problem,
+        "libraries": 0,
+        "unverified": 0,
+        "size_bytes": 0,
+        "limit_bytes": cache_limit(),
+        "other_files": 0,
+        "enabled": enabled(),
+    }
+    if not info["exists"]:
+        return info
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError as exc:
+        info.update(safe=False, problem=f"it cannot be read: {exc.strerror or exc}")
+        return info
+    try:
+        info["mode"] = f"{stat.S_IMODE(os.fstat(fd).st_mode):04o}"
+        ours = dict(_entries(fd))
+        info["other_files"] = sum(1 for e in os.scandir(fd) if e.name not in ours)
+        for name, st in ours.items():
+            if _LIB_RE.fullmatch(name) or _RECORD_RE.fullmatch(name):
+                info["size_bytes"] += st.st_size
+            if _LIB_RE.fullmatch(name):
+                info["libraries"] += 1
+                info["unverified"] += not _verified(fd, name, touch=False)
+    finally:
+        os.close(fd)
+    return info
+
+
+def clear_cache() -> dict[str, Any]:
+    """Delete the libraries hybridoc compiled and their records; nothing else.
+
+    Only regular files of this user whose names are hybridoc's (``<function>_<hash>.so``,
+    ``.so.sha256`` and their temporaries) are deleted, also from a folder that is not
+    private; other files and the folder itself stay.
+
+    Returns
+    -------
+    dict
+        ``path``, ``removed`` (files deleted), ``freed_bytes``, ``other_files`` (left).
+    """
+    path = cache_dir()
+    out: dict[str, Any] = {"path": str(path), "removed": 0, "freed_bytes": 0, "other_files": 0}
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except FileNotFoundError:
+        return out
+    try:
+        for name, _ in list(_entries(fd)):
+            size = _unlink(fd, name)
+            out["removed"] += 1
+            out["freed_bytes"] += size
+        out["other_files"] = sum(1 for _ in os.scandir(fd))
+    finally:
+        os.close(fd)
+    return out
 
 
 class Accelerated:
@@ -70,8 +443,8 @@ class Accelerated:
         over threads, when ``fn`` is its serial map).
     hot
         Start compiling after this many calls (a function called a few times is not worth a
-        compilation that competes for the cores); a library already in the cache is loaded
-        at once.
+        compilation that competes for the cores); a verified library already in the cache is
+        loaded at once.
     """
 
     def __init__(
@@ -91,9 +464,15 @@ class Accelerated:
             return
         key = hashlib.sha256(fn.serialize().encode()).hexdigest()[:24]
         self._lib = cache_dir() / f"{fn.name()}_{key}.so"
-        if self._lib.exists():
-            self._load()
-            return
+        with _private_dir(create=False) as (dfd, refused):
+            if refused:
+                return  # an unsafe folder (warned): the virtual machine only
+            if dfd is not None and not self._load(dfd) and _unlink(dfd, self._lib.name):
+                # a library hybridoc did not record (or not as it is now): never loaded, and
+                # made again; its record goes too
+                _unlink(dfd, self._lib.name + _RECORD)
+            if self.compiled:
+                return
         if wait:
             self._build()
         elif hot <= 0:
@@ -112,23 +491,30 @@ class Accelerated:
         self._calls_left = -1
         threading.Thread(target=self._build, daemon=True).start()
 
-    def _load(self) -> None:
+    def _load(self, dfd: int) -> bool:
+        """Load the library if the folder ``dfd`` holds a verified one."""
+        name = self._lib.name
+        if not _verified(dfd, name):
+            return False
         try:
-            self.fn = ca.external(self.vm.name(), str(self._lib))
-            self.compiled = True
-        except RuntimeError as exc:  # a broken or foreign library: compile it again
+            self.fn = ca.external(self.vm.name(), _load_path(dfd, name))
+        except RuntimeError as exc:  # verified yet not loadable (another compiler's ABI)
             self.error = str(exc)
+            return False
+        self.compiled, self.error = True, None
+        return True
 
     def _build(self) -> None:
         cc = compiler()
         if cc is None:
             return
-        with _QUEUE_LOCK:
-            if self._lib.exists():
-                self._load()
+        with _QUEUE_LOCK, _private_dir(create=True) as (dfd, _):
+            if dfd is None:
+                self.error = f"the code cache {str(cache_dir())!r} is not private"
+                return
+            if self._load(dfd):  # another process or object built it meanwhile
                 return
             try:
-                self._lib.parent.mkdir(parents=True, exist_ok=True)
                 with tempfile.TemporaryDirectory() as tmp:
                     src = Path(tmp) / "f.c"
                     gen = ca.CodeGenerator("f.c", {"with_header": False})
@@ -144,11 +530,15 @@ class Accelerated:
                     if res.returncode != 0:
                         self.error = res.stderr[-500:]
                         return
-                    # atomic: a concurrent process never loads a half-written library
-                    tmp_lib = self._lib.with_suffix(f".{os.getpid()}.tmp")
-                    shutil.copyfile(out, tmp_lib)
-                    os.replace(tmp_lib, self._lib)
+                    data = out.read_bytes()
+                name = self._lib.name
+                # the record first: a reader that sees the new library also sees its hash
+                record = f"{hashlib.sha256(data).hexdigest()}  {name}\n".encode()
+                _write_atomic(dfd, name + _RECORD, record)
+                _write_atomic(dfd, name, data)
             except (OSError, subprocess.SubprocessError, RuntimeError) as exc:
                 self.error = str(exc)
                 return
-            self._load()
+            if not self._load(dfd) and self.error is None:
+                self.error = f"the library {name} changed between its build and its load"
+            _evict(dfd, cache_limit())

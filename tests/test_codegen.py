@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import stat
+import subprocess
 import time
+import warnings
+from pathlib import Path
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -67,3 +75,200 @@ def test_compilation_waits_for_hot_calls(compiling: None) -> None:
         time.sleep(0.05)
     assert acc.compiled, acc.error
     assert float(acc(0.5)) == float(fn(0.5))
+
+
+# ---------------------------------------------------------------- a code cache you can trust
+
+
+@pytest.fixture
+def private(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """An empty private cache folder, with the one-time warnings forgotten."""
+    cache = tmp_path / "cache"
+    cache.mkdir(mode=0o700)
+    monkeypatch.setenv("HYBRIDOC_CACHE", str(cache))
+    monkeypatch.delenv("HYBRIDOC_CACHE_MAX_MB", raising=False)
+    monkeypatch.setattr(codegen, "_WARNED", set())
+    return cache
+
+
+def _probe() -> ca.Function:
+    x = ca.SX.sym("x")
+    return ca.Function("trust_probe", [x], [ca.cos(x) * x])
+
+
+def _planted(at: Path, marker: Path) -> None:
+    """A library whose constructor writes ``marker`` when it is loaded, at ``at``."""
+    src = marker.with_suffix(".c")
+    src.write_text(
+        "#include <stdio.h>\n"
+        "__attribute__((constructor)) static void planted(void) {\n"
+        f'  FILE *f = fopen("{marker}", "w");\n'
+        '  if (f) { fputs("ran", f); fclose(f); }\n'
+        "}\n"
+    )
+    subprocess.run(
+        [codegen.compiler(), "-shared", "-fPIC", str(src), "-o", str(at)],
+        check=True,
+        capture_output=True,
+    )
+
+
+def _fake_library(folder: Path, name: str, size: int, age_s: float, record: bool = True) -> Path:
+    """Random bytes at a library's name, with hybridoc's record of them, last used ``age_s``
+    seconds ago."""
+    lib = folder / f"{name}_{hashlib.sha256(name.encode()).hexdigest()[:24]}.so"
+    data = os.urandom(size)
+    lib.write_bytes(data)
+    if record:
+        rec = lib.with_name(lib.name + ".sha256")
+        rec.write_text(f"{hashlib.sha256(data).hexdigest()}  {lib.name}\n")
+    t = time.time() - age_s
+    os.utime(lib, (t, t))
+    return lib
+
+
+@pytest.fixture
+def marker(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("plant") / "constructor_ran"
+
+
+def test_a_planted_library_is_not_loaded(compiling: None, private: Path, marker: Path) -> None:
+    from hybridoc.solvers.compiled import CompiledLoss
+
+    u = hybridoc.as_ocp("head-on").u_guess * 1.3
+    vm = CompiledLoss("head-on", integrator="exact")
+    expected = vm.value_and_grad(u)
+    planted = [vm._value._lib, vm._value_grad._lib]
+    for lib in planted:  # at the exact names the cache loads, with no record
+        _planted(lib, marker)
+    loss = CompiledLoss("head-on", integrator="exact")
+    assert not marker.exists(), "a planted library was loaded"
+    assert not loss._value.compiled and not loss._value_grad.compiled
+    assert not any(lib.exists() for lib in planted)  # deleted, to be compiled again
+    got = loss.value_and_grad(u)  # the loss still works, on the virtual machine
+    assert got[0] == expected[0]
+    np.testing.assert_array_equal(got[1], expected[1])
+
+
+def test_a_tampered_library_is_not_loaded(compiling: None, private: Path, marker: Path) -> None:
+    fn = _probe()
+    built = codegen.Accelerated(fn, wait=True)
+    assert built.compiled, built.error
+    record = built._lib.with_name(built._lib.name + ".sha256")
+    assert record.is_file() and stat.S_IMODE(built._lib.stat().st_mode) == 0o600
+    _planted(built._lib, marker)  # other bytes under the recorded name
+    acc = codegen.Accelerated(fn)
+    assert not acc.compiled and not marker.exists()
+    assert float(acc(0.5)) == float(fn(0.5))
+    # one flipped byte of a genuine library is refused as well
+    rebuilt = codegen.Accelerated(fn, wait=True)
+    assert rebuilt.compiled, rebuilt.error
+    data = bytearray(rebuilt._lib.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    rebuilt._lib.write_bytes(bytes(data))
+    assert not codegen.Accelerated(fn).compiled
+    assert not marker.exists()
+
+
+def test_an_unsafe_cache_folder_is_refused(compiling: None, private: Path) -> None:
+    fn = _probe()
+    assert codegen.Accelerated(fn, wait=True).compiled  # a genuine, recorded library
+    private.chmod(0o777)
+    assert "other users can write" in codegen.check_cache_dir()
+    with pytest.warns(codegen.CacheWarning, match="not private"):
+        acc = codegen.Accelerated(fn, hot=0)
+    assert not acc.compiled and acc._calls_left == -1  # nothing loaded, nothing built
+    assert float(acc(0.5)) == float(fn(0.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the warning is given once
+        assert not codegen.Accelerated(fn, wait=True).compiled
+    assert len(list(private.glob("*.so"))) == 1  # left as it was
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="needs chown (root)")
+def test_a_cache_folder_of_another_user_is_refused(compiling: None, private: Path) -> None:
+    fn = _probe()
+    assert codegen.Accelerated(fn, wait=True).compiled
+    os.chown(private, 65534, 65534)
+    assert "owned by uid 65534" in codegen.check_cache_dir()
+    with pytest.warns(codegen.CacheWarning, match="not private"):
+        assert not codegen.Accelerated(fn).compiled
+
+
+def test_a_new_cache_folder_is_private(
+    compiling: None, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    cache = tmp_path / "new" / "cache"
+    monkeypatch.setenv("HYBRIDOC_CACHE", str(cache))
+    acc = codegen.Accelerated(_probe(), wait=True)
+    assert acc.compiled, acc.error
+    assert stat.S_IMODE(cache.stat().st_mode) == 0o700
+
+
+def test_eviction_keeps_the_cache_under_its_bound(private: Path) -> None:
+    libs = [_fake_library(private, f"f{k}", 1000, age_s=100.0 - k) for k in range(5)]
+    stranger = private / "notes.bin"
+    stranger.write_bytes(b"x" * 10_000)
+    stale, fresh = (libs[0].with_name(f"{libs[0].name}.{pid}.tmp") for pid in (11, 12))
+    for tmp, age in ((stale, 7200.0), (fresh, 0.0)):  # a dead build's temporary, a live one's
+        tmp.write_bytes(b"")
+        os.utime(tmp, (time.time() - age,) * 2)
+    removed = codegen.evict(limit=2500)
+    # the least recently used, and the dead build's temporary
+    assert sorted(removed) == sorted([*(lib.name for lib in libs[:3]), stale.name])
+    fresh.unlink()
+    left = [p for p in private.iterdir() if p != stranger]
+    assert sorted(p.name for p in left if p.suffix == ".so") == sorted(lib.name for lib in libs[3:])
+    assert sum(p.stat().st_size for p in left) <= 2500
+    assert stranger.read_bytes() == b"x" * 10_000  # not hybridoc's: not counted, not deleted
+
+
+def test_the_bound_is_set_by_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(codegen, "_WARNED", set())
+    monkeypatch.delenv("HYBRIDOC_CACHE_MAX_MB", raising=False)
+    assert codegen.cache_limit() == 500_000_000
+    monkeypatch.setenv("HYBRIDOC_CACHE_MAX_MB", "2.5")
+    assert codegen.cache_limit() == 2_500_000
+    monkeypatch.setenv("HYBRIDOC_CACHE_MAX_MB", "lots")
+    with pytest.warns(codegen.CacheWarning, match="HYBRIDOC_CACHE_MAX_MB"):
+        assert codegen.cache_limit() == 500_000_000
+
+
+def test_a_zero_bound_keeps_no_library_on_disk(
+    compiling: None, private: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("HYBRIDOC_CACHE_MAX_MB", "0")
+    fn = _probe()
+    acc = codegen.Accelerated(fn, wait=True)
+    assert acc.compiled, acc.error  # loaded before it was evicted
+    assert float(acc(0.5)) == float(fn(0.5))
+    assert list(private.iterdir()) == []
+
+
+def test_cache_info_and_clear(private: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from hybridoc.cli import main
+
+    _fake_library(private, "kept", 3000, age_s=0.0)
+    _fake_library(private, "old", 2000, age_s=10.0, record=False)  # an older hybridoc's
+    (private / "notes.txt").write_text("mine")
+    (private / "sub").mkdir()
+    assert main(["cache", "info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["path"] == str(private) and info["safe"] and info["mode"] == "0700"
+    assert (info["libraries"], info["unverified"], info["other_files"]) == (2, 1, 2)
+    assert 5000 < info["size_bytes"] < 5200 and info["limit_bytes"] == 500_000_000
+    assert main(["cache", "info"]) == 0
+    out = capsys.readouterr().out
+    assert str(private) in out and "0700, private" in out and "2 (1 without a matching" in out
+
+    assert main(["cache", "clear"]) == 0
+    assert "removed 3 files" in capsys.readouterr().out
+    assert sorted(p.name for p in private.iterdir()) == ["notes.txt", "sub"]
+    assert (private / "notes.txt").read_text() == "mine"
+    assert main(["cache", "info", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["libraries"] == 0
+
+    private.chmod(0o770)
+    assert main(["cache", "info"]) == 1
+    err = capsys.readouterr().err
+    assert "hybridoc: warning: the code cache" in err and "not private" in err

@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "validation",
     "datasets",
     "contacts",
+    "cache",
 )
 
 
