@@ -28,9 +28,26 @@ Files (in the output directory)
         Versions, settings (the scene as TOML, samples, seed, chunk size, tol), the nominal
         solution, counts per status, the data file's SHA-256, timings.
     ``shards/``
-        Finished chunks while a run is in progress; a run started again with the same
-        settings skips them (resumable), and they are removed once ``dataset.npz`` is
-        written.
+        Finished chunks while a run is in progress. The folder is made by the run with a
+        marker file (``.hybridoc-shards``) in it; a ``shards/`` without that marker is
+        someone else's and an error, never touched. Once ``dataset.npz`` is written, the
+        run removes the chunk files and the marker, then the folder if nothing else is
+        left in it.
+    ``.hybridoc-dataset.lock``
+        Held (``flock``) by the run that writes in the directory, removed when it ends: a
+        second run into the same directory fails at once.
+
+Writes, resume and checks
+    Every file is written under a unique temporary name in its directory and renamed over
+    the target, so a run killed at any point leaves either the old file or the new one;
+    the temporaries of a killed run (``.NAME.PID.XXXXXXXX.tmp``) are removed by the next.
+    A run started again with the same settings checks every shard (a readable zip with
+    the expected columns, rows and indices, computed with the same settings and nominal
+    solution), keeps the good ones, says which are bad and computes those again, and
+    writes the same bytes as an uninterrupted run. The data file's SHA-256 is checked on
+    every load (:func:`load_dataset`, and a rerun that finds the dataset complete): a
+    mismatch is an error naming the file and both hashes; the file is left as it is.
+    Pool workers end when the process that started them dies.
 
 Columns
     ``index``, ``x0`` ``(M, nx)``, ``targets`` ``(M, n_discs, 2)`` (NaN: no target),
@@ -56,6 +73,8 @@ Scale-out
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import dataclasses
 import hashlib
 import io
@@ -63,8 +82,11 @@ import json
 import math
 import multiprocessing as mp
 import os
-import shutil
+import re
+import secrets
+import signal
 import sys
+import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterator
@@ -78,7 +100,13 @@ import numpy as np
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.solvers.threads import usable_cores
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: runs are not locked
+    fcntl = None  # type: ignore[assignment]
+
 __all__ = [
+    "COLUMNS",
     "DATA_FILE",
     "MANIFEST_FILE",
     "Dataset",
@@ -91,6 +119,25 @@ __all__ = [
 DATA_FILE = "dataset.npz"
 MANIFEST_FILE = "manifest.json"
 SHARD_DIR = "shards"
+SHARD_MARK = ".hybridoc-shards"
+_MARK_TEXT = (
+    "hybridoc-dataset-shards/1\n"
+    "Unfinished chunks of 'hybridoc dataset'; it removes them when the dataset is written.\n"
+)
+LOCK_FILE = ".hybridoc-dataset.lock"
+_SPEC_KEY = "_spec"
+"""A shard's extra column: the SHA-256 of the settings and nominal solution it was
+computed with."""
+_CHUNK_NAME = re.compile(r"chunk-\d{6}\.npz")
+_TMP_NAME = re.compile(r"\.(?P<name>.+)\.\d+\.[0-9a-f]{8}\.tmp")
+"""Names of :func:`_atomic_write`'s temporaries (and of a shard folder being made)."""
+COLUMNS = frozenset(
+    "index x0 targets status method message cost terminal_cost running_cost residual "
+    "sequence n_events event_times multipliers approach_speeds controls "
+    "control_coefficients phase_starts phase_states phase_costates states_minus "
+    "costates_minus final_state final_costate lambda0".split()
+)
+"""The columns of a dataset (module notes)."""
 FORMAT = "hybridoc-dataset/1"
 CHUNK = 25
 """Draws per chunk (one shard file, one task of the pool or of Dask)."""
@@ -385,9 +432,9 @@ def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return out
 
 
-def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
-    """Write ``arrays`` as ``.npz`` byte for byte reproducibly (fixed zip timestamps, sorted
-    names), atomically; returns the SHA-256 of the file."""
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """``arrays`` as ``.npz`` bytes, byte for byte reproducibly (fixed zip timestamps,
+    sorted names)."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
         for name in sorted(arrays):
@@ -397,16 +444,229 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.external_attr = 0o644 << 16
             zf.writestr(info, body.getvalue())
-    data = buf.getvalue()
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    return buf.getvalue()
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write ``arrays`` as ``.npz`` (:func:`_npz_bytes`) atomically; returns the SHA-256 of
+    the file."""
+    data = _npz_bytes(arrays)
+    _atomic_write(path, data)
     return hashlib.sha256(data).hexdigest()
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as z:
+def _parse_npz(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+def _tmp_name(path: Path) -> Path:
+    """A temporary name next to ``path`` that no other process or call uses."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):  # not every file system syncs a directory
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file of a unique name in the same
+    directory, synced and renamed over it: readers and concurrent writers see the old file
+    or the new one, never a part; a crash leaves at most a temporary (:func:`_sweep`)."""
+    tmp = _tmp_name(path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    _fsync_dir(path.parent)
+
+
+def _sweep(folder: Path, files: Callable[[str], bool], dirs: Callable[[str], bool]) -> None:
+    """Remove the temporaries a killed run left in ``folder``: files ``.NAME.PID.HEX.tmp``
+    with ``files(NAME)`` true and, with ``dirs(NAME)`` true, shard folders that were being
+    made (only our marker inside). Called with the lock held, so no run is writing them."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for e in entries:
+        m = _TMP_NAME.fullmatch(e.name)
+        if m is None:
+            continue
+        with contextlib.suppress(OSError):
+            if e.is_dir(follow_symlinks=False) and dirs(m["name"]):
+                _sweep(Path(e.path), lambda n: n == SHARD_MARK, lambda n: False)
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(os.path.join(e.path, SHARD_MARK))
+                os.rmdir(e.path)  # fails, and keeps it, if anything else is inside
+            elif e.is_file(follow_symlinks=False) and files(m["name"]):
+                os.unlink(e.path)
+
+
+# ---------------------------------------------------------------------------- files we own
+
+_HELD_LOCKS: set[int] = set()
+
+
+def _drop_inherited_locks() -> None:
+    # a forked child (pool worker, the reference's search pool) shares the lock's open file
+    # description; closing its copy keeps a child that outlives the run from holding the lock
+    for fd in _HELD_LOCKS:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _HELD_LOCKS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_drop_inherited_locks)
+
+
+@contextlib.contextmanager
+def _locked(out: Path) -> Iterator[None]:
+    """Hold the lock of the output directory ``out`` (``flock`` on :data:`LOCK_FILE`,
+    without waiting) for the block, and remove the lock file at its end.
+
+    Raises
+    ------
+    HybridocError
+        Another run holds it, or it cannot be taken.
+    """
+    path = out / LOCK_FILE
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise HybridocError(f"cannot create {str(path)!r}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if isinstance(exc, BlockingIOError):
+                raise HybridocError(
+                    f"another hybridoc dataset run holds the lock on {str(out)!r} "
+                    f"({LOCK_FILE}); wait for it to end or choose another --out"
+                ) from None
+            raise HybridocError(f"cannot lock {str(path)!r}: {exc.strerror}") from None
+        # the run before may have removed the file as it ended, after we opened it: the
+        # lock counts only on the file that is at the path now
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    _HELD_LOCKS.add(fd)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()  # still holding it, so no other run has it
+        _HELD_LOCKS.discard(fd)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+
+
+def _is_ours(folder: Path) -> bool:
+    """Whether ``folder`` is a shard folder made by :func:`_shard_dir` (its marker)."""
+    try:
+        with open(folder / SHARD_MARK, encoding="utf-8") as f:
+            return f.readline() == _MARK_TEXT.splitlines(keepends=True)[0]
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+def _shard_dir(out: Path) -> Path:
+    """The shard folder of ``out``: made with its marker in one rename (a kill leaves no
+    unmarked folder of ours), or ours already.
+
+    Raises
+    ------
+    HybridocError
+        ``out/shards`` exists and is not ours: nothing in it is touched.
+    """
+    d = out / SHARD_DIR
+    if not d.exists() and not d.is_symlink():
+        tmp = _tmp_name(d)
+        try:
+            tmp.mkdir()
+            fd = os.open(tmp / SHARD_MARK, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(_MARK_TEXT)
+            os.rename(tmp, d)
+        except OSError as exc:
+            _sweep(out, lambda n: False, lambda n: n == SHARD_DIR)
+            raise HybridocError(f"cannot create {str(d)!r}: {exc.strerror or exc}") from None
+    elif not (d.is_dir() and not d.is_symlink() and _is_ours(d)):
+        raise HybridocError(
+            f"{str(d)!r} exists and was not made by 'hybridoc dataset' (it has no "
+            f"{SHARD_MARK} marker); hybridoc never deletes files it did not write: move it "
+            "away or choose another --out"
+        )
+    return d
+
+
+def _remove_shards(d: Path, say: Callable[[str], None]) -> None:
+    """Remove what the runs wrote in the shard folder ``d`` (chunks, temporaries, the marker
+    last) and then the folder if nothing else is left in it. The dataset is complete by
+    then: a failure is said, not raised."""
+    try:
+        for e in list(os.scandir(d)):
+            m = _TMP_NAME.fullmatch(e.name)
+            if e.is_file(follow_symlinks=False) and (
+                _CHUNK_NAME.fullmatch(e.name) or (m and _CHUNK_NAME.fullmatch(m["name"]))
+            ):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(e.path)
+        others = sorted(n for n in os.listdir(d) if n != SHARD_MARK)
+        if others:
+            say(f"kept {d}: it holds files that hybridoc did not write ({', '.join(others[:3])})")
+            return
+        os.unlink(d / SHARD_MARK)
+        os.rmdir(d)
+    except OSError as exc:
+        say(f"cannot remove {d}: {exc.strerror or exc}")
+
+
+def _read_shard(
+    path: Path, indices: list[int], spec_hash: str
+) -> tuple[dict[str, np.ndarray] | None, str]:
+    """The columns of the finished chunk ``path`` of ``indices``, or ``None`` and why it
+    cannot be used ("" when it does not exist)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None, ""
+    except OSError as exc:
+        return None, f"cannot be read ({exc.strerror})"
+    try:
+        cols = _parse_npz(data)
+    except Exception as exc:  # truncated or damaged: whatever numpy or zipfile raise
+        return None, f"is damaged ({type(exc).__name__}: {exc})"
+    if set(cols) != COLUMNS | {_SPEC_KEY}:
+        return None, "has other columns"
+    if cols.pop(_SPEC_KEY).tolist() != [spec_hash]:
+        return None, "was computed with other settings"
+    n = len(indices)
+    if cols["index"].dtype.kind != "i" or not np.array_equal(cols["index"], indices):
+        return None, f"holds other draws than {indices[0]} to {indices[-1]}"
+    if any(a.ndim == 0 or a.shape[0] != n for a in cols.values()):
+        return None, f"does not have {n} rows in every column"
+    return cols, ""
 
 
 # ---------------------------------------------------------------------------- engines
@@ -494,6 +754,46 @@ def check_dask(dask: Any) -> None:
         )
 
 
+def _die_with_parent() -> bool:
+    """Ask Linux to kill this process when its parent dies (``PR_SET_PDEATHSIG``); whether
+    it could."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)) == 0  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent: int, interval: float = 0.5) -> None:
+    """Exit this process as soon as its parent is no longer ``parent`` (it died and the
+    process was re-parented); runs in a daemon thread where :func:`_die_with_parent`
+    cannot."""
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="hybridoc-watch-parent", daemon=True).start()
+
+
+def _worker_start(parent: int, initializer: Callable[[], None] | None) -> None:
+    """Pool initializer: end this worker with its parent, then run ``initializer``.
+
+    Without it a worker outlives a parent killed with SIGKILL: it waits on the pool's pipe,
+    whose other ends its sibling workers hold open.
+    """
+    if not _die_with_parent():
+        _watch_parent(parent)
+    if os.getppid() != parent:  # it died before the signal was asked for
+        os._exit(1)
+    if initializer is not None:
+        initializer()
+
+
 def run_chunks(
     fn: Callable[..., Any],
     common: Any,
@@ -508,7 +808,8 @@ def run_chunks(
     ``on_result(chunk id, result)`` in the calling process, as chunks finish.
 
     ``workers == 1`` and no ``dask``: in this process. Otherwise a process pool of
-    ``workers`` (fork where available) or the Dask cluster ``dask``.
+    ``workers`` (fork where available; they end when this process dies) or the Dask cluster
+    ``dask``.
     """
     if not chunks:
         return
@@ -529,7 +830,10 @@ def run_chunks(
         return
     method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
     with ProcessPoolExecutor(
-        min(workers, len(chunks)), mp_context=mp.get_context(method), initializer=initializer
+        min(workers, len(chunks)),
+        mp_context=mp.get_context(method),
+        initializer=_worker_start,
+        initargs=(os.getpid(), initializer),
     ) as pool:
         futs = {pool.submit(fn, common, idx): cid for cid, idx in chunks}
         try:
@@ -647,7 +951,8 @@ def make_dataset(
         ``M`` >= 1.
     out
         Output directory (created). A run interrupted there resumes when started again
-        with the same settings; other settings there are an error.
+        with the same settings; other settings there are an error. One run at a time
+        writes there (a lock); files hybridoc did not write are never removed.
     seed
         Overrides the distribution's seed.
     workers
@@ -671,7 +976,9 @@ def make_dataset(
     ------
     HybridocError
         Bad arguments, a scene without a distribution, an output directory holding another
-        dataset, an unreachable Dask scheduler.
+        dataset, or locked by another run, or holding a ``shards/`` that hybridoc did not
+        make; a complete dataset there whose data file fails its SHA-256 (left as it is);
+        an unreachable Dask scheduler.
     """
     samples = _check_count(samples, "samples", 1)
     scene = _scene_of(problem)
@@ -689,12 +996,27 @@ def make_dataset(
 
     out = Path(out)
     try:
-        (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise HybridocError(
             f"cannot create output directory {str(out)!r}: {exc.strerror}"
         ) from None
     settings = _settings(scene, samples, seed, float(tol), bool(full))
+    with _locked(out):
+        return _make(out, scene, settings, workers, dask, progress, say)
+
+
+def _make(
+    out: Path,
+    scene: Any,
+    settings: dict[str, Any],
+    workers: int,
+    dask: Any,
+    progress: bool,
+    say: Callable[[str], None],
+) -> Dataset:
+    """:func:`make_dataset` in ``out``, with its lock held."""
+    _sweep(out, lambda n: n in (DATA_FILE, MANIFEST_FILE), lambda n: n == SHARD_DIR)
     mpath = out / MANIFEST_FILE
     manifest: dict[str, Any] | None = None
     if mpath.exists():
@@ -702,17 +1024,29 @@ def make_dataset(
             manifest = json.loads(mpath.read_text())
         except (OSError, ValueError) as exc:
             raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
-        if manifest.get("settings") != settings:
+        if not isinstance(manifest, dict) or manifest.get("settings") != settings:
             raise HybridocError(
                 f"{str(out)!r} holds a dataset with other settings (scene, samples, seed, tol "
                 "or version); choose another --out or remove it"
             )
-        if manifest.get("complete") and (out / DATA_FILE).exists():
-            say(f"{out / DATA_FILE} is complete already")
-            return load_dataset(out)
+        if manifest.get("complete"):
+            if (out / DATA_FILE).exists():
+                # its SHA-256 is checked: a damaged or edited file is an error, kept as it is
+                ds = load_dataset(out)
+                if (out / SHARD_DIR).is_dir() and _is_ours(out / SHARD_DIR):
+                    _remove_shards(out / SHARD_DIR, say)  # a run killed as it cleaned up
+                say(f"{out / DATA_FILE} is complete already")
+                return ds
+            say(f"{out / DATA_FILE} is missing: computing it again")
+            manifest["complete"] = False
+            _write_json(mpath, manifest)
+    # before the nominal solve, so that a folder that is not ours fails at once
+    sdir = _shard_dir(out)
+    _sweep(sdir, lambda n: bool(_CHUNK_NAME.fullmatch(n)), lambda n: False)
     t0 = time.perf_counter()
+    samples, seed, tol, full = (settings[k] for k in ("samples", "seed", "tol", "full"))
     if manifest is None:
-        nominal = None if full else _nominal(scene, float(tol), say)
+        nominal = None if full else _nominal(scene, tol, say)
         manifest = {
             "format": FORMAT,
             "complete": False,
@@ -721,28 +1055,35 @@ def make_dataset(
         }
         _write_json(mpath, manifest)
     nominal = manifest.get("nominal")
-    spec = {
-        "scene": settings["scene"],
-        "seed": seed,
-        "tol": float(tol),
-        "full": bool(full),
-        "nominal": nominal,
-    }
+    spec = {"scene": settings["scene"], "seed": seed, "tol": tol, "full": full, "nominal": nominal}
+    spec_hash = hashlib.sha256(
+        json.dumps({"settings": settings, "nominal": nominal}, sort_keys=True).encode()
+    ).hexdigest()
     chunks = list(iter_chunks(samples, CHUNK))
-    shard = {cid: out / SHARD_DIR / f"chunk-{cid:06d}.npz" for cid, _ in chunks}
-    todo = [(cid, idx) for cid, idx in chunks if not shard[cid].exists()]
+    shard = {cid: sdir / f"chunk-{cid:06d}.npz" for cid, _ in chunks}
+    parts: dict[int, dict[str, np.ndarray]] = {}
+    todo = []
+    for cid, idx in chunks:
+        cols, why = _read_shard(shard[cid], idx, spec_hash)
+        if cols is None:
+            if why:
+                say(f"shard {shard[cid].name} {why}: computing it again")
+            todo.append((cid, idx))
+        else:
+            parts[cid] = cols
     done = samples - sum(len(idx) for _, idx in todo)
     if done:
         say(f"resuming: {done} of {samples} samples already done")
     bar = Progress("dataset", samples, done, enabled=progress)
 
     def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
-        _write_npz(shard[cid], cols)
+        _write_npz(shard[cid], {**cols, _SPEC_KEY: np.array([spec_hash])})
+        parts[cid] = cols
         bar.update(len(cols["index"]), int(np.sum(cols["status"] != "success")))
 
     engine = "dask" if dask is not None else ("serial" if workers == 1 else "process-pool")
     run_chunks(_solve_chunk, spec, todo, workers=workers, dask=dask, on_result=on_result)
-    data = _concat([_read_npz(shard[cid]) for cid, _ in chunks])
+    data = _concat([parts[cid] for cid, _ in chunks])
     digest = _write_npz(out / DATA_FILE, data)
     status, counts = data["status"], {}
     for s in sorted(set(status.tolist())):
@@ -762,26 +1103,24 @@ def make_dataset(
         last_run={"engine": engine, "workers": workers, "wall_time_s": time.perf_counter() - t0},
     )
     _write_json(mpath, manifest)
-    shutil.rmtree(out / SHARD_DIR, ignore_errors=True)
+    _remove_shards(sdir, say)
     return Dataset(out, data, manifest)
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(json.dumps(obj, indent=1) + "\n")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    _atomic_write(path, (json.dumps(obj, indent=1) + "\n").encode())
 
 
 def load_dataset(path: str | Path) -> Dataset:
-    """Read a dataset written by :func:`make_dataset` (a directory or its ``dataset.npz``).
+    """Read a dataset written by :func:`make_dataset` (a directory or its ``dataset.npz``),
+    checking the data file against the SHA-256 in its manifest.
 
     Raises
     ------
     HybridocError
-        Not a dataset, or an incomplete one (run ``hybridoc dataset`` again to finish it).
+        Not a dataset, an incomplete one (run ``hybridoc dataset`` again to finish it), or
+        a data file that is not the one the manifest records (changed or damaged since it
+        was written: the message names it and both hashes).
     """
     p = Path(path)
     if p.is_file():
@@ -793,14 +1132,29 @@ def load_dataset(path: str | Path) -> Dataset:
         manifest = json.loads(mpath.read_text())
     except (OSError, ValueError) as exc:
         raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
-    if manifest.get("format") != FORMAT:
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise HybridocError(f"{str(mpath)!r} is not a {FORMAT} manifest")
     if not manifest.get("complete") or not dpath.exists():
         raise HybridocError(
             f"the dataset in {str(p)!r} is incomplete: run the same 'hybridoc dataset' command "
             "again to resume it"
         )
-    return Dataset(p, _read_npz(dpath), manifest)
+    try:
+        data = dpath.read_bytes()
+    except OSError as exc:
+        raise HybridocError(f"cannot read {str(dpath)!r}: {exc.strerror}") from None
+    expected, actual = manifest.get("sha256"), hashlib.sha256(data).hexdigest()
+    if actual != expected:
+        raise HybridocError(
+            f"{str(dpath)!r} is not the file its manifest records (SHA-256 expected "
+            f"{expected}, actual {actual}): it was changed or damaged after it was written; "
+            "to compute it again, remove it and run the same 'hybridoc dataset' command"
+        )
+    try:
+        columns = _parse_npz(data)
+    except Exception as exc:  # the recorded hash of an unreadable file: whatever numpy raises
+        raise HybridocError(f"cannot read {str(dpath)!r}: {type(exc).__name__}: {exc}") from None
+    return Dataset(p, columns, manifest)
 
 
 def iter_chunks(n: int, size: int) -> Iterator[tuple[int, list[int]]]:

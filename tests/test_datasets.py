@@ -223,6 +223,7 @@ def test_dataset_columns_and_manifest(dataset: Any) -> None:
     c = dataset.columns
     assert len(dataset) == M
     assert list(c["index"]) == list(range(M))
+    assert set(c) == dsmod.COLUMNS
     assert set(c["status"]) == {"success"}, c["message"]
     assert set(c["sequence"]) == {"ball1|ball2"}
     assert c["controls"].shape == (M, 480, 2)
@@ -251,7 +252,7 @@ def test_dataset_columns_and_manifest(dataset: Any) -> None:
     assert m["nominal"]["sequence"] == ["ball1|ball2"]
     assert m["versions"]["numpy"] == np.__version__
     assert m["settings"]["samples"] == M and m["settings"]["seed"] == 7
-    assert not (dataset.path / "shards").exists()
+    assert sorted(p.name for p in dataset.path.iterdir()) == ["dataset.npz", "manifest.json"]
     assert load_dataset(dataset.path / "dataset.npz").manifest["sha256"] == m["sha256"]
 
 
@@ -276,7 +277,10 @@ def test_dataset_resumes_to_the_same_file(
     monkeypatch.setattr(dsmod, "_solve_chunk", flaky)
     with pytest.raises(KeyboardInterrupt):
         make_dataset(files / "scene.toml", M, out, workers=1, progress=False)
-    assert sorted(p.name for p in (out / "shards").iterdir()) == ["chunk-000000.npz"]
+    assert sorted(p.name for p in (out / "shards").iterdir()) == [
+        ".hybridoc-shards",  # the marker of a folder that hybridoc made
+        "chunk-000000.npz",
+    ]
     with pytest.raises(HybridocError, match="incomplete"):
         load_dataset(out)
     seen: list[list[int]] = []

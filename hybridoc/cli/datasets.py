@@ -61,8 +61,10 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     """Exact optimal controls, events, costates and costs of M draws of a scene's
     [distribution]: DIR/dataset.npz (one row per draw) and DIR/manifest.json.
 
-    An interrupted run resumes when started again with the same options. Draws whose
-    reference failed are kept with status 'failed' (exit code 1, with a warning line).
+    An interrupted run resumes when started again with the same options (shards that are
+    damaged are computed again); one run at a time writes into DIR, and a dataset found
+    complete there is checked against its SHA-256. Draws whose reference failed are kept
+    with status 'failed' (exit code 1, with a warning line).
     """
     from hybridoc.dataset import DATA_FILE, MANIFEST_FILE, make_dataset
 
