@@ -11,6 +11,7 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 # tests import helper modules (the oracle, the library's independent optima) by name
@@ -43,3 +44,14 @@ settings.load_profile("fuzz" if FUZZ else "ci")
 def examples(n: int) -> int:
     """The number of examples of a property test: ``n`` at CI size, 100 ``n`` when fuzzing."""
     return n * FUZZ_FACTOR if FUZZ else n
+
+
+@pytest.fixture
+def compiling(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Background C compilation on, into a cache of the test's own (skipped without cc)."""
+    from hybridoc.solvers import codegen
+
+    if codegen.compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv("HYBRIDOC_CODEGEN", "1")
+    monkeypatch.setenv("HYBRIDOC_CACHE", str(tmp_path / "cache"))

@@ -19,14 +19,6 @@ import hybridoc
 from hybridoc.solvers import codegen
 
 
-@pytest.fixture
-def compiling(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
-    if codegen.compiler() is None:
-        pytest.skip("no C compiler on this machine")
-    monkeypatch.setenv("HYBRIDOC_CODEGEN", "1")
-    monkeypatch.setenv("HYBRIDOC_CACHE", str(tmp_path))
-
-
 def test_compiled_loss_and_gradient_equal_the_virtual_machine(compiling: None) -> None:
     from hybridoc.solvers.compiled import CompiledLoss
 
