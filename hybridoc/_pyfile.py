@@ -9,7 +9,7 @@ from types import ModuleType
 
 from hybridoc.errors import HybridocError
 
-__all__ = ["import_file"]
+__all__ = ["exit_message", "import_file"]
 
 
 def import_file(path: Path, kind: str, error: type[HybridocError]) -> ModuleType:
@@ -22,8 +22,9 @@ def import_file(path: Path, kind: str, error: type[HybridocError]) -> ModuleType
     kind
         What the file holds (``"problem"``, ``"policy"``), for the messages and the module name.
     error
-        The error raised for a missing or failing file; the same error raised by the file's
-        own code passes through unchanged.
+        The error raised for a missing or failing file (one that raises, or calls
+        ``sys.exit`` while it is imported); the same error raised by the file's own code
+        passes through unchanged.
     """
     if not path.is_file():
         raise error(f"{kind} file {str(path)!r} does not exist")
@@ -42,4 +43,26 @@ def import_file(path: Path, kind: str, error: type[HybridocError]) -> ModuleType
     except Exception as exc:
         del sys.modules[name]
         raise error(f"importing {str(path)!r} raised {type(exc).__name__}: {exc}") from exc
+    except SystemExit as exc:
+        # not a way to end hybridoc: exit 0 would read as success with no answer printed
+        del sys.modules[name]
+        raise error(exit_message(str(path), exc, "while being imported")) from None
     return module
+
+
+def exit_message(where: str, exc: SystemExit, when: str) -> str:
+    """The message of a user's file or function that called ``sys.exit``.
+
+    Parameters
+    ----------
+    where
+        The file or ``file.py:function``.
+    exc
+        The ``SystemExit`` it raised.
+    when
+        When, e.g. ``"while being imported"``.
+    """
+    return (
+        f"{where} called sys.exit({exc.code!r}) {when}; a problem or policy file must "
+        "return its object (or raise an exception), not end the program"
+    )

@@ -44,7 +44,13 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
 
-__all__ = ["Guard", "HybridOCP", "Structure", "as_float_array"]
+__all__ = ["MAX_STEPS", "Guard", "HybridOCP", "Structure", "as_float_array"]
+
+MAX_STEPS = 10**6
+"""The largest grid ``N`` a problem may have: a million cells (the controls alone are then
+``16 nu`` MB, and every solver and the judge work cell by cell) is far beyond any grid the
+methods need, and a typo such as ``steps = 1e20`` fails with one clear line instead of
+exhausting memory."""
 
 
 @dataclass(frozen=True)
@@ -155,7 +161,8 @@ class HybridOCP:
     horizon
         Final time ``T``.
     steps
-        ``N``, the grid for discrete solvers and piecewise-constant controls.
+        ``N``, the grid for discrete solvers and piecewise-constant controls; at most
+        :data:`MAX_STEPS`.
     u_guess
         Initial guess of the controls, ``(N, nu)``; default zeros (clipped to the bounds).
     flow_map
@@ -203,13 +210,9 @@ class HybridOCP:
             self.horizon = float(self.horizon)
         except (TypeError, ValueError):
             raise SceneError(f"horizon must be a number, got {self.horizon!r}") from None
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int | np.integer):
-            raise SceneError(f"steps must be an integer >= 1, got {self.steps!r}")
-        self.steps = int(self.steps)
+        self.steps = _checked_steps(self.steps)
         if self.horizon <= 0 or not np.isfinite(self.horizon):
             raise SceneError(f"horizon must be positive and finite, got {self.horizon}")
-        if self.steps < 1:
-            raise SceneError(f"steps must be >= 1, got {self.steps}")
         if not np.all(np.isfinite(self.x0)):
             raise SceneError("x0 must be finite")
         if self.f.n_in() != 2 or self.f.size1_in(0) != self.x0.size:
@@ -299,7 +302,7 @@ class HybridOCP:
         if unknown:
             raise TypeError(f"unknown HybridOCP field(s): {sorted(unknown)}")
         if "steps" in changes and "u_guess" not in changes:
-            n_new = int(changes["steps"])
+            n_new = _checked_steps(changes["steps"])  # before allocating the new guess
             mids = (np.arange(n_new) + 0.5) / n_new
             assert self.u_guess is not None
             changes["u_guess"] = self.u_guess[
@@ -441,9 +444,21 @@ def as_float_array(value: Any, what: str, *, error: type[Exception] = SceneError
     return np.array(raw, dtype=np.float64)
 
 
+def _checked_steps(steps: Any) -> int:
+    """``steps`` as an int in ``[1, MAX_STEPS]``, or a :class:`SceneError`."""
+    if isinstance(steps, bool) or not isinstance(steps, int | np.integer):
+        raise SceneError(f"steps must be an integer >= 1, got {steps!r}")
+    if steps < 1:
+        raise SceneError(f"steps must be >= 1, got {steps}")
+    if steps > MAX_STEPS:
+        raise SceneError(f"steps must be at most {MAX_STEPS} (hybridoc.ocp.MAX_STEPS), got {steps}")
+    return int(steps)
+
+
 def _casadi_name(name: str) -> str:
     """A valid CasADi function-name suffix derived from any guard name."""
-    out = "".join(ch if ch.isalnum() else "_" for ch in name)
+    # ASCII only: str.isalnum accepts letters such as "\u00e9", which CasADi rejects
+    out = "".join(ch if ch.isascii() and ch.isalnum() else "_" for ch in name)
     while "__" in out:
         out = out.replace("__", "_")
     return out.strip("_") or "guard"

@@ -518,17 +518,51 @@ def plot_trajectories(
     return plot_states(evaluations, list(ocp.state_labels), title=title)
 
 
+def figure_path(path: str | Path) -> Path:
+    """The file :func:`save_figure` writes for ``path``: ``.png`` appended when there is no
+    suffix (as matplotlib does).
+
+    Raises
+    ------
+    hybridoc.errors.HybridocError
+        A suffix that is no figure format matplotlib writes.
+    """
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from hybridoc.errors import HybridocError
+
+    p = Path(path)
+    if not p.suffix:
+        p = p.with_name(p.name + ".png")
+    supported = FigureCanvasBase.get_supported_filetypes()
+    if p.suffix[1:].lower() not in supported:
+        raise HybridocError(
+            f"cannot write {str(p)!r}: {p.suffix!r} is not a figure format "
+            f"(use one of {', '.join('.' + k for k in sorted(supported))})"
+        )
+    return p
+
+
 def save_figure(fig: Figure, path: str | Path) -> Path:
-    """Write ``fig`` as PNG (dpi 120), creating parent directories, and close it.
+    """Write ``fig`` (dpi 120), creating parent directories, and close it.
+
+    The format follows the suffix (``.png``, ``.pdf``, ``.svg``, ...); a path without one
+    gets ``.png`` appended (:func:`figure_path`), and the path returned says so.
 
     Returns
     -------
     pathlib.Path
         The file written.
+
+    Raises
+    ------
+    hybridoc.errors.HybridocError
+        A suffix that is no figure format matplotlib writes.
     """
-    p = Path(path)
+    p = figure_path(path)
+    kind = p.suffix[1:].lower()
     p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=120)
+    fig.savefig(p, dpi=120, format=kind)
     if getattr(fig.canvas, "manager", None) is not None:  # a pyplot figure: release it
         import matplotlib.pyplot as plt
 

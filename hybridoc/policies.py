@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridoc._pyfile import import_file
+from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
 
 __all__ = [
@@ -179,6 +179,9 @@ def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.n
             ev = evaluate(ocp, policy=policy, hold=common["hold"])
         except ControlsError as exc:
             raise ControlsError(f"sample {i}: {exc}") from None
+        except SystemExit as exc:  # the user's policy ended the program: say so
+            who = "the policy" if key is None else f"policy {key!r}"
+            raise PolicyError(exit_message(who, exc, f"in the rollout of sample {i}")) from None
         except EvaluationError as exc:
             costs.append(np.nan)
             seqs.append("")

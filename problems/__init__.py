@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridoc._pyfile import import_file
+from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import SceneError
 from hybridoc.problems.scene import Disc, Scene, Wall
 
@@ -141,6 +141,8 @@ def _from_python(path: Path, func: str, *, explicit: bool) -> Any:
         raise
     except Exception as exc:
         raise SceneError(f"{where}() raised {type(exc).__name__}: {exc}") from exc
+    except SystemExit as exc:
+        raise SceneError(exit_message(where, exc, "instead of returning a problem")) from None
     if not isinstance(out, HybridOCP | Scene):
         raise SceneError(f"{where}() returned {type(out).__name__}, not a HybridOCP or a Scene")
     return out

@@ -9,12 +9,12 @@ TOML layout::
     name = "single-collision"          # optional, default: file stem
     description = "..."                # optional
     horizon = 1.0                      # T, required, > 0
-    steps = 480                        # N, default 480
+    steps = 480                        # N, default 480, at most 10**6 (MAX_STEPS)
     control_weight = 0.01              # eps in eps*|u|^2, default 0.01, > 0
     restitution = 1.0                  # e in [0, 1], default 1.0
 
     [[discs]]
-    name = "striker"                   # required, unique
+    name = "striker"                   # required, unique; [A-Za-z_][A-Za-z0-9_-]*
     position = [-1.0, -2.0]            # required
     velocity = [0.0, 0.0]              # default zeros
     radius = 0.2                       # required, > 0
@@ -24,7 +24,7 @@ TOML layout::
     target = [0.0, 0.0]                # optional: adds |p(T) - target|^2 to the terminal cost
 
     [[walls]]
-    name = "ceiling"                   # optional, default "wall<k>"
+    name = "ceiling"                   # optional, default "wall<k>"; as a disc name
     point = [0.0, 1.0]                 # required
     normal = [0.0, -1.0]               # required, nonzero, points into free space
 
@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -50,8 +51,16 @@ from typing import Any
 import numpy as np
 
 from hybridoc.errors import SceneError
+from hybridoc.ocp import MAX_STEPS
 
-__all__ = ["Disc", "DiscSpread", "Distribution", "Scene", "Spread", "Wall"]
+__all__ = ["NAME_PATTERN", "Disc", "DiscSpread", "Distribution", "Scene", "Spread", "Wall"]
+
+NAME_PATTERN = r"[A-Za-z_][A-Za-z0-9_-]*"
+"""What a disc or wall name may be: ASCII letters, digits, ``_`` and ``-``, not starting with
+a digit or ``-``. Names become guard names (``a|b``), control labels (``a.ux``), entries of
+``--sequence`` lists (comma-separated) and parts of compiled CasADi function names, which
+take ASCII only."""
+_NAME_RE = re.compile(NAME_PATTERN)
 
 _TOP_KEYS = {"name", "description", "horizon", "steps", "control_weight", "restitution"}
 _SPREAD_KINDS = ("uniform", "normal", "range")
@@ -88,6 +97,15 @@ def _number(value: Any, what: str) -> float:
     return x
 
 
+def _check_name(name: str, what: str) -> None:
+    if _NAME_RE.fullmatch(name) is None:
+        raise SceneError(
+            f"{what} name {name!r} is not allowed: use ASCII letters, digits, '_' and '-', "
+            "starting with a letter or '_' (names make up guard names such as 'a|b', control "
+            "labels such as 'a.ux' and compiled function names)"
+        )
+
+
 def _positive(value: Any, what: str) -> float:
     x = _number(value, what)
     if x <= 0:
@@ -102,7 +120,7 @@ class Disc:
     Parameters
     ----------
     name
-        Unique name, used in event reports.
+        Unique name, used in event reports; matches :data:`NAME_PATTERN`.
     position
         Initial centre ``[x, y]``.
     radius
@@ -133,6 +151,7 @@ class Disc:
         what = f"disc {self.name!r}"
         if not isinstance(self.name, str) or not self.name.strip():
             raise SceneError(f"disc name must be a non-empty string, got {self.name!r}")
+        _check_name(self.name, "disc")
         object.__setattr__(self, "position", _vec2(self.position, f"{what}: position"))
         object.__setattr__(self, "velocity", _vec2(self.velocity, f"{what}: velocity"))
         object.__setattr__(self, "radius", _positive(self.radius, f"{what}: radius"))
@@ -180,7 +199,8 @@ class Disc:
 class Wall:
     """An infinite straight wall through ``point`` with ``normal`` pointing into free space.
 
-    The normal is normalised to unit length; a zero-length normal is an error.
+    The normal is normalised to unit length; a zero-length normal is an error. A name, when
+    given, matches :data:`NAME_PATTERN`; an empty one becomes ``wall<k>`` in the scene.
     """
 
     point: tuple[float, float]
@@ -201,6 +221,8 @@ class Wall:
         object.__setattr__(self, "normal", n)
         if not isinstance(self.name, str):
             raise SceneError(f"wall name must be a string, got {self.name!r}")
+        if self.name:  # empty: the scene names it wall<k>
+            _check_name(self.name, "wall")
 
 
 @dataclass(frozen=True)
@@ -461,7 +483,8 @@ class Scene:
     walls
         The walls (may be empty).
     steps
-        ``N``: grid of the discrete solvers and of sampled controls.
+        ``N``: grid of the discrete solvers and of sampled controls; at most
+        :data:`~hybridoc.ocp.MAX_STEPS`.
     control_weight
         ``eps`` > 0.
     restitution
@@ -490,6 +513,8 @@ class Scene:
             raise SceneError(f"steps must be a positive integer, got {self.steps!r}")
         if self.steps < 1:
             raise SceneError(f"steps must be a positive integer, got {self.steps}")
+        if self.steps > MAX_STEPS:
+            raise SceneError(f"steps must be at most {MAX_STEPS}, got {self.steps}")
         object.__setattr__(self, "steps", int(self.steps))
         object.__setattr__(self, "control_weight", _positive(self.control_weight, "control_weight"))
         e = _number(self.restitution, "restitution")

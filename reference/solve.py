@@ -61,9 +61,14 @@ from hybridoc.reference.sequence import solve_sequence, verify_reference
 from hybridoc.reference.shooting import hamiltonian_check, is_disc_scene
 from hybridoc.solution import Solution, Status
 
-__all__ = ["reference_supports", "solve_reference"]
+__all__ = ["MAX_SEARCH", "reference_supports", "solve_reference"]
 
 _OPT_RTOL = 1e-9  # a known control cheaper by more than this makes the extremal not optimal
+MAX_SEARCH = 8
+"""The longest sequences ``search`` may enumerate. Their number grows about sevenfold per
+event on two- and three-disc scenes (multiple-collision: 151 sequences of up to 5 events,
+3 048 of up to 8, 169 668 of up to 12), each a Newton solve: beyond 8 a search runs for hours
+and its lists fill the memory."""
 MULTISTART = 8
 """Starts of the batched multi-start that proposes sequences (0 to skip it)."""
 # the multi-start's coarse grid: at 40 steps two impacts 0.1 T apart fell into one or two
@@ -276,8 +281,8 @@ def solve_reference(
         events and adjoint costate start Newton, and it is one of the controls the result
         must not be worse than.
     search
-        Also solve every feasible sequence of up to this many events and report the
-        landscape of extremals (``info["landscape"]``).
+        Also solve every feasible sequence of up to this many events (at most
+        :data:`MAX_SEARCH`) and report the landscape of extremals (``info["landscape"]``).
     verbose
         Print Newton's iterations and the candidates to stderr.
     tol
@@ -319,6 +324,11 @@ def solve_reference(
         isinstance(search, bool) or not isinstance(search, numbers.Integral) or search < 0
     ):
         raise SceneError(f"search must be an integer >= 0, got {search!r}")
+    if search is not None and search > MAX_SEARCH:
+        raise SceneError(
+            f"search must be at most {MAX_SEARCH} events (the number of sequences grows "
+            f"about sevenfold per event), got {search}"
+        )
     u0, given = _initial_controls(ocp, initial)
     disc = is_disc_scene(ocp)
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not disc)

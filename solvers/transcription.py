@@ -42,6 +42,7 @@ from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
     HybridocError,
+    SceneError,
     SimultaneousEventError,
 )
 from hybridoc.evaluation import Evaluation
@@ -53,6 +54,8 @@ if TYPE_CHECKING:
     from hybridoc.solution import Solution
 
 __all__ = [
+    "MAX_DEGREE",
+    "MAX_MESH",
     "DTResult",
     "control_function",
     "resample_controls",
@@ -61,6 +64,11 @@ __all__ = [
 ]
 
 _DEFAULT_MESH = 4
+MAX_DEGREE = 9
+"""The highest collocation degree: CasADi's Radau tables (``collocation_points``) stop at 9."""
+MAX_MESH = 1000
+"""The most collocation elements per phase (250 times the default): a typo such as
+``--mesh 100000000`` fails with one line instead of building an NLP that fills the memory."""
 _BOUND_TOL = 1e-9  # judged control-bound violation above which a result is INFEASIBLE
 _PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INFEASIBLE
 _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
@@ -463,9 +471,10 @@ def solve_dt_sequence(
     guess, guess_controls
         A simulated trajectory and its ``(N, nu)`` controls, to initialise the phases.
     degree
-        Collocation degree ``d`` (state polynomial degree).
+        Collocation degree ``d`` (state polynomial degree), 1 to :data:`MAX_DEGREE`.
     mesh
-        Elements per phase: one number for all phases or one per phase.
+        Elements per phase: one number for all phases or one per phase, 1 to
+        :data:`MAX_MESH` each.
     verbose
         Print IPOPT's log.
 
@@ -480,17 +489,46 @@ def solve_dt_sequence(
     """
     names = [g.name for g in ocp.guards]
     guards = [names.index(s) for s in ocp.check_sequence(sequence)]
-    if degree < 1:
-        raise ValueError("degree must be >= 1")
+    degree = _checked_degree(degree)
     P = len(guards) + 1
-    if mesh is None:
-        mesh = _DEFAULT_MESH
-    mesh_list = [int(mesh)] * P if np.isscalar(mesh) else [int(m) for m in mesh]  # type: ignore[arg-type]
-    if len(mesh_list) != P or min(mesh_list) < 1:
-        raise ValueError(f"mesh must be a positive int or {P} positive ints")
+    mesh_list = _checked_mesh(mesh, P)
     nlp = _nlp_for(ocp, guards, degree, mesh_list)
     w0, _ = _initial_point(nlp, guess, guess_controls)
     return _solve_nlp(nlp, w0, list(sequence), verbose)
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
+
+
+def _checked_degree(degree: Any) -> int:
+    """``degree`` as an int in ``[1, MAX_DEGREE]``, or a :class:`SceneError`."""
+    if not _is_int(degree) or not 1 <= degree <= MAX_DEGREE:
+        raise SceneError(
+            f"degree must be an integer from 1 to {MAX_DEGREE} (the Radau collocation tables "
+            f"go up to {MAX_DEGREE}), got {degree!r}"
+        )
+    return int(degree)
+
+
+def _checked_mesh(mesh: Any, phases: int | None) -> list[int]:
+    """``mesh`` (None, one int or one per phase) as one int per phase; ``phases=None`` checks
+    the values only (the number of phases depends on the candidate sequence)."""
+    if mesh is None:
+        mesh = _DEFAULT_MESH
+    values = [mesh] if _is_int(mesh) else mesh
+    if isinstance(values, str) or not isinstance(values, Sequence | np.ndarray):
+        raise SceneError(f"mesh must be an integer or a list of integers, got {mesh!r}")
+    values = list(values)
+    if not values or not all(_is_int(m) and 1 <= m <= MAX_MESH for m in values):
+        raise SceneError(
+            f"mesh must be elements per phase, integers from 1 to {MAX_MESH}, got {mesh!r}"
+        )
+    if _is_int(mesh):
+        return [int(mesh)] * (phases or 1)
+    if phases is not None and len(values) != phases:
+        raise SceneError(f"mesh must be one integer or {phases} (one per phase), got {mesh!r}")
+    return [int(m) for m in values]
 
 
 def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: bool) -> DTResult:
@@ -732,9 +770,11 @@ def solve_dt(
         events at the same instant that do not commute (a symmetric scene) is perturbed by
         about ``1e-6`` so that they happen one after the other.
     degree
-        Collocation degree (``>= 3`` recommended; disc optima are cubic, so 3 is exact).
+        Collocation degree, 1 to :data:`MAX_DEGREE` (``>= 3`` recommended; disc optima are
+        cubic, so 3 is exact).
     mesh
-        Collocation elements per phase (one int, or one per phase); default 4. With the
+        Collocation elements per phase (one int, or one per phase), 1 to :data:`MAX_MESH`
+        each; default 4. With the
         default, a candidate whose re-simulated events are the modelled ones at times off by
         a little (more than ``1e-6 T``, at most ``1e-3 T``) is solved once more with twice
         the elements.
@@ -765,7 +805,8 @@ def solve_dt(
     Raises
     ------
     SceneError
-        ``sequence`` names an event that is not a guard of the problem.
+        ``sequence`` names an event that is not a guard of the problem, or ``degree`` or
+        ``mesh`` is out of range.
     ConvergenceError
         No candidate sequence's NLP converged.
     EvaluationError
@@ -780,6 +821,8 @@ def solve_dt(
     t_start = time.perf_counter()
     if sequence is not None:
         sequence = ocp.check_sequence(sequence)
+    degree = _checked_degree(degree)  # before any work
+    _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
     u0, seq_from_initial = _initial_controls(ocp, initial)
     guess, u0, perturbation = _evaluate_guess(ocp, u0)
     if sequence is not None:

@@ -463,15 +463,19 @@ def convergence(
         ``problem``, ``steps``, ``reference_cost``, ``dt`` and ``gd`` with lists ``cost``,
         ``error`` (``|J_N - J*| / J*``) and ``order`` (observed, against N).
     """
+    from hybridoc.ocp import MAX_STEPS
     from hybridoc.solvers.registry import solve
     from hybridoc.solvers.transcription import resample_controls
 
     ocp = as_ocp(problem)
     steps = tuple(steps)
     if not steps or not all(
-        isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 1 for n in steps
+        isinstance(n, numbers.Integral) and not isinstance(n, bool) and 1 <= n <= MAX_STEPS
+        for n in steps
     ):
-        raise SceneError(f"steps must be a non-empty list of integers >= 1, got {steps!r}")
+        raise SceneError(
+            f"steps must be a non-empty list of integers from 1 to {MAX_STEPS}, got {steps!r}"
+        )
     ref = solve(ocp, "reference")
     dt_sol = solve(ocp, "dt", initial=ref)
 

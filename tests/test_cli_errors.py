@@ -8,6 +8,7 @@ arguments that are rejected up front.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -210,3 +211,181 @@ def test_convergence_rejects_bad_steps() -> None:
     for steps in [(), (1.5,), (0,)]:
         with pytest.raises(SceneError, match="steps"):
             convergence("head-on", steps=steps, include_gd=False)
+
+
+# ----------------------------------------------------------------- issue #17: no tracebacks
+def _scene_text(**changes: str) -> str:
+    """single-collision's scene with some lines replaced (key -> new right-hand side)."""
+    text = hybridoc.load_scene("single-collision").to_toml()
+    for old, new in changes.items():
+        text = text.replace(old, new)
+    return text
+
+
+@pytest.fixture(scope="module")
+def hostile(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("hostile")
+    (d / "umlaut.toml").write_text(_scene_text(ball1="b\u00e4ll1"), encoding="utf-8")
+    (d / "huge_steps.toml").write_text(_scene_text(**{"steps = 480": "steps = 1e20"}))
+    (d / "huge_int_steps.toml").write_text(
+        _scene_text(**{"steps = 480": "steps = 100000000000000000000"})
+    )
+    (d / "exits_on_import.py").write_text("import sys\nsys.exit(0)\n")
+    (d / "exits_in_problem.py").write_text("import sys\n\n\ndef problem():\n    sys.exit(0)\n")
+    (d / "exits_in_policy.py").write_text("import sys\n\n\ndef pol(t, s):\n    sys.exit(4)\n")
+    return d
+
+
+@pytest.mark.parametrize(
+    ("args", "fragments"),
+    [
+        # a non-ASCII disc name became a CasADi function name: RuntimeError traceback, exit 1
+        *[
+            ((command, "umlaut.toml", *extra), ("disc name", "'b\u00e4ll1'", "ASCII"))
+            for command, *extra in (
+                ("evaluate",),
+                ("show",),
+                ("gradient",),
+                ("crossval",),
+                ("convergence", "--no-gd"),
+            )
+        ],
+        # unbounded sizes: tracebacks (OverflowError, ValueError, CasADi) or a silent hang
+        (("show", "huge_int_steps.toml"), ("steps must be at most 1000000",)),
+        (("show", "huge_steps.toml"), ("steps must be a positive integer",)),
+        (("solve", "head-on", "--method", "dt", "--degree", "99"), ("degree", "1 to 9")),
+        (("solve", "head-on", "--method", "dt", "--mesh", "10000000"), ("mesh", "1000")),
+        (
+            ("convergence", "head-on", "--steps", "99999999999999999999"),
+            ("--steps", "at most 1000000"),
+        ),
+        (("reference", "head-on", "--search", "1000000"), ("search must be at most 8",)),
+        (("solve", "head-on", "--method", "reference", "--search", "9"), ("at most 8",)),
+        # sys.exit in a user's file ended hybridoc with exit 0 and no answer
+        (("evaluate", "exits_on_import.py:problem"), ("exits_on_import.py", "sys.exit(0)")),
+        (("evaluate", "exits_in_problem.py"), ("exits_in_problem.py:problem", "sys.exit(0)")),
+        (
+            ("evaluate", "head-on", "--policy", "exits_in_policy.py:pol"),
+            ("exits_in_policy.py:pol", "sys.exit(4)"),
+        ),
+    ],
+)
+def test_hostile_input_is_one_error_line(hostile: Path, args: tuple[str, ...], fragments) -> None:
+    _one_error(_run(hostile, *args), *fragments)
+
+
+def test_show_plot_names_the_file_written(hostile: Path) -> None:
+    # "wrote plotout" while matplotlib wrote plotout.png
+    proc = _run(hostile, "show", "head-on", "--plot", "plotout")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "wrote plotout.png"
+    assert (hostile / "plotout.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (hostile / "plotout").exists()
+    _one_error(_run(hostile, "show", "head-on", "--plot", "plot.nope"), "'.nope'", ".png")
+
+
+def test_internal_error_exit_3(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    from hybridoc import cli
+    from hybridoc.cli import evaluate as evaluate_cli
+
+    def broken(args):
+        raise ZeroDivisionError("a bug")
+
+    monkeypatch.setattr(evaluate_cli, "cmd_evaluate", broken)
+    monkeypatch.delenv("HYBRIDOC_DEBUG", raising=False)
+    assert cli.main(["evaluate", "head-on"]) == 3
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert captured.out == "" and len(lines) == 2, captured.err
+    assert lines[0] == "hybridoc: internal error: ZeroDivisionError: a bug"
+    assert "please report" in lines[1] and "HYBRIDOC_DEBUG=1" in lines[1]
+    monkeypatch.setenv("HYBRIDOC_DEBUG", "1")
+    assert cli.main(["evaluate", "head-on"]) == 3
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "raise ZeroDivisionError" in err
+    assert err.splitlines()[-2] == "hybridoc: internal error: ZeroDivisionError: a bug"
+
+
+def test_interrupt_and_stray_system_exit(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    from hybridoc import cli
+    from hybridoc.cli import evaluate as evaluate_cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate_cli, "cmd_evaluate", interrupted)
+    assert cli.main(["evaluate", "head-on"]) == 130
+    assert capsys.readouterr().err == "hybridoc: interrupted\n"
+
+    def exits(args):
+        raise SystemExit(0)  # user code that no loader wrapped
+
+    monkeypatch.setattr(evaluate_cli, "cmd_evaluate", exits)
+    assert cli.main(["evaluate", "head-on"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("hybridoc: error: ") and "sys.exit(0)" in err
+
+
+def test_repeated_warnings_print_once_with_a_count(monkeypatch, capsys) -> None:
+    import warnings
+
+    from hybridoc import cli
+    from hybridoc.cli import evaluate as evaluate_cli
+
+    def noisy(args):
+        for _ in range(1440):
+            warnings.warn("invalid value encountered in matmul", RuntimeWarning, stacklevel=1)
+        warnings.warn("another one", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(evaluate_cli, "cmd_evaluate", noisy)
+    assert cli.main(["evaluate", "head-on"]) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        "hybridoc: warning: invalid value encountered in matmul (repeated 1440 times)",
+        "hybridoc: warning: another one",
+    ]
+
+
+def test_huge_values_warn_once(hostile: Path) -> None:
+    # a disc at x = -2e300: the answer (it reaches nothing) is right, but numpy's warning
+    # was printed 1440 times
+    path = hostile / "far.toml"
+    path.write_text(_scene_text(**{"position = [-1.0, -2.0]": "position = [-2e300, -2.0]"}))
+    proc = _run(hostile, "evaluate", "far.toml", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["cost"] == pytest.approx(2.09)
+    lines = proc.stderr.splitlines()
+    assert len(lines) == len(set(lines)) <= 3, proc.stderr
+
+
+def test_non_finite_gradient_is_an_error(monkeypatch, capsys) -> None:
+    # NaN entries were printed as '-' (and inf as a norm) with exit 0
+    from types import SimpleNamespace
+
+    import hybridoc.evaluator
+    from hybridoc import cli
+
+    real = hybridoc.evaluator.gradient
+
+    def overflowing(ocp, controls):
+        g = real(ocp, controls)
+        du = np.array(g.d_controls, dtype=float)
+        du[3, 1] = np.nan
+        return SimpleNamespace(
+            cost=g.cost, evaluation=g.evaluation, d_controls=du, d_initial_state=g.d_initial_state
+        )
+
+    monkeypatch.setattr(hybridoc.evaluator, "gradient", overflowing)
+    for extra in ([], ["--json"]):
+        assert cli.main(["gradient", "head-on", *extra]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == ""
+        assert captured.err.startswith("hybridoc: error: the gradient is not finite")
+        assert "dJ/du" in captured.err and "dJ/ds0" not in captured.err
+
+
+def test_gradient_norms_do_not_overflow(capsys) -> None:
+    from hybridoc.cli.evaluate import _norm
+
+    x = np.array([[3e300, 4e300], [0.0, 0.0]])
+    assert _norm(x) == pytest.approx(5e300) and _norm(np.zeros(3)) == 0.0

@@ -104,6 +104,19 @@ CASES = [
     ("duplicate disc names", ("discs", 1, "name"), "a", ["unique", "a"]),
     ("wall named like a disc", ("walls", 0, "name"), "b", ["wall names", "unique"]),
     ("no discs", ("discs",), [], ["no discs"]),
+    # names become CasADi function names, which take ASCII only (was a CasADi traceback)
+    (
+        "non-ASCII disc name",
+        ("discs", 0, "name"),
+        "b\u00e4ll",
+        ["disc name", "'b\u00e4ll'", "ASCII"],
+    ),
+    ("disc name with a bar", ("discs", 1, "name"), "b|c", ["disc name", "'b|c'"]),
+    ("disc name with a space", ("discs", 1, "name"), "b c", ["disc name", "'b c'"]),
+    ("disc name from a digit", ("discs", 1, "name"), "2b", ["disc name", "'2b'"]),
+    ("non-ASCII wall name", ("walls", 0, "name"), "\u5e8a", ["wall name", "'\u5e8a'", "ASCII"]),
+    # a typo such as 1e20 steps failed late with an OverflowError traceback
+    ("steps huge", ("steps",), 10**20, ["steps", "at most 1000000"]),
 ]
 
 
@@ -120,6 +133,30 @@ def test_scene_error_names_the_problem(path, value, words):
     for w in words:
         assert w in msg, f"{w!r} not in {msg!r}"
     assert "\n" not in msg
+
+
+def test_names_with_hyphens_and_underscores_are_valid():
+    data = base()
+    data["discs"][0]["name"] = "ball-1"
+    data["discs"][1]["name"] = "_Ball_2"
+    data["walls"][0]["name"] = "left-wall_0"
+    ocp = Scene.from_dict(data).to_ocp()
+    assert [g.name for g in ocp.guards] == [
+        "ball-1|_Ball_2",
+        "ball-1|left-wall_0",
+        "_Ball_2|left-wall_0",
+    ]
+    assert ocp.control_labels == ["ball-1.ux", "ball-1.uy"]
+    assert np.isfinite(hybridoc.evaluate(ocp).cost)
+
+
+def test_steps_limit_in_every_problem():
+    from hybridoc.ocp import MAX_STEPS
+
+    assert Scene.from_dict(edit(("steps",), MAX_STEPS)).steps == MAX_STEPS
+    ocp = load_scene("head-on").to_ocp()
+    with pytest.raises(SceneError, match="at most 1000000"):
+        ocp.replace(steps=MAX_STEPS + 1)  # was a numpy ValueError from the resampling
 
 
 def test_initial_control_on_unactuated_disc():
@@ -276,7 +313,7 @@ def test_to_toml_round_trip_python_scene():
         horizon=0.75,
         discs=[
             Disc(
-                'a"q',
+                "a-q",  # disc names are identifiers (NAME_PATTERN); quotes: the scene name
                 (0.1, 0.2),
                 0.05,
                 velocity=(1 / 3, -2 / 7),
@@ -291,7 +328,7 @@ def test_to_toml_round_trip_python_scene():
         steps=steps,
         control_weight=1e-3,
         restitution=0.25,
-        name="python",
+        name='py"thon',
         description='multi\nline "text"',
     )
     back = Scene.from_dict(tomllib.loads(sc.to_toml()))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import traceback
 import warnings
 from collections.abc import Sequence
 
@@ -59,6 +60,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ----------
     argv
         Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 success, 1 a finding, 2 a user error (or a solver that did not converge), 3 an
+        internal error (a bug: any other exception, reported in one line with how to report
+        it; ``HYBRIDOC_DEBUG=1`` prints the traceback too), 130 interrupted.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -67,8 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             code = int(args.func(args) or 0)
         except HybridocError as exc:
-            message = " ".join(str(exc).split()) or type(exc).__name__
-            print(f"hybridoc: error: {message}", file=sys.stderr)
+            print(f"hybridoc: error: {_one_line(exc)}", file=sys.stderr)
             code = 2
         except KeyboardInterrupt:
             print("hybridoc: interrupted", file=sys.stderr)
@@ -78,7 +85,46 @@ def main(argv: Sequence[str] | None = None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
             code = 1
-    for w in caught:
-        # one line each, without the internal file and line that Python's default shows
-        print(f"hybridoc: warning: {' '.join(str(w.message).split())}", file=sys.stderr)
+        except SystemExit as exc:
+            # hybridoc itself never exits inside a command: a user's problem or policy code
+            # did (the places that run it turn this into a HybridocError naming the file)
+            print(
+                f"hybridoc: error: the command was stopped by sys.exit({exc.code!r}) in user "
+                "code (a problem or policy file?); no result was produced",
+                file=sys.stderr,
+            )
+            code = 2
+        except Exception as exc:
+            code = _internal_error(exc)
+    _print_warnings(caught)
     return code
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _internal_error(exc: Exception) -> int:
+    """Report an unexpected exception (a bug in hybridoc, not the user's mistake): exit 3."""
+    if os.environ.get("HYBRIDOC_DEBUG", "") not in ("", "0"):
+        traceback.print_exception(exc)
+    print(f"hybridoc: internal error: {type(exc).__name__}: {_one_line(exc)}", file=sys.stderr)
+    print(
+        "hybridoc: please report this with the command you ran; HYBRIDOC_DEBUG=1 shows the "
+        "traceback",
+        file=sys.stderr,
+    )
+    return 3
+
+
+def _print_warnings(caught: list[warnings.WarningMessage]) -> None:
+    """One line per distinct warning, in order of first appearance, with its count: numpy
+    repeats the same RuntimeWarning for every interval of a simulation (1440 lines)."""
+    counts: dict[str, int] = {}
+    for w in caught:
+        # without the internal file and line that Python's default shows
+        text = " ".join(str(w.message).split())
+        counts[text] = counts.get(text, 0) + 1
+    for text, n in counts.items():
+        more = f" (repeated {n} times)" if n > 1 else ""
+        print(f"hybridoc: warning: {text}{more}", file=sys.stderr)

@@ -11,7 +11,8 @@ Conventions
     * Every solving command prints the same block (problem, method, status, cost, events).
     * Exit codes: 0 success; 1 a finding (a result that is not what it claims to be: not
       optimal, events not as modelled, infeasible, methods that disagree), with a warning
-      line; 2 a user error or a solver that did not converge, with one ``error`` line.
+      line; 2 a user error or a solver that did not converge, with one ``error`` line; 3 an
+      internal error (a bug), with one ``internal error`` line and how to report it.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ __all__ = [
     "exit_code",
     "fmt",
     "format_table",
+    "grid_steps",
     "load_controls_arg",
     "load_problem_arg",
     "nonnegative_int",
@@ -91,6 +93,14 @@ def positive_int(text: str) -> int:
 def nonnegative_int(text: str) -> int:
     """argparse type: an integer >= 0."""
     return _number(text, int, lambda n: n >= 0, "an integer >= 0")
+
+
+def grid_steps(text: str) -> int:
+    """argparse type: a grid size ``N``, an integer from 1 to :data:`hybridoc.ocp.MAX_STEPS`."""
+    from hybridoc.ocp import MAX_STEPS
+
+    what = f"an integer >= 1 and at most {MAX_STEPS}"
+    return _number(text, int, lambda n: 1 <= n <= MAX_STEPS, what)
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -24,7 +24,7 @@ from hybridoc.cli._util import (
     problem_arg,
     say,
 )
-from hybridoc.errors import HybridocError
+from hybridoc.errors import EvaluationError, HybridocError
 
 __all__ = ["register", "save", "write_figures"]
 
@@ -94,13 +94,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         policy = None
         controls, source = load_controls_arg(args.controls, ocp)
     out = None if args.out is None else ensure_dir(args.out)
-    ev, seconds = _timed(
-        lambda: (
-            evaluate(ocp, controls, policy=policy, hold=args.hold)
-            if policy is not None
-            else evaluate(ocp, controls)
+    try:
+        ev, seconds = _timed(
+            lambda: (
+                evaluate(ocp, controls, policy=policy, hold=args.hold)
+                if policy is not None
+                else evaluate(ocp, controls)
+            )
         )
-    )
+    except SystemExit as exc:  # the user's policy ended the program: say so
+        if policy is None:
+            raise
+        from hybridoc._pyfile import exit_message
+        from hybridoc.policies import PolicyError
+
+        raise PolicyError(exit_message(f"policy {args.policy!r}", exc, "in the rollout")) from None
     events = ev.event_dicts()
     payload = {
         "problem": ocp.name,
@@ -158,6 +166,13 @@ def cmd_gradient(args: argparse.Namespace) -> int:
     g = gradient(ocp, controls)
     lam0 = np.asarray(g.d_initial_state)
     du = np.asarray(g.d_controls)
+    bad = [what for what, x in (("dJ/du", du), ("dJ/ds0", lam0)) if not np.isfinite(x).all()]
+    if bad:
+        # a NaN printed as a number (or as '-' in the table) would read as an answer
+        raise EvaluationError(
+            f"the gradient is not finite (NaN or infinite entries in {' and '.join(bad)}; "
+            f"cost {g.cost!r}): the problem's numbers or the controls overflow floating point"
+        )
     if args.json:
         emit_json(
             {
@@ -178,15 +193,22 @@ def cmd_gradient(args: argparse.Namespace) -> int:
     print(f"events    {len(g.evaluation.events)}")
     print()
     print(f"dJ/du: {du.shape[0]} x {du.shape[1]} values (one per grid interval and component)")
-    print(f"  norm (all values)  {fmt(np.linalg.norm(du))}")
+    print(f"  norm (all values)  {fmt(_norm(du))}")
     for k, name in enumerate(labels):
-        print(f"  norm {name:<13} {fmt(np.linalg.norm(du[:, k]))}")
+        print(f"  norm {name:<13} {fmt(_norm(du[:, k]))}")
     print(f"  largest |dJ/du|    {fmt(abs(du[row, col]))} at interval {row}, {labels[col]}")
     print()
     print("dJ/d(initial state) = lambda(0):")
     rows = [[name, fmt(x)] for name, x in zip(ocp.state_labels, lam0, strict=True)]
     print(indent(format_table(["state", "dJ/ds0"], rows, right=[False, True])))
     return 0
+
+
+def _norm(x: np.ndarray) -> float:
+    """The 2-norm of finite values without overflow: entries near 1e300 have finite norms
+    whose squares are not."""
+    scale = float(np.max(np.abs(x), initial=0.0))
+    return 0.0 if scale == 0.0 else scale * float(np.linalg.norm(x / scale))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

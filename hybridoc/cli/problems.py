@@ -145,6 +145,10 @@ def cmd_show(args: argparse.Namespace) -> int:
     from hybridoc.evaluator import evaluate
 
     ocp = load_problem_arg(args.problem)
+    if args.plot is not None:
+        from hybridoc.plotting import figure_path
+
+        figure_path(args.plot)  # a bad suffix fails before the description is printed
     scene = ocp.meta.get("scene")
     lines = _scene_lines(scene) if scene is not None else _ocp_lines(ocp)
     ev = None
@@ -185,6 +189,7 @@ def register(sub: Any) -> None:
         "--plot",
         metavar="FILE",
         default=None,
-        help="write a PNG of the problem with the initial guess's trajectory",
+        help="write a figure of the problem with the initial guess's trajectory (PNG; "
+        "another format by its suffix, e.g. .pdf; .png is appended to a name without one)",
     )
     p.set_defaults(func=cmd_show)

@@ -137,6 +137,8 @@ def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
 
 def register(sub: Any) -> None:
     """Add ``reference``."""
+    from hybridoc.reference.solve import MAX_SEARCH
+
     p = sub.add_parser(
         "reference",
         help="the optimal control by shooting on the hybrid minimum principle",
@@ -156,7 +158,7 @@ def register(sub: Any) -> None:
         type=nonnegative_int,
         default=None,
         help="also enumerate every feasible event sequence of up to K events and print the "
-        "landscape of extremals",
+        f"landscape of extremals (K at most {MAX_SEARCH})",
     )
     add_initial_arg(p)
     p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")

@@ -255,9 +255,11 @@ def cmd_ablation(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     """Add ``solve`` and ``ablation``."""
+    from hybridoc.reference.solve import MAX_SEARCH
     from hybridoc.solvers.contacts import TOI_MODES, model_names
     from hybridoc.solvers.gd import INTEGRATORS, OPTIMIZERS
     from hybridoc.solvers.registry import METHODS
+    from hybridoc.solvers.transcription import MAX_DEGREE, MAX_MESH
 
     p = sub.add_parser(
         "solve",
@@ -301,11 +303,13 @@ def register(sub: Any) -> None:
     g.add_argument("--sequence", metavar="EVENTS", default=None,
                    help="comma-separated guard names in event order ('' for none)")  # fmt: skip
     g.add_argument("--mesh", type=positive_int, default=None,
-                   help="dt: collocation elements per phase (default 4)")  # fmt: skip
+                   help=f"dt: collocation elements per phase, at most {MAX_MESH} "
+                   "(default 4)")  # fmt: skip
     g.add_argument("--degree", type=positive_int, default=None,
-                   help="dt: collocation degree (default 3)")  # fmt: skip
+                   help=f"dt: collocation degree, 1 to {MAX_DEGREE} (default 3)")  # fmt: skip
     g.add_argument("--search", type=nonnegative_int, default=None, metavar="K",
-                   help="reference: enumerate event sequences of up to K events")  # fmt: skip
+                   help=f"reference: enumerate event sequences of up to K events, K at most "
+                   f"{MAX_SEARCH}")  # fmt: skip
     add_json_out(p, out_help="write DIR/<problem>_solve_<method>.npz + .json and figures")
     p.set_defaults(func=cmd_solve)
 

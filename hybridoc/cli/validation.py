@@ -15,10 +15,10 @@ from hybridoc.cli._util import (
     exit_code,
     fmt,
     format_table,
+    grid_steps,
     load_controls_arg,
     load_problem_arg,
     output_stem,
-    positive_int,
     problem_arg,
     say,
     to_jsonable,
@@ -250,10 +250,10 @@ def register(sub: Any) -> None:
     problem_arg(p)
     p.add_argument(
         "--steps",
-        type=positive_int,
+        type=grid_steps,
         nargs="+",
         default=None,
-        help="grid sizes (default 60 ... 960)",
+        help="grid sizes, each at most 10**6 (default 60 ... 960)",
     )
     p.add_argument("--no-gd", action="store_true", help="skip gradient descent (fast)")
     add_json_out(p, out_help="write the log-log figure and DIR/<problem>_convergence.json")
