@@ -6,13 +6,19 @@ interval, one column per control component, in the order of the problem's contro
 :class:`~hybridoc.solution.Solution` (``.npz`` + ``.json``, either name) is read as its
 controls.
 
-CSV layout: comma separated, one optional header line (skipped when it is not numeric), then
-``N`` rows of ``nu`` numbers::
+CSV layout: comma separated, one optional header line (a first line that is not numeric),
+then ``N`` rows of ``nu`` numbers::
 
     ball1.ux,ball1.uy
     0.0,3.0
     0.0,3.0
     ...
+
+A header names the columns: they are matched to the problem's control labels by name, in
+any order (``ball1.uy,ball1.ux`` swaps the columns back), and a header that names other
+columns (an unknown, missing or repeated label) is an error rather than being ignored. The
+generic names ``u0,u1,...`` that :func:`save_controls` writes without labels keep the
+columns in order.
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ def _parse_csv(text: str, where: str) -> tuple[list[str] | None, np.ndarray]:
     try:
         [float(x) for x in lines[0][1].split(",")]
     except ValueError:
-        header = [h.strip() for h in lines[0][1].split(",")]
+        header = [h.strip().strip('"').strip() for h in lines[0][1].split(",")]
         lines = lines[1:]
     rows = []
     width = None
@@ -70,6 +76,28 @@ def _parse_csv(text: str, where: str) -> tuple[list[str] | None, np.ndarray]:
     return header, np.array(rows, dtype=np.float64)
 
 
+def _header_columns(header: list[str], labels: list[str], where: str) -> list[int]:
+    """For each control label, the CSV column that holds it (the header names the columns)."""
+    generic = [f"u{k}" for k in range(len(header))]
+    if header == labels or (header == generic and set(generic) != set(labels)):
+        return list(range(len(header)))  # in order: the labels, or save_controls' defaults
+    repeated = sorted({h for h in header if header.count(h) > 1})
+    unknown = [h for h in header if h not in labels]
+    missing = [lab for lab in labels if lab not in header]
+    if repeated or unknown or missing:
+        parts = [
+            f"{what} {', '.join(repr(x) for x in xs)}"
+            for what, xs in (("unknown", unknown), ("missing", missing), ("repeated", repeated))
+            if xs
+        ]
+        raise ControlsError(
+            f"{where}: the header does not name the problem's controls ({'; '.join(parts)}); "
+            f"the columns are {', '.join(labels)} in any order, or leave the header out for "
+            "this order"
+        )
+    return [header.index(lab) for lab in labels]
+
+
 def _is_float(text: str) -> bool:
     try:
         float(text)
@@ -84,7 +112,8 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
     Parameters
     ----------
     path
-        A ``.npy`` or ``.csv`` file, or a saved Solution (``.npz`` or ``.json``).
+        A ``.npy`` or ``.csv`` file, or a saved Solution (``.npz`` or ``.json``). A CSV
+        header's columns are matched to the control labels by name (module notes).
     problem
         Any problem; it fixes the expected shape ``(N, nu)``.
 
@@ -96,8 +125,8 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
     Raises
     ------
     hybridoc.errors.ControlsError
-        If the file is missing, of another type, unparsable, of the wrong shape, or holds
-        NaN or infinity.
+        If the file is missing, of another type, unparsable, of the wrong shape, holds NaN
+        or infinity, or is a CSV whose header does not name the problem's controls.
     """
     ocp = _ocp_of(problem)
     p = Path(path)
@@ -149,6 +178,8 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
             raise ControlsError(
                 f"{where}: the header has {len(header)} columns but the rows have {arr.shape[1]}"
             )
+        if header is not None and arr.shape[1] == nu:  # a wrong width: the shape error below
+            arr = arr[:, _header_columns(header, labels, where)]
     if arr.ndim == 1 and nu == 1:
         arr = arr[:, None]
     if arr.shape != (n, nu):

@@ -50,6 +50,22 @@ def test_csv_header_written_and_optional(tmp_path, scene, values):
     assert np.array_equal(load_controls(bare, scene), values)
 
 
+def test_csv_header_columns_found_by_label(tmp_path, scene, values):
+    # before: the header was skipped and the columns used in file order, so swapped columns
+    # silently swapped ux and uy
+    swapped = tmp_path / "swapped.csv"
+    rows = "\n".join(f"{float(b)!r},{float(a)!r}" for a, b in values)
+    swapped.write_text("striker.uy, striker.ux\n" + rows + "\n")
+    assert np.array_equal(load_controls(swapped, scene), values)
+    quoted = tmp_path / "quoted.csv"
+    quoted.write_text('"striker.uy","striker.ux"\n' + rows + "\n")
+    assert np.array_equal(load_controls(quoted, scene), values)
+    # save_controls' default names u0, u1, ... keep the file's order
+    generic = save_controls(tmp_path / "generic.csv", values)
+    assert generic.read_text().startswith("u0,u1\n")
+    assert np.array_equal(load_controls(generic, scene), values)
+
+
 def _write(tmp_path, name, content):
     p = tmp_path / name
     if isinstance(content, np.ndarray):
@@ -79,7 +95,7 @@ GOOD_ROWS = "1.0,2.0\n" * N
         ("nan.npy", np.where(np.eye(N, 2) > 0, np.nan, 0.0), "non-finite value nan at row 0"),
         (
             "inf.csv",
-            "ux,uy\n" + "1,2\n" * 3 + "1,inf\n" + "1,2\n" * 2,
+            "striker.ux,striker.uy\n" + "1,2\n" * 3 + "1,inf\n" + "1,2\n" * 2,
             r"non-finite value inf at row 3 \(striker.uy\)",
         ),
         (
@@ -91,6 +107,10 @@ GOOD_ROWS = "1.0,2.0\n" * N
         ("empty.csv", "\n\n", "empty"),
         ("header_only.csv", "ux,uy\n", "no data rows"),
         ("header.csv", "ux,uy,uz\n" + GOOD_ROWS, "header has 3 columns"),
+        # a header names the columns: one that names others is an error, not ignored
+        ("short_names.csv", "ux,uy\n" + GOOD_ROWS, "unknown 'ux', 'uy'; missing 'striker.ux'"),
+        ("typo.csv", "striker.uy,striker.ix\n" + GOOD_ROWS, "unknown 'striker.ix'"),
+        ("repeated.csv", "striker.uy,striker.uy\n" + GOOD_ROWS, "repeated 'striker.uy'"),
         ("garbage.npy", b"this is not an npy file", "not a readable .npy"),
         ("objects.npy", np.array([[1, "a"]] * N, dtype=object), "not a readable .npy"),
         ("strings.npy", np.array([["1", "2"]] * N), "numeric array"),
