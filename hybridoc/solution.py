@@ -41,6 +41,12 @@ class Status(StrEnum):
     ``SUCCESS``
         The method met its own convergence test and the judge confirms what it modelled
         (its events, its cost).
+    ``EXTREMAL``
+        The verified extremal of an event sequence the user chose (the reference with
+        ``sequence=``): it satisfies the conditions of optimality for those events and
+        re-simulates to them, but it was not compared with other sequences, so it makes no
+        claim to be the optimum. Not a finding (exit code 0); a cheaper known control makes
+        it ``NOT_OPTIMAL``.
     ``NOT_OPTIMAL``
         A cheaper control is known (the initial guess, another method's solution): the
         result is not the optimum it would claim to be.
@@ -56,6 +62,7 @@ class Status(StrEnum):
     """
 
     SUCCESS = "success"
+    EXTREMAL = "extremal"
     NOT_OPTIMAL = "not-optimal"
     EVENTS_DIFFER = "events-differ"
     INFEASIBLE = "infeasible"
@@ -64,8 +71,8 @@ class Status(StrEnum):
 
     @property
     def exit_code(self) -> int:
-        """The CLI's exit code: 0 success, 2 not converged, 1 any other finding."""
-        if self is Status.SUCCESS:
+        """The CLI's exit code: 0 success or extremal, 2 not converged, 1 any other finding."""
+        if self in (Status.SUCCESS, Status.EXTREMAL):
             return 0
         return 2 if self is Status.NOT_CONVERGED else 1
 

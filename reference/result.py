@@ -203,8 +203,13 @@ class ReferenceResult:
     def to_solution(
         self, *, timings: dict[str, Any] | None = None, info: dict[str, Any] | None = None
     ) -> Any:
-        """The :class:`~hybridoc.solution.Solution` (method ``"reference"``)."""
-        from hybridoc.solution import Solution
+        """The :class:`~hybridoc.solution.Solution` (method ``"reference"``).
+
+        Its status is ``extremal``: one extremal knows nothing of other event sequences;
+        :func:`~hybridoc.reference.solve.solve_reference` sets ``success`` when its
+        discovery has compared it with everything else it met.
+        """
+        from hybridoc.solution import Solution, Status
 
         times, states, costates = self.trajectory()
         arrays = {
@@ -245,6 +250,7 @@ class ReferenceResult:
             timings=dict(timings or {}),
             info=base_info,
             arrays=arrays,
+            status=Status.EXTREMAL,
         )
         sol.reference = self  # type: ignore[attr-defined]  # u(t) for generic problems
         return sol

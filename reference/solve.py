@@ -23,6 +23,11 @@ What it checks before it answers
        control; if the extremal is still more expensive, the result is reported with
        status ``not-optimal`` and the cheaper cost named, never as the optimum.
 
+    With ``sequence`` given, only that sequence is solved, and the answer is its extremal
+    (status ``extremal``), not a claim of optimality: ``not-optimal`` when a known control
+    (of the same or other events) is cheaper; with ``search`` too, the discovery and search
+    run without the sequence and their optimum confirms it (``success``) or beats it.
+
     A problem with control bounds is answered only when the extremal respects them (the
     bounds are then inactive); otherwise the status is ``infeasible``.
 """
@@ -299,9 +304,12 @@ def solve_reference(
     Returns
     -------
     hybridoc.solution.Solution
-        Method ``"reference"``; ``status`` ``success``, ``not-optimal`` (a cheaper control is
-        known: named in ``message`` and ``info["cheaper"]``) or ``infeasible`` (the extremal
-        violates the control bounds); ``info`` holds ``residual``, ``sequence``,
+        Method ``"reference"``; ``status`` ``success`` (the optimum as far as the discovery
+        and search reach), ``extremal`` (the extremal of a given ``sequence``, not compared
+        with other sequences; with ``search`` as well, the search runs without the sequence
+        and makes it ``success`` when it finds nothing cheaper), ``not-optimal`` (a cheaper
+        control is known: named in ``message`` and ``info["cheaper"]``) or ``infeasible``
+        (the extremal violates the control bounds); ``info`` holds ``residual``, ``sequence``,
         ``newton_iterations``, ``grazing``, ``event_times``, ``candidates`` (every sequence
         tried and its outcome) and with ``search`` the ``landscape``.
 
@@ -400,7 +408,15 @@ def solve_reference(
         cheaper = [k for k in book.known if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
     else:
         cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
-    status, message = Status.SUCCESS, ""
+    # a given sequence's extremal claims nothing beyond its sequence: only the discovery (or
+    # the search, below) can make it the optimum
+    status, message = (
+        (Status.SUCCESS, "")
+        if seq is None
+        else (Status.EXTREMAL, _extremal_message(seq, verify, search))
+    )
+    cheapest: dict[str, Any] | None = None
+    landscape = book.landscape() if search is not None else None
     if cheaper:
         c = min(cheaper, key=lambda k: k.cost)
         pair = _coalescing(ocp, c)
@@ -420,6 +436,17 @@ def solve_reference(
             f"(events {c.sequence}): this is not the optimum; try --initial with that control "
             "or --search"
         )
+        cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
+    elif seq is not None:
+        status, message, cheapest, found = _judge_given_sequence(
+            ocp, seq, best, book, status, message,
+            search=search, options=dict(
+                initial=initial, verbose=verbose, tol=tol, transcription=transcription,
+                multistart=multistart,
+            ),
+        )  # fmt: skip
+        if found is not None:
+            landscape = found
     bounds_violation = ocp.bound_violation(best.cell_averages()) if ocp.has_bounds else 0.0
     if bounds_violation > 1e-9:
         status = Status.INFEASIBLE
@@ -439,15 +466,96 @@ def solve_reference(
             {"source": k.source, "cost": k.cost, "sequence": k.sequence} for k in book.known
         ],
     }
-    if cheaper:
-        c = min(cheaper, key=lambda k: k.cost)
-        info["cheaper"] = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
-    if search is not None:
-        info["landscape"] = book.landscape()
+    if cheapest is not None:
+        info["cheaper"] = cheapest
+    if landscape is not None:
+        info["landscape"] = landscape
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
     sol.settings = {"tol": tol, "sequence": seq, "search": search, "multistart": multistart}
     sol.timings = {"solve_time_s": time.perf_counter() - t_start, **sol.timings}
     return sol.set_status(status, message)
+
+
+def _extremal_message(seq: list[str], verify: bool, search: int | None) -> str:
+    """The message of an ``extremal``: what it is and what it is not."""
+    checked = "" if verify else " (not re-simulated by the judge: verify=False)"
+    if search is not None:
+        return f"the HMP extremal of the given sequence {seq}{checked}"
+    return (
+        f"the HMP extremal of the given sequence {seq}{checked}, not compared with other "
+        "sequences (without --sequence, or with --search K, the reference looks for the "
+        "optimum)"
+    )
+
+
+def _judge_given_sequence(
+    ocp: HybridOCP,
+    seq: list[str],
+    best: ReferenceResult,
+    book: _Book,
+    status: Status,
+    message: str,
+    *,
+    search: int | None,
+    options: dict[str, Any],
+) -> tuple[Status, str, dict[str, Any] | None, list[dict[str, Any]] | None]:
+    """The status of the extremal of a given sequence against everything else known.
+
+    A known control with other events that is cheaper beats it (``not-optimal``). With
+    ``search``, the full discovery and search run without the sequence: their optimum
+    confirms it (``success``, and their landscape is returned), beats it (``not-optimal``),
+    or leaves it an ``extremal`` (they found nothing they could confirm).
+
+    Returns
+    -------
+    status, message, cheaper, landscape
+        ``cheaper`` for ``info["cheaper"]`` (or None); ``landscape`` of the search (or None).
+    """
+    bound = best.cost * (1 - _OPT_RTOL) - 1e-15
+    if search is None:
+        beaten = [k for k in book.known if k.sequence != seq and k.cost < bound]
+        if not beaten:
+            return status, message, None, None
+        c = min(beaten, key=lambda k: k.cost)
+        return (
+            Status.NOT_OPTIMAL,
+            f"the extremal of the given sequence {seq} costs {best.cost:.10g}, but {c.source} "
+            f"costs {c.cost:.10g} with the events {c.sequence}: a cheaper control is known "
+            "(without --sequence, or with --search K, the reference looks for the optimum)",
+            {"source": c.source, "cost": c.cost, "sequence": c.sequence},
+            None,
+        )
+    book.say(f"search: the discovery and the search of up to {search} events, for {seq}")
+    try:
+        full = solve_reference(ocp, search=search, **options)
+    except HybridocError as exc:
+        note = f"; the search without it failed: {' '.join(str(exc).split())}"
+        return status, message + note, None, None
+    landscape = full.info.get("landscape")
+    # the cheapest the search met: its extremal, or a control cheaper still (not-optimal)
+    low = {"source": "the search", "cost": full.cost, "sequence": full.sequence}
+    other = full.info.get("cheaper")
+    if other is not None and other["cost"] < low["cost"]:
+        low = dict(other)
+    if low["cost"] < bound:
+        return (
+            Status.NOT_OPTIMAL,
+            f"the extremal of the given sequence {seq} costs {best.cost:.10g}, but the "
+            f"discovery and search found {low['cost']:.10g} with the events "
+            f"{low['sequence']} ({low['source']})",
+            low,
+            landscape,
+        )
+    if full.status is Status.SUCCESS:
+        return (
+            Status.SUCCESS,
+            f"nothing cheaper in the discovery and the search of up to {search} events: the "
+            "optimum as far as they reach",
+            None,
+            landscape,
+        )
+    note = f"; the search found nothing cheaper but could not confirm it ({full.status.value})"
+    return status, message + note, None, landscape
 
 
 def _coalescing(ocp: HybridOCP, k: _Known) -> tuple[str, str, float] | None:

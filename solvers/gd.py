@@ -70,6 +70,16 @@ PAPER_SETTINGS: dict[str, tuple[float, int]] = {
 DEFAULT_SMOOTHING = (1e-4, 1e-5, 1e-6)
 """Default continuation weights of ``lbfgs`` (see ``smoothing`` in :func:`solve_gd`)."""
 
+STALL_RTOL = 1e-9
+"""Convergence test at the iteration limit (:func:`solve_gd`): the loss changed by at most
+this, relative, over the last :func:`stall_window` iterations."""
+
+
+def stall_window(iters: int) -> int:
+    """The iterations over which the loss must have stalled at the limit: a tenth of them,
+    at least 10 (a run of fewer iterations cannot show that it has converged)."""
+    return max(10, iters // 10)
+
 
 def _positive(x: Any) -> bool:
     """``x`` is a real number, finite and > 0 (not a string, not a bool)."""
@@ -304,8 +314,12 @@ def solve_gd(
     hybridoc.solution.Solution
         Method ``"gd"``; the controls of the last iterate (of the best iterate if the loss
         became non-finite); ``cost`` is the judge's continuous cost of those controls.
-        ``info`` holds the final discrete ``loss``, ``iterations``, ``message``; ``status``
-        is ``success``, ``not-converged`` (non-finite loss) or ``infeasible``.
+        ``info`` holds the final discrete ``loss``, ``iterations``, ``message`` and
+        ``converged``; ``status`` is ``success`` (the optimiser met its convergence test:
+        L-BFGS could make no further progress, or the loss stalled, to :data:`STALL_RTOL`
+        over :func:`stall_window` iterations, at the iteration limit), ``not-converged``
+        (the iteration limit without meeting it, ``iters=0``, a stop by the callback, a
+        non-finite or rising loss) or ``infeasible``.
     """
     import hybridoc
     from hybridoc.solution import Solution
@@ -392,7 +406,9 @@ def solve_gd(
             histories.append(stage.arrays["loss_history"])
             its += stage.info["iterations"]
             stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost})
-            if stage.status is Status.NOT_CONVERGED:
+            # a stage need not converge (the next one starts from it), but NaN or a rising
+            # loss ends the continuation
+            if stage.info["nan_stop"] or stage.info["diverged"]:
                 break
         sol = solve_gd(ocp, initial=u0, **kwargs)
         sol.settings["smoothing"] = list(smoothing)
@@ -409,14 +425,18 @@ def solve_gd(
     t_opt = time.perf_counter() - run.t_loop
     ev = hybridoc.evaluate(ocp, final_u)
     status, status_message = Status.SUCCESS, ""
+    diverged = bool(history) and history[-1] > history[0] * (1 + 1e-9) + 1e-300
+    converged, why = _converged(message, history, k, iters)
     if nan_stop:
         status, status_message = Status.NOT_CONVERGED, message
-    elif history and history[-1] > history[0] * (1 + 1e-9) + 1e-300:
+    elif diverged:
         status = Status.NOT_CONVERGED
         status_message = (
             f"the loss rose from {history[0]:.6g} to {history[-1]:.6g}: the optimisation "
             "diverged; try a smaller learning rate"
         )
+    elif not converged:
+        status, status_message = Status.NOT_CONVERGED, why
     elif not ev.feasible:
         status = Status.INFEASIBLE
         status_message = (
@@ -428,6 +448,8 @@ def solve_gd(
         "iterations": int(k),
         "loss_evaluations": int(run.n_evals),
         "nan_stop": nan_stop,
+        "diverged": diverged,
+        "converged": converged and not (nan_stop or diverged),
         "message": message,
         "ms_per_iteration": 1e3 * t_opt / max(k, 1),
         "restarts": run.restarts,
@@ -442,6 +464,38 @@ def solve_gd(
         arrays={"loss_history": np.array(history, dtype=float)},
     )
     return sol.set_status(status, status_message)
+
+
+def _converged(message: str, history: Sequence[float], k: int, iters: int) -> tuple[bool, str]:
+    """Whether one optimisation met its convergence test, and if not, the status message.
+
+    The test: the optimiser stopped because it could make no further progress (L-BFGS: a
+    fresh start moves nowhere; L-BFGS-B: SciPy's own test), or, at the iteration limit, the
+    loss changed by at most :data:`STALL_RTOL` (relative) over the last
+    :func:`stall_window` iterations. Plain ``gd`` and ``adam`` have only the second.
+    """
+    if message.startswith("converged"):
+        return True, ""
+    if message == "stopped by the callback":
+        return False, f"stopped by the callback after {k} iteration(s), before converging"
+    if iters == 0:
+        return False, "iters = 0: no descent was run; the controls are the initial guess"
+    w = stall_window(iters)
+    if len(history) > w:
+        last, before = history[-1], history[-1 - w]
+        change = abs(before - last) / max(abs(last), 1e-300)
+        if change <= STALL_RTOL:
+            return True, ""
+        tail = f"the loss still changed by {change:.2e} (relative) over the last {w} iterations"
+    else:
+        tail = (
+            f"{k} iteration(s) are too few to tell (the test: a relative change of the loss of "
+            f"at most {STALL_RTOL:g} over the last {w} iterations)"
+        )
+    return False, (
+        f"stopped at the iteration limit ({iters}) before converging: {tail}; raise the "
+        "iterations (--iters)"
+    )
 
 
 HOP_BATCH = 32
@@ -461,7 +515,7 @@ def _hop(
     from hybridoc.evaluator import evaluate
     from hybridoc.solvers.multistart import batched_lbfgs, smooth_noise
 
-    if base.status is Status.NOT_CONVERGED:
+    if base.info.get("nan_stop") or base.info.get("diverged"):
         return base
     dt = ocp.horizon / ocp.steps
     lower = upper = None
@@ -495,7 +549,15 @@ def _hop(
             if stale >= HOP_PATIENCE:
                 break
     ev = evaluate(ocp, x)
-    info = dict(base.info, loss=f, hops=rounds, loss_before_hops=base.info.get("loss"))
+    # converged: the descent met its own test, or the hops moved it and then found nothing
+    # lower in HOP_PATIENCE rounds (a descent stopped at its iteration limit that no hop
+    # improves has shown nothing)
+    improved = any(r["improved"] for r in rounds)
+    converged = bool(base.info.get("converged")) or (improved and stale >= HOP_PATIENCE)
+    info = dict(
+        base.info, loss=f, hops=rounds, loss_before_hops=base.info.get("loss"),
+        converged=converged,
+    )  # fmt: skip
     sol = Solution.from_evaluation(
         ev,
         method="gd",
@@ -507,7 +569,12 @@ def _hop(
         arrays=dict(base.arrays),
     )  # fmt: skip
     status, message = Status.SUCCESS, ""
-    if not ev.feasible:
+    if not converged:
+        status, message = Status.NOT_CONVERGED, (
+            f"{base.message}; and the hops did not settle either" if base.message else
+            "the hops did not settle"
+        )  # fmt: skip
+    elif not ev.feasible:
         status = Status.INFEASIBLE
         message = (
             f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
@@ -772,7 +839,13 @@ class _Run:
                 fun, u0.ravel(), jac=True, method="L-BFGS-B", bounds=bounds,
                 callback=cb, options={"maxiter": self.iters, "ftol": 1e-15, "gtol": 1e-12},
             )  # fmt: skip
-            x, msg = res.x, f"L-BFGS-B: {res.message}"
+            x = res.x
+            if res.status == 99:  # the callback raised StopIteration
+                msg = "stopped by the callback"
+            elif res.status == 1:  # SciPy's iteration limit
+                msg = f"finished the requested iterations (L-BFGS-B: {res.message})"
+            else:  # SciPy's convergence tests, or a line search that cannot progress
+                msg = f"converged: L-BFGS-B: {res.message}"
         except _NonFinite as exc:
             return u0, history[-1], k, f"stopped early: {exc}", True, history
         finally:

@@ -79,6 +79,7 @@ def test_default_exact_integrator_within_five_hundredths_of_a_percent() -> None:
     reference_optimum = 0.31141687035847165  # hybridoc.reference.solve_reference
     sol = solve_gd("single-collision")
     assert sol.settings["integrator"] == "exact"
+    assert sol.success and sol.info["converged"], sol.message  # L-BFGS's own test
     assert sol.info["loss"] == pytest.approx(sol.cost, rel=1e-12)
     assert reference_optimum <= sol.cost < 1.0005 * reference_optimum
 
@@ -88,6 +89,7 @@ def test_multistart_reaches_the_three_event_optimum() -> None:
     # reach the three-event optimum of the reference
     optimum = 0.356279430543373
     sol = solve_gd("multiple-collision", starts=32, seed=0)
+    assert sol.success, sol.message
     assert optimum <= sol.cost < 1.001 * optimum
     assert sol.sequence == ["ball1|ball2", "ball2|wall", "ball1|ball2"]
     rows = sol.info["starts"]
@@ -128,15 +130,48 @@ def test_bad_arguments() -> None:
 
 
 def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
+    # 3 iterations of plain gd are not a converged answer: the JSON says so, exit code 2
     rc = main(["solve", "head-on", "--optimizer", "gd", "--iters", "3", "--json"])
     out = capsys.readouterr()
-    assert rc == 0
+    assert rc == 2
     data = json.loads(out.out)
     for key in ("problem", "method", "status", "success", "cost", "events", "timings", "info"):
         assert key in data
-    assert data["method"] == "gd" and data["status"] == "success" and data["success"] is True
+    assert data["method"] == "gd" and data["status"] == "not-converged"
+    assert data["success"] is False and "iteration limit (3)" in data["message"]
     assert data["info"]["iterations"] == 3 and "loss" in data["info"]
+    assert data["info"]["converged"] is False
     assert "gd/gd" in out.err  # the progress bar goes to stderr
+    assert out.err.splitlines()[-1].startswith("hybridoc: error: not-converged: stopped at")
+
+
+@pytest.mark.parametrize("iters", [0, 1])
+def test_iteration_limit_is_not_success(iters: int) -> None:
+    # was status success (exit 0) at cost 1.18 for an optimum of 0.311
+    sol = solve_gd("single-collision", iters=iters)
+    assert sol.status is hybridoc.Status.NOT_CONVERGED and not sol.info["converged"]
+    assert ("no descent was run" if iters == 0 else "iteration limit (1)") in sol.message
+    assert sol.cost > 1.0
+
+
+def test_convergence_test_at_the_iteration_limit() -> None:
+    from hybridoc.solvers.gd import STALL_RTOL, _converged, stall_window
+
+    assert stall_window(30) == 10 and stall_window(1000) == 100
+    done = "finished the requested iterations"
+    flat = [2.0, 1.0] + [0.5] * 20
+    assert _converged(done, flat, 21, 21) == (True, "")
+    slope = [0.5 * (1 + 10 * STALL_RTOL) ** (-k) for k in range(22)]
+    ok, why = _converged(done, slope, 21, 21)
+    assert not ok and "still changed by" in why and "last 10 iterations" in why
+    ok, why = _converged(done, [1.0, 0.9, 0.9], 2, 2)
+    assert not ok and "too few" in why
+    assert _converged("converged: L-BFGS made no further progress", [1.0, 0.5], 1, 300)[0]
+    assert not _converged("stopped by the callback", flat, 21, 50)[0]
+    assert _converged(done, [1.0], 0, 0) == (
+        False,
+        "iters = 0: no descent was run; the controls are the initial guess",
+    )
 
 
 def test_cli_solve_user_error(capsys: pytest.CaptureFixture[str]) -> None:

@@ -17,7 +17,9 @@ def test_reference_json(capsys):
     data = json.loads(out.out)  # exactly one JSON object on stdout
     for key in ("cost", "terminal_cost", "running_cost", "events", "status", "info", "timings"):
         assert key in data
-    assert data["status"] == "success" and data["success"] is True
+    # a given sequence: its extremal, no claim of optimality (exit 0, success false)
+    assert data["status"] == "extremal" and data["success"] is False
+    assert "given sequence" in data["message"]
     assert abs(data["cost"] - data["terminal_cost"] - data["running_cost"]) < 1e-14
     assert data["events"][0]["kind"] == "disc-disc"
     assert set(data["events"][0]) == {"time", "kind", "bodies", "guard"}
@@ -61,3 +63,43 @@ def test_reference_initial_verbose_shows_newton(tmp_path, capsys):
     assert res[0] > 1e-6 and min(res) < 1e-13
     rc = main(["reference", "single-collision", "--initial", str(tmp_path / "missing.npy")])
     assert rc == 2 and "missing.npy" in capsys.readouterr().err
+
+
+def test_given_sequence_is_an_extremal_not_a_success(capsys):
+    # this sequence's extremal costs about twice the optimum 0.3114 and was reported success
+    rc = main(["reference", "single-collision", "--sequence", "ball1|ball2,ball1|ball2"])
+    out = capsys.readouterr()
+    assert rc == 0 and out.err == ""
+    status = next(line for line in out.out.splitlines() if line.startswith("status"))
+    assert status.split()[1] == "extremal:" and "not compared with other sequences" in status
+    assert "cost      0.617" in out.out
+
+
+def test_given_sequence_with_search(capsys):
+    # the search runs without the sequence: it beats the double collision (exit 1) ...
+    args = ["reference", "single-collision", "--search", "2", "--json", "--sequence"]
+    rc = main([*args, "ball1|ball2,ball1|ball2"])
+    out = capsys.readouterr()
+    data = json.loads(out.out)
+    assert rc == 1 and data["status"] == "not-optimal"
+    assert data["info"]["cheaper"]["sequence"] == ["ball1|ball2"]
+    assert abs(data["info"]["cheaper"]["cost"] - 0.311416870358) < 1e-9
+    assert out.err.startswith("hybridoc: warning: not-optimal:")
+    assert {tuple(r["sequence"]) for r in data["info"]["landscape"]} >= {
+        ("ball1|ball2",),
+        ("ball1|ball2", "ball1|ball2"),
+    }
+    # ... and confirms the single collision: then it is the optimum
+    rc = main([*args, "ball1|ball2"])
+    data = json.loads(capsys.readouterr().out)
+    assert rc == 0 and data["status"] == "success" and data["success"] is True
+    assert "nothing cheaper" in data["message"]
+
+
+def test_given_sequence_beaten_by_a_known_control():
+    # the initial guess (one collision, 1.18) is cheaper than the empty sequence's extremal
+    from hybridoc.reference import solve_reference
+
+    sol = solve_reference("single-collision", sequence="")
+    assert sol.status is hybridoc.Status.NOT_OPTIMAL and abs(sol.cost - 2.0) < 1e-12
+    assert sol.info["cheaper"]["source"] == "the initial guess"

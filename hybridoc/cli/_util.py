@@ -9,7 +9,8 @@ Conventions
       Solution) or ``.json`` (a report), and ``..._<figure>.png``; a command rerun into the
       same folder replaces its own files and no other command's.
     * Every solving command prints the same block (problem, method, status, cost, events).
-    * Exit codes: 0 success; 1 a finding (a result that is not what it claims to be: not
+    * Exit codes: 0 success (or ``extremal``: the extremal of a sequence the user chose, no
+      claim to be the optimum); 1 a finding (a result that is not what it claims to be: not
       optimal, events not as modelled, infeasible, methods that disagree), with a warning
       line; 2 a user error or a solver that did not converge, with one ``error`` line; 3 an
       internal error (a bug), with one ``internal error`` line and how to report it.
@@ -328,11 +329,12 @@ def print_solution(
 
 
 def exit_code(status: Any, message: str = "") -> int:
-    """The exit code of a status (module notes), printing the warning line of a finding."""
+    """The exit code of a status (module notes), printing the warning line of a finding
+    (an ``extremal``, exit 0, says what it is in the printed status line instead)."""
     from hybridoc.solution import Status
 
     st = Status(status)
-    if st is not Status.SUCCESS:
+    if st.exit_code != 0:
         text = f"{st.value}: {message}" if message else st.value
         if st.exit_code == 2:
             print(f"hybridoc: error: {' '.join(text.split())}", file=sys.stderr, flush=True)
