@@ -5,37 +5,40 @@ The core package holds the problem model (:class:`HybridOCP`), the event-exact j
 CLI. Scenes and the library of classic problems live in :mod:`hybridoc.problems`, the HMP
 reference in :mod:`hybridoc.reference`, the solvers (and :func:`solve`, which runs any of
 them) in :mod:`hybridoc.solvers`.
+
+The public names are imported on first use (PEP 562): ``import hybridoc`` loads neither
+numpy nor CasADi, so that the ``hybridoc`` command starts quickly; ``from hybridoc import
+evaluate`` imports what ``evaluate`` needs.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from hybridoc import _layout  # noqa: F401  (running from a source checkout)
-from hybridoc.callable_eval import evaluate_callable
-from hybridoc.errors import (
-    ControlsError,
-    ConvergenceError,
-    EvaluationError,
-    HybridocError,
-    SceneError,
-    SimultaneousEventError,
-)
-from hybridoc.evaluation import Evaluation, Gradient
-from hybridoc.evaluator import evaluate, gradient
-from hybridoc.events import Event
-from hybridoc.ocp import Guard, HybridOCP
-from hybridoc.problem import as_ocp
-from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
-from hybridoc.solution import Solution, Status
 
-try:  # one source of the version: pyproject.toml, through the installed metadata
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as _version
+if TYPE_CHECKING:  # pragma: no cover - what type checkers and editors see
+    from hybridoc.callable_eval import evaluate_callable
+    from hybridoc.errors import (
+        ControlsError,
+        ConvergenceError,
+        EvaluationError,
+        HybridocError,
+        SceneError,
+        SimultaneousEventError,
+    )
+    from hybridoc.evaluation import Evaluation, Gradient
+    from hybridoc.evaluator import evaluate, gradient
+    from hybridoc.events import Event
+    from hybridoc.ocp import Guard, HybridOCP
+    from hybridoc.problem import as_ocp
+    from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
+    from hybridoc.solution import Solution, Status
+    from hybridoc.solvers.policy_training import closed_loop_cost
+    from hybridoc.solvers.registry import crossval, solve
 
-    __version__ = _version("hybridoc")
-except PackageNotFoundError:  # pragma: no cover - imported from a bare source tree
-    __version__ = "0+unknown"
+__version__: str
 
 __all__ = [
     "ControlsError",
@@ -65,15 +68,78 @@ __all__ = [
     "solve",
 ]
 
+# Where each public name is defined (the TYPE_CHECKING block above says the same).
+_EXPORTS: dict[str, str] = {
+    "ControlsError": "hybridoc.errors",
+    "ConvergenceError": "hybridoc.errors",
+    "Disc": "hybridoc.problems",
+    "Evaluation": "hybridoc.evaluation",
+    "EvaluationError": "hybridoc.errors",
+    "Event": "hybridoc.events",
+    "Gradient": "hybridoc.evaluation",
+    "Guard": "hybridoc.ocp",
+    "HybridOCP": "hybridoc.ocp",
+    "HybridocError": "hybridoc.errors",
+    "Scene": "hybridoc.problems",
+    "SceneError": "hybridoc.errors",
+    "SimultaneousEventError": "hybridoc.errors",
+    "Solution": "hybridoc.solution",
+    "Status": "hybridoc.solution",
+    "Wall": "hybridoc.problems",
+    "as_ocp": "hybridoc.problem",
+    "builtin_names": "hybridoc.problems",
+    "closed_loop_cost": "hybridoc.solvers.policy_training",  # torch
+    "crossval": "hybridoc.solvers.registry",
+    "evaluate": "hybridoc.evaluator",
+    "evaluate_callable": "hybridoc.callable_eval",
+    "gradient": "hybridoc.evaluator",
+    "load_scene": "hybridoc.problems",
+    "solve": "hybridoc.solvers.registry",
+}
+
+# Submodules that ``import hybridoc`` used to load as a side effect: ``hybridoc.problems.X``
+# after a bare ``import hybridoc`` keeps working.
+_SUBMODULES = frozenset(
+    {
+        "callable_eval",
+        "errors",
+        "evaluation",
+        "evaluator",
+        "events",
+        "kernels",
+        "ocp",
+        "problem",
+        "problems",
+        "rootfind",
+        "solution",
+    }
+)
+
+
+def _version() -> str:
+    # one source of the version: pyproject.toml, through the installed metadata (importing
+    # importlib.metadata costs tens of milliseconds: only when the version is asked for)
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hybridoc")
+    except PackageNotFoundError:  # pragma: no cover - imported from a bare source tree
+        return "0+unknown"
+
 
 def __getattr__(name: str) -> Any:
-    # the solvers import torch lazily; ``hybridoc.solve`` is theirs, re-exported on demand
-    if name in ("solve", "crossval"):
-        from hybridoc.solvers import registry
+    """Import a public name, ``__version__`` or a submodule on first access (PEP 562)."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    elif name == "__version__":
+        value = _version()
+    elif name in _SUBMODULES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module 'hybridoc' has no attribute {name!r}")
+    globals()[name] = value  # later accesses are plain attribute lookups
+    return value
 
-        return getattr(registry, name) if name == "solve" else registry.crossval
-    if name == "closed_loop_cost":  # torch: imported on demand, like the solvers
-        from hybridoc.solvers.policy_training import closed_loop_cost
 
-        return closed_loop_cost
-    raise AttributeError(f"module 'hybridoc' has no attribute {name!r}")
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | {"__version__"})

@@ -4,16 +4,23 @@ One module per group of commands (:mod:`.problems`, :mod:`.evaluate`, :mod:`.ref
 :mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`), each with
 ``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
 in :mod:`._util`. The modules hold no library code: they parse, call the library, and print.
+
+Building the parser imports no numpy, CasADi, torch, SciPy or matplotlib, so that
+``hybridoc --help`` answers at once: the command modules import the library inside their
+command functions, and a command whose arguments read a registry adds them on first use
+(:meth:`~hybridoc.cli._util.HybridocArgumentParser.defer`).
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import sys
 import traceback
 import warnings
 from collections.abc import Sequence
+from typing import Any
 
 from hybridoc.cli._util import HybridocArgumentParser
 from hybridoc.errors import HybridocError
@@ -33,10 +40,23 @@ COMMAND_MODULES = (
 )
 
 
-def build_parser() -> HybridocArgumentParser:
-    """The argument parser with every command."""
-    from hybridoc import __version__
+class _VersionAction(argparse.Action):
+    """``--version`` (argparse's, with its help text), reading the installed metadata only
+    when asked: importlib.metadata takes tens of milliseconds to import."""
 
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        kwargs.setdefault("help", "show program's version number and exit")
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> None:
+        from hybridoc import __version__
+
+        print(f"hybridoc {__version__}")
+        parser.exit()
+
+
+def build_parser() -> HybridocArgumentParser:
+    """The argument parser with every command (cheap: see the module notes)."""
     parser = HybridocArgumentParser(
         prog="hybridoc",
         description="Optimal control of hybrid systems: an exact reference from the hybrid "
@@ -44,7 +64,7 @@ def build_parser() -> HybridocArgumentParser:
         "differentiable simulation with time-of-impact corrections), and an event-exact judge.",
         epilog="Run 'hybridoc COMMAND --help' for the options of a command.",
     )
-    parser.add_argument("--version", action="version", version=f"hybridoc {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(
         dest="command", metavar="COMMAND", required=True, parser_class=HybridocArgumentParser
     )

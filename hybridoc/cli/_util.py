@@ -23,13 +23,14 @@ import json
 import math
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.errors import HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
 
 __all__ = [
     "HybridocArgumentParser",
@@ -62,7 +63,39 @@ class HybridocArgumentParser(argparse.ArgumentParser):
 
     ``hybridoc: error: <command>: <message> (see 'hybridoc <command> --help')`` on stderr and
     exit code 2, instead of argparse's usage block followed by the message.
+
+    A command whose arguments read a registry (methods, contact models, limits of the
+    solvers), which imports numpy and CasADi, adds them with :meth:`defer`: they are added
+    when the command is first used (parsed, or its help or usage formatted), so that
+    ``hybridoc --help`` and the other commands start without those imports, and the
+    registries are read after any in-process registration.
     """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._deferred: list[Callable[[HybridocArgumentParser], None]] = []
+
+    def defer(self, add_arguments: Callable[[HybridocArgumentParser], None]) -> None:
+        """Call ``add_arguments(self)`` on first use of this parser (see the class notes)."""
+        self._deferred.append(add_arguments)
+
+    def complete(self) -> HybridocArgumentParser:
+        """Add the deferred arguments now (once); returns the parser."""
+        while self._deferred:
+            self._deferred.pop(0)(self)
+        return self
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        self.complete()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:
+        self.complete()
+        return super().format_usage()
+
+    def format_help(self) -> str:
+        self.complete()
+        return super().format_help()
 
     def error(self, message: str) -> Any:
         command = self.prog.removeprefix("hybridoc").strip()
@@ -107,6 +140,8 @@ def grid_steps(text: str) -> int:
 def to_jsonable(obj: Any) -> Any:
     """Numpy scalars and arrays, tuples, enums and paths -> plain JSON types."""
     from enum import Enum
+
+    import numpy as np
 
     if isinstance(obj, dict):
         return {str(k): to_jsonable(v) for k, v in obj.items()}
@@ -210,6 +245,8 @@ def add_initial_arg(parser: argparse.ArgumentParser) -> None:
 
 def load_controls_arg(path: Path | None, ocp: Any) -> tuple[np.ndarray, str]:
     """Controls from a file (or the initial guess when ``path`` is None) and a label."""
+    import numpy as np
+
     if path is None:
         return np.array(ocp.u_guess, dtype=float), "initial guess"
     from hybridoc.io import load_controls
@@ -253,6 +290,8 @@ def format_table(
     for row in cells:
         widths = [max(w, len(c)) for w, c in zip(widths, row, strict=True)]
     if right is None:
+        import numpy as np
+
         right = [
             all(isinstance(r[k], int | float | np.number) for r in rows) and bool(rows)
             for k in range(len(headers))

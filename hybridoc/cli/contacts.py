@@ -7,8 +7,6 @@ import argparse
 import time
 from typing import Any
 
-import numpy as np
-
 from hybridoc.cli._util import (
     add_json_out,
     disc_scene_of,
@@ -106,6 +104,7 @@ def cmd_gradcheck(args: argparse.Namespace) -> int:
 
 
 def _learning_curves(scene: Any, sols: dict[str, Any]) -> Any:
+    import numpy as np
     from matplotlib.figure import Figure
 
     from hybridoc.solvers.gradcheck import PAPER_OPTIMUM
@@ -228,14 +227,31 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     """Add ``gradcheck`` and ``compare-contacts``."""
-    from hybridoc.solvers.contacts import model_names
-
-    names = ", ".join(model_names())
+    # their --models help lists the contact models' registry (numpy, CasADi): on first use
     p = sub.add_parser(
         "gradcheck",
         help="each contact model's gradient against the exact gradient",
         description=cmd_gradcheck.__doc__,
     )
+    p.defer(_gradcheck_arguments)
+    p.set_defaults(func=cmd_gradcheck)
+
+    p = sub.add_parser(
+        "compare-contacts",
+        help="plain gradient descent with every contact model (paper Figs 5, 10)",
+        description=cmd_compare_contacts.__doc__,
+    )
+    p.defer(_compare_contacts_arguments)
+    p.set_defaults(func=cmd_compare_contacts)
+
+
+def _model_names() -> str:
+    from hybridoc.solvers.contacts import model_names
+
+    return ", ".join(model_names())
+
+
+def _gradcheck_arguments(p: argparse.ArgumentParser) -> None:
     problem_arg(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument(
@@ -246,15 +262,11 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--models", default=None, metavar="M,M",
-        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {names})",
+        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {_model_names()})",
     )  # fmt: skip
-    p.set_defaults(func=cmd_gradcheck)
 
-    p = sub.add_parser(
-        "compare-contacts",
-        help="plain gradient descent with every contact model (paper Figs 5, 10)",
-        description=cmd_compare_contacts.__doc__,
-    )
+
+def _compare_contacts_arguments(p: argparse.ArgumentParser) -> None:
     problem_arg(p)
     add_json_out(p, out_help="write each model's Solution, the learning curves and the controls")
     p.add_argument(
@@ -265,6 +277,5 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--models", default=None, metavar="M,M",
-        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {names})",
+        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {_model_names()})",
     )  # fmt: skip
-    p.set_defaults(func=cmd_compare_contacts)

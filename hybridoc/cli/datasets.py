@@ -8,8 +8,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from hybridoc.cli._util import (
     add_json_out,
     emit_json,
@@ -117,6 +115,8 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     Exit code 1 when some draw's policy beats its reference (a reference that is not
     optimal) or no draw could be compared.
     """
+    import numpy as np
+
     from hybridoc.policies import report_figures, validate_policy
 
     scene = _scene_arg(args.problem)

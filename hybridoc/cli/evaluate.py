@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
     add_controls_arg,
@@ -25,6 +23,9 @@ from hybridoc.cli._util import (
     say,
 )
 from hybridoc.errors import EvaluationError, HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
 
 __all__ = ["register", "save", "write_figures"]
 
@@ -159,6 +160,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_gradient(args: argparse.Namespace) -> int:
     """Exact gradient of the continuous cost (adjoint with the HMP jump relation)."""
+    import numpy as np
+
     from hybridoc.evaluator import gradient
 
     ocp = load_problem_arg(args.problem)
@@ -207,12 +210,16 @@ def cmd_gradient(args: argparse.Namespace) -> int:
 def _norm(x: np.ndarray) -> float:
     """The 2-norm of finite values without overflow: entries near 1e300 have finite norms
     whose squares are not."""
+    import numpy as np
+
     scale = float(np.max(np.abs(x), initial=0.0))
     return 0.0 if scale == 0.0 else scale * float(np.linalg.norm(x / scale))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Evaluate the initial guesses of the paper's two problems; table and figures."""
+    import numpy as np
+
     from hybridoc.evaluator import evaluate, gradient
 
     out = ensure_dir(args.out)

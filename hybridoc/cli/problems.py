@@ -6,8 +6,6 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
-
 from hybridoc.cli._util import fmt, format_table, indent, load_problem_arg, problem_arg
 from hybridoc.errors import HybridocError
 
@@ -115,6 +113,8 @@ def _scene_lines(scene: Any) -> list[str]:
 
 
 def _ocp_lines(ocp: Any) -> list[str]:
+    import numpy as np
+
     lines = [
         f"problem {ocp.name}"
         + (f": {ocp.meta['description']}" if ocp.meta.get("description") else "")

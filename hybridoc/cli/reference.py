@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from hybridoc.cli._util import (
     add_initial_arg,
@@ -90,6 +87,10 @@ def _short(text: str, width: int = 72) -> str:
 
 def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
     """Save the Solution and three figures (trajectory, control, costates)."""
+    import dataclasses
+
+    import numpy as np
+
     from hybridoc.callable_eval import evaluate_callable
     from hybridoc.cli.evaluate import save
     from hybridoc.plotting import plot_controls, plot_costates, plot_scene, plot_trajectories
@@ -137,13 +138,18 @@ def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
 
 def register(sub: Any) -> None:
     """Add ``reference``."""
-    from hybridoc.reference.solve import MAX_SEARCH
-
     p = sub.add_parser(
         "reference",
         help="the optimal control by shooting on the hybrid minimum principle",
         description=cmd_reference.__doc__,
     )
+    p.defer(_reference_arguments)  # imports the reference (CasADi): on first use
+    p.set_defaults(func=cmd_reference)
+
+
+def _reference_arguments(p: argparse.ArgumentParser) -> None:
+    from hybridoc.reference.solve import MAX_SEARCH
+
     problem_arg(p)
     p.add_argument(
         "--sequence",
@@ -163,4 +169,3 @@ def register(sub: Any) -> None:
     add_initial_arg(p)
     p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")
     add_json_out(p, out_help="write DIR/<problem>_reference.npz + .json and three figures")
-    p.set_defaults(func=cmd_reference)

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
     add_initial_arg,
@@ -28,6 +26,9 @@ from hybridoc.cli._util import (
     solution_payload,
 )
 from hybridoc.errors import HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
 
 __all__ = ["PAPER_TABLE1", "register", "run_ablation"]
 
@@ -78,6 +79,7 @@ def _smoothing_arg(text: str | None) -> tuple[float, ...] | None:
 
 
 def _learning_curve_figure(curves: dict[str, np.ndarray], optimum: float | None, title: str) -> Any:
+    import numpy as np
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(6.4, 4.2), layout="constrained")
@@ -105,6 +107,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     Every method reports the judge's true cost of its control, its events and a status; a
     result that is not what it claims to be exits with code 1.
     """
+    import numpy as np
+
     from hybridoc.solvers.registry import METHODS, solve
 
     method = METHODS.get(args.method)
@@ -204,6 +208,8 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     the final discrete loss beside the paper's and the true continuous cost of the learned
     controls.
     """
+    import numpy as np
+
     from hybridoc.cli.evaluate import save
     from hybridoc.solvers.contacts import TOI_MODES
 
@@ -255,17 +261,30 @@ def cmd_ablation(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     """Add ``solve`` and ``ablation``."""
+    p = sub.add_parser(
+        "solve",
+        help="solve a problem with any method (reference, dt, gd)",
+        description=cmd_solve.__doc__,
+    )
+    p.defer(_solve_arguments)  # the choices come from the solvers' registries: on first use
+    p.set_defaults(func=cmd_solve)
+
+    p = sub.add_parser(
+        "ablation",
+        help="the paper's Table 1: TOI settings x paper problems (plain gd)",
+        description=cmd_ablation.__doc__,
+    )
+    add_json_out(p, out_help="write learning-curve and learned-control figures and Solutions")
+    p.set_defaults(func=cmd_ablation)
+
+
+def _solve_arguments(p: argparse.ArgumentParser) -> None:
     from hybridoc.reference.solve import MAX_SEARCH
     from hybridoc.solvers.contacts import TOI_MODES, model_names
     from hybridoc.solvers.gd import INTEGRATORS, OPTIMIZERS
     from hybridoc.solvers.registry import METHODS
     from hybridoc.solvers.transcription import MAX_DEGREE, MAX_MESH
 
-    p = sub.add_parser(
-        "solve",
-        help="solve a problem with any method (reference, dt, gd)",
-        description=cmd_solve.__doc__,
-    )
     problem_arg(p)
     p.add_argument(
         "--method",
@@ -311,12 +330,3 @@ def register(sub: Any) -> None:
                    help=f"reference: enumerate event sequences of up to K events, K at most "
                    f"{MAX_SEARCH}")  # fmt: skip
     add_json_out(p, out_help="write DIR/<problem>_solve_<method>.npz + .json and figures")
-    p.set_defaults(func=cmd_solve)
-
-    p = sub.add_parser(
-        "ablation",
-        help="the paper's Table 1: TOI settings x paper problems (plain gd)",
-        description=cmd_ablation.__doc__,
-    )
-    add_json_out(p, out_help="write learning-curve and learned-control figures and Solutions")
-    p.set_defaults(func=cmd_ablation)
