@@ -239,8 +239,8 @@ def _search_step(
     def appr(j: int, tau: float) -> bool:
         s = np.asarray(dense(t0 + tau), dtype=float)[:nx]
         u = u_piece(t0 + tau, s)
-        _, rate, accel, _ = num.contact(s, u)
-        return bool(approaching(rate[j : j + 1], accel[j : j + 1], s, graze_tol)[0])
+        _, rate, accel, nz = num.contact(s, u)
+        return bool(approaching(rate[j : j + 1], accel[j : j + 1], nz[j : j + 1], graze_tol)[0])
 
     def penetrated(j: int, tau: float) -> None:
         s = np.asarray(dense(t0 + tau), dtype=float)[:nx]

@@ -301,8 +301,10 @@ class Forward:
 
         def appr(j: int, tau: float) -> bool:
             s_tau = num.point(s, u, tau)[0]
-            _, rate, accel, _ = num.contact(s_tau, u)
-            return bool(approaching(rate[j : j + 1], accel[j : j + 1], s_tau, self.graze_tol)[0])
+            _, rate, accel, nz = num.contact(s_tau, u)
+            return bool(
+                approaching(rate[j : j + 1], accel[j : j + 1], nz[j : j + 1], self.graze_tol)[0]
+            )
 
         def penetrated(j: int, tau: float) -> None:
             s_tau = num.point(s, u, tau)[0]

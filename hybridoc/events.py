@@ -2,16 +2,22 @@
 
 Which crossings jump
     A guard fires when it reaches zero with approach speed
-    ``d psi/dt < -max(graze_tol, sqrt(2 sigma max(d2 psi/dt2, 0)))`` with
-    ``sigma = 4 eps max(1, |s|_inf)`` the rounding level of the guard. The second term is the
-    noise floor of the approach speed at a near-tangent root: there a rounding error
-    ``sigma`` in ``psi`` moves the computed root by ``sqrt(2 sigma / psi'')`` and gives a
-    spurious approach speed of that size. A grazing contact (approach speed below the
-    threshold) does not jump; the penetration this allows is of order ``sigma``.
+    ``d psi/dt < -max(graze_tol, sqrt(2 sigma_j max(d2 psi/dt2, 0)))`` with ``sigma_j`` the
+    rounding level of guard ``j``: a quarter of the bound of
+    :func:`hybridoc.kernels.rounding_level`, ``2 eps (|psi_j| + sum_i |d psi_j / d s_i|
+    max(1, |s_i|))`` to first order. It comes from the components guard ``j`` depends on
+    only, so a far or fast body does not raise the threshold of the guards between others;
+    for a gap whose bodies hold the largest coordinates it is about the ``4 eps
+    max(1, |s|_inf)`` of a unit-gradient guard. The second term is the noise floor of the
+    approach speed at a near-tangent root: there a rounding error ``sigma_j`` in ``psi``
+    moves the computed root by ``sqrt(2 sigma_j / psi'')`` and gives a spurious approach
+    speed of that size. A grazing contact (approach speed below the threshold) does not
+    jump; the penetration this allows is of order ``sigma_j``.
 
 Several guards at one instant
     At an event time every guard that is at zero (within its rounding level) and approaching
-    is due. If two due guards have resets that do not commute (``g_a(g_b(s)) != g_b(g_a(s))``,
+    is due. If two due guards have resets that do not commute (``g_a(g_b(s)) != g_b(g_a(s))``
+    beyond rounding, judged on the components the resets change and against their scale,
     e.g. a striker touching two discs at once), the outcome of the impulsive model depends on
     an order that the physics does not give: the judge raises
     :class:`~hybridoc.errors.SimultaneousEventError` instead of choosing one. Commuting resets
@@ -37,6 +43,7 @@ __all__ = [
     "MAX_REPEATS_AT_ONE_TIME",
     "accumulating",
     "approaching",
+    "commute_defect",
 ]
 
 EPS = float(np.finfo(float).eps)
@@ -95,11 +102,52 @@ class Event:
         }
 
 
-def approaching(rate: np.ndarray, accel: np.ndarray, s: np.ndarray, graze_tol: float) -> np.ndarray:
-    """Which guards approach fast enough to jump (see the module notes on grazing)."""
-    sigma = 4.0 * EPS * max(1.0, float(np.max(np.abs(s), initial=0.0)))
+def approaching(
+    rate: np.ndarray, accel: np.ndarray, noise: np.ndarray, graze_tol: float
+) -> np.ndarray:
+    """Which guards approach fast enough to jump (see the module notes on grazing).
+
+    Parameters
+    ----------
+    rate, accel
+        ``d psi/dt`` and ``d2 psi/dt2`` per guard.
+    noise
+        Per guard, the bound on the rounding of ``psi`` from the ``contact`` kernel
+        (:func:`hybridoc.kernels.rounding_level`); ``sigma_j`` is a quarter of it.
+    graze_tol
+        The grazing threshold.
+    """
+    sigma = 0.25 * np.asarray(noise, dtype=float)
     floor = np.sqrt(2.0 * sigma * np.maximum(accel, 0.0))
     return rate < -np.maximum(graze_tol, floor)
+
+
+def commute_defect(ab: np.ndarray, ba: np.ndarray, s: np.ndarray, *jumps: np.ndarray) -> float:
+    """How far two jumps fail to commute, relative to rounding: ``max |ab_i - ba_i|`` over
+    the components either jump changes, divided by their scale ``max(1, |s_i|, |ab_i|,
+    |ba_i|, |jump_i|)``.
+
+    Only the components the jumps touch enter: a body they leave alone (copied, bit for bit,
+    in both orders) does not lend them its scale, so a far body at 1e15 cannot hide two
+    non-commuting jumps of others below a tolerance ``1e-9 * 1e15``.
+
+    Parameters
+    ----------
+    ab, ba
+        ``g_a(g_b(s))`` and ``g_b(g_a(s))``.
+    s
+        The state before.
+    *jumps
+        ``g_a(s)`` and ``g_b(s)``.
+    """
+    touched = (ab != s) | (ba != s)
+    for g in jumps:
+        touched |= g != s
+    if not touched.any():
+        return 0.0
+    mags = [np.abs(x[touched]) for x in (s, ab, ba, *jumps)]
+    scale = np.maximum(1.0, np.max(mags, axis=0))
+    return float(np.max(np.abs(ab[touched] - ba[touched]) / scale))
 
 
 ZENO_RUN = 12
@@ -146,7 +194,7 @@ class EventResolver:
     def due(self, s: np.ndarray, u: np.ndarray, pending: set[int]) -> tuple[list[int], np.ndarray]:
         """Guards due at ``s``: approaching, and pending or at zero; and their rates."""
         psi, rate, accel, noise = self.num.contact(s, u)
-        appr = approaching(rate, accel, s, self.graze_tol)
+        appr = approaching(rate, accel, noise, self.graze_tol)
         tol = 4.0 * noise + 1e-300
         due = [j for j in range(self.G) if appr[j] and (j in pending or abs(psi[j]) <= tol[j])]
         return due, rate
@@ -191,10 +239,9 @@ class EventResolver:
         for ia, a in enumerate(due):
             for b in due[ia + 1 :]:
                 ga, gb = self.num.reset(a), self.num.reset(b)
-                ab = ga(gb(s)[0])[0]
-                ba = gb(ga(s)[0])[0]
-                scale = max(1.0, float(np.max(np.abs(ab))), float(np.max(np.abs(s))))
-                if np.max(np.abs(ab - ba)) > _COMMUTE_RTOL * scale:
+                sa, sb = ga(s)[0], gb(s)[0]
+                ab, ba = ga(sb)[0], gb(sa)[0]
+                if commute_defect(ab, ba, s, sa, sb) > _COMMUTE_RTOL:
                     na, nb = self.ocp.guards[a].name, self.ocp.guards[b].name
                     raise SimultaneousEventError(
                         f"guards {na!r} and {nb!r} fire at the same instant t = {t:.12g} and "

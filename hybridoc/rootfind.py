@@ -7,9 +7,15 @@ works with its Chebyshev interpolant:
 Proof of no crossing
     With coefficients ``c_k``, ``|T_k| <= 1`` gives ``p(t) >= c_0 - sum_k |c_k|`` on the
     interval. The detector is free of zeros when that bound, less the rounding level of the
-    samples (each sample carries one, from the magnitudes of the state and of the
-    detector's gradient) and, for a detector that is not polynomial, an estimate of the
-    interpolation error from the last coefficients, stays positive.
+    samples and, for a detector that is not polynomial, an estimate of the interpolation
+    error from the last coefficients, stays positive. Each sample carries its own rounding
+    level (:func:`hybridoc.kernels.rounding_level`): per guard, from the detector's gradient
+    and curvature in the state components it depends on, times the rounding of those
+    components (their magnitudes along the flow map, :func:`hybridoc.kernels.flow_scale_fn`).
+    Every quantity below (the bound, the resolution test, "within rounding of zero") is
+    taken per guard, so a guard between far or fast bodies never blurs another guard (one
+    that needs halving has the others examined on the halves too: another path to the same
+    roots, to rounding).
 
 Subdivision
     Otherwise the interval is split in two unless it is *resolved*: the interpolant's error
