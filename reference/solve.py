@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc._progress import Stages
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
@@ -66,7 +67,7 @@ from hybridoc.reference.sequence import solve_sequence, verify_reference
 from hybridoc.reference.shooting import hamiltonian_check, is_disc_scene
 from hybridoc.solution import Solution, Status
 
-__all__ = ["MAX_SEARCH", "reference_supports", "solve_reference"]
+__all__ = ["MAX_EVENTS", "MAX_SEARCH", "reference_supports", "solve_reference"]
 
 _OPT_RTOL = 1e-9  # a known control cheaper by more than this makes the extremal not optimal
 MAX_SEARCH = 8
@@ -74,6 +75,14 @@ MAX_SEARCH = 8
 event on two- and three-disc scenes (multiple-collision: 151 sequences of up to 5 events,
 3 048 of up to 8, 169 668 of up to 12), each a Newton solve: beyond 8 a search runs for hours
 and its lists fill the memory."""
+MAX_EVENTS = 40
+"""The longest event sequence the reference solves. Its disc NLP (event times and phase
+controls, in single shooting) has dense derivatives: measured on 2 cores, one sequence of
+32 events took 3 s and 0.3 GB, 63 events 22 s and 1.4 GB, 126 events 220 s and 8.8 GB
+(time ~ K^3, memory ~ K^2.7), and a whole run tries the guess's sequence, its neighbours and
+the transcription (39 events: 63 s in all). Longer sequences are not attempted (a given one
+is refused); ``hybridoc evaluate``, ``solve --method gd`` or ``--method dt`` handle long
+horizons."""
 MULTISTART = 8
 """Starts of the batched multi-start that proposes sequences (0 to skip it)."""
 # the multi-start's coarse grid: at 40 steps two impacts 0.1 T apart fell into one or two
@@ -117,10 +126,22 @@ class _Book:
     known: list[_Known] = field(default_factory=list)
     resimulated: dict[tuple[str, ...], Evaluation] = field(default_factory=dict)
     verify_time: float = 0.0
+    stages: Stages = field(default_factory=lambda: Stages("reference", enabled=False))
 
     def say(self, text: str) -> None:
         if self.verbose:
             print(f"reference: {text}", file=sys.stderr)
+
+    def skip_long(self, key: tuple[str, ...], origin: str) -> bool:
+        """Record a sequence beyond :data:`MAX_EVENTS` as not attempted."""
+        if len(key) <= MAX_EVENTS:
+            return False
+        if key not in self.reasons:
+            self.reasons[key] = _too_long(len(key))
+            self.origins.setdefault(key, origin)
+            self.times.setdefault(key, 0.0)
+            self.say(f"a {len(key)}-event sequence ({origin}): not attempted (MAX_EVENTS)")
+        return True
 
     def attempt(
         self,
@@ -139,8 +160,9 @@ class _Book:
         key = tuple(sequence)
         if key in self.results and not retry:
             return self.results[key]
-        if key in self.reasons and not retry:
+        if self.skip_long(key, origin) or (key in self.reasons and not retry):
             return None
+        self.stages.stage(f"shooting on a {len(key)}-event sequence ({origin})")
         t0 = time.perf_counter()
         try:
             res, why = solve_sequence(
@@ -164,6 +186,7 @@ class _Book:
 
     def verify(self, key: tuple[str, ...]) -> bool:
         if key not in self.verdicts:
+            self.stages.stage(f"re-simulating the {len(key)}-event extremal with the judge")
             t0 = time.perf_counter()
             ok, sim, msg = verify_reference(self.results[key])
             self.verify_time += time.perf_counter() - t0
@@ -269,6 +292,7 @@ def solve_reference(
     verify: bool = True,
     transcription: bool = True,
     multistart: int = MULTISTART,
+    progress: bool = False,
 ) -> Solution:
     """The optimal control by shooting on the hybrid minimum principle.
 
@@ -300,6 +324,10 @@ def solve_reference(
         fallback start of Newton.
     multistart
         Starts of the batched multi-start (0 to skip).
+    progress
+        Stage lines on stderr once the run has lasted a few seconds
+        (:mod:`hybridoc._progress`): which sequence is being solved, the transcription,
+        the multi-start, the search, the verification.
 
     Returns
     -------
@@ -316,7 +344,10 @@ def solve_reference(
     Raises
     ------
     SceneError
-        A bad ``sequence``, ``tol`` or ``search``, or a problem the reference cannot handle.
+        A bad ``sequence``, ``tol`` or ``search``, a ``sequence`` of more than
+        :data:`MAX_EVENTS` events, or a problem the reference cannot handle. Without
+        ``sequence``, candidates longer than :data:`MAX_EVENTS` are not attempted (listed in
+        ``info["candidates"]`` with the reason).
     ConvergenceError
         No candidate sequence satisfies the conditions and re-simulates to its own events.
     """
@@ -337,10 +368,45 @@ def solve_reference(
             f"search must be at most {MAX_SEARCH} events (the number of sequences grows "
             f"about sevenfold per event), got {search}"
         )
+    if seq is not None and len(seq) > MAX_EVENTS:
+        raise SceneError(_too_long(len(seq)))
+    with Stages("reference", enabled=progress) as stages:
+        return _solve(
+            ocp, seq, initial, search, verbose, tol, verify, transcription, multistart,
+            stages, t_start,
+        )  # fmt: skip
+
+
+def _too_long(k: int) -> str:
+    """Why a sequence of ``k`` events is not solved."""
+    return (
+        f"a sequence of {k} events is more than the reference solves (MAX_EVENTS = "
+        f"{MAX_EVENTS}: its shooting NLP grows as K^3 in time and K^2.7 in memory, 63 events "
+        "took 22 s and 1.4 GB, 126 took 220 s and 8.8 GB); for long horizons use 'hybridoc "
+        "evaluate' to judge a control, 'hybridoc solve --method gd' (or --method dt, within "
+        "its MAX_NLP_SIZE), or a shorter horizon"
+    )
+
+
+def _solve(
+    ocp: HybridOCP,
+    seq: list[str] | None,
+    initial: Any,
+    search: int | None,
+    verbose: bool,
+    tol: float,
+    verify: bool,
+    transcription: bool,
+    multistart: int,
+    stages: Stages,
+    t_start: float,
+) -> Solution:
+    """:func:`solve_reference` after its arguments are checked."""
+    stages.stage("simulating the initial guess")
     u0, given = _initial_controls(ocp, initial)
     disc = is_disc_scene(ocp)
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not disc)
-    book = _Book(ocp, tol, verbose, transcription)
+    book = _Book(ocp, tol, verbose, transcription, stages=stages)
     book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
     estimate = given or grad is not None
 
@@ -365,15 +431,29 @@ def solve_reference(
         # the same events means Newton stopped at a worse stationary point
         same = [k for k in book.known if k.sequence == seq]
     else:
-        for cand in guess_candidates(ocp, ev):
+        if len(ev.events) > MAX_EVENTS + 1:
+            # all its neighbours are too long as well: only the empty sequence is left, and
+            # building them would cost O(K^2) for nothing
+            book.skip_long(tuple(ev.sequence), "initial guess")
+            cands = [[]]
+        else:
+            cands = guess_candidates(ocp, ev)
+        stages.stage(
+            f"discovering sequences: {len(cands)} from the initial guess ({len(ev.events)} events)"
+        )
+        for cand in cands:
             key = [n for n, _ in cand]
             book.attempt(
                 key, np.array([t for _, t in cand]), u_used, "initial guess",
                 estimate=estimate and key == ev.sequence, grad=grad, guess_ev=ev,
             )  # fmt: skip
-        if transcription:
+        if transcription and book.skip_long(tuple(ev.sequence), "initial guess"):
+            book.say("transcription from the guess: not run, its events are too many")
+        elif transcription:
+            stages.stage(f"direct transcription from the initial guess ({len(ev.events)} events)")
             _transcription_candidate(ocp, book, u_used, ev)
         if multistart:
+            stages.stage(f"multi-start of the simulator ({multistart} starts)")
             _multistart_candidates(ocp, book, multistart)
         # every one-event sequence too: a guess that never comes near a guard (a cart at rest
         # before a wall) proposes no event at all, and neither may a multi-start
@@ -447,6 +527,14 @@ def solve_reference(
         )  # fmt: skip
         if found is not None:
             landscape = found
+    skipped = [k for k in book.reasons if len(k) > MAX_EVENTS]
+    if skipped and status is Status.SUCCESS:
+        # the discovery reached less far than usual: say so
+        message = (
+            f"the optimum among sequences of up to {MAX_EVENTS} events; {len(skipped)} longer "
+            f"candidate(s), of up to {max(map(len, skipped))} events, were not solved "
+            "(MAX_EVENTS)"
+        )
     bounds_violation = ocp.bound_violation(best.cell_averages()) if ocp.has_bounds else 0.0
     if bounds_violation > 1e-9:
         status = Status.INFEASIBLE
@@ -526,6 +614,7 @@ def _judge_given_sequence(
             None,
         )
     book.say(f"search: the discovery and the search of up to {search} events, for {seq}")
+    book.stages.stage(f"the discovery and search of up to {search} events, without the sequence")
     try:
         full = solve_reference(ocp, search=search, **options)
     except HybridocError as exc:
@@ -726,6 +815,7 @@ def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluat
             book.times[key] = 0.0
             continue
         todo.append(seq)
+    book.stages.stage(f"search: {len(todo)} sequences of up to {depth} events")
     _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol)
     workers = min(usable_cores(), 8)
     try:

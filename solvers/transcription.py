@@ -28,9 +28,11 @@ reference to round-off.
 
 from __future__ import annotations
 
+import math
 import time
 import weakref
 from collections.abc import Callable, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass
 from math import comb
 from typing import TYPE_CHECKING, Any
@@ -38,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
+from hybridoc._progress import Stages
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
@@ -56,6 +59,7 @@ if TYPE_CHECKING:
 __all__ = [
     "MAX_DEGREE",
     "MAX_MESH",
+    "MAX_NLP_SIZE",
     "DTResult",
     "control_function",
     "resample_controls",
@@ -69,6 +73,15 @@ MAX_DEGREE = 9
 MAX_MESH = 1000
 """The most collocation elements per phase (250 times the default): a typo such as
 ``--mesh 100000000`` fails with one line instead of building an NLP that fills the memory."""
+MAX_NLP_SIZE = 100_000
+"""The most variables plus constraints of one transcribed NLP, estimated before it is built
+(:func:`nlp_size`). IPOPT's iterations grow faster than the NLP: measured on 2 cores, 13
+discs (78 disc pairs, each kept apart at every node), one phase: 11 224 -> 0.13 s per
+iteration (500 iterations in 63 s); 44 344 -> 5.6 s to build and more than 290 s in IPOPT.
+Problems of the documentation and tests stay under 20 000. Beyond this bound a solve would
+run for hours: reduce ``mesh``, the events (``sequence``, another initial guess) or the
+bodies."""
+_MAX_ITER = 500  # IPOPT iterations per candidate NLP
 _BOUND_TOL = 1e-9  # judged control-bound violation above which a result is INFEASIBLE
 _PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INFEASIBLE
 _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
@@ -242,16 +255,20 @@ class _PhaseNLP:
         self.lbx[o[1 + P] :] = np.resize(np.asarray(ocp.u_min, dtype=float), n_u)
         self.ubx[o[1 + P] :] = np.resize(np.asarray(ocp.u_max, dtype=float), n_u)
         self._solvers: dict[bool, Any] = {}
+        self.callback: _IterationCallback | None = None
 
     def solver(self, verbose: bool) -> Any:
         if verbose not in self._solvers:
+            if self.callback is None:
+                self.callback = _IterationCallback(self.n_w, self.n_g, self.lbg, self.ubg)
             opts = {
                 "ipopt.tol": 1e-12,
                 "ipopt.acceptable_tol": 1e-9,
-                "ipopt.max_iter": 500,
+                "ipopt.max_iter": _MAX_ITER,
                 "ipopt.print_level": 5 if verbose else 0,
                 "ipopt.sb": "yes",
                 "print_time": bool(verbose),
+                "iteration_callback": self.callback,
             }
             self._solvers[verbose] = ca.nlpsol("dt", "ipopt", self._nlp, opts)
         return self._solvers[verbose]
@@ -296,10 +313,134 @@ class _PhaseNLP:
         return np.clip(U, lo, hi)
 
 
+class _Monitor:
+    """Progress lines and the time limit of one :func:`solve_dt` run."""
+
+    def __init__(self, stages: Stages, time_limit: float | None) -> None:
+        self.stages = stages
+        self.time_limit = time_limit
+        self.deadline = None if time_limit is None else stages.t0 + time_limit
+
+    def expired(self) -> bool:
+        return self.deadline is not None and time.perf_counter() > self.deadline
+
+    def stop(self, where: str) -> HybridocError:
+        """The error of a run stopped by its time limit ``where``."""
+        return HybridocError(
+            f"dt: stopped at the time limit of {self.time_limit:g} s {where}; raise "
+            "--time-limit, or make the NLP smaller and easier: a smaller --mesh, fewer events "
+            "(--sequence, another --initial), fewer bodies, or --method gd"
+        )
+
+
+# the solve_dt run in progress: its IPOPT solves report to it, however deep they are called
+_MONITOR: ContextVar[_Monitor | None] = ContextVar("hybridoc_dt_monitor", default=None)
+
+
+class _IterationCallback(ca.Callback):
+    """IPOPT's iteration callback: reports the iteration to the run's :class:`_Monitor` and
+    asks IPOPT to stop (``User_Requested_Stop``) once its time limit has passed."""
+
+    def __init__(self, n_w: int, n_g: int, lbg: np.ndarray, ubg: np.ndarray) -> None:
+        ca.Callback.__init__(self)
+        self.n_w, self.n_g, self.lbg, self.ubg = n_w, n_g, lbg, ubg
+        self.monitor: _Monitor | None = None
+        self.iteration = 0
+        self.construct("dt_iteration", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "stop"
+
+    def get_sparsity_in(self, i: int) -> Any:
+        name = ca.nlpsol_out(i)
+        if name == "f":
+            return ca.Sparsity.scalar()
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.n_w)
+        if name in ("g", "lam_g"):
+            return ca.Sparsity.dense(self.n_g)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg: list[Any]) -> list[int]:
+        self.iteration += 1
+        mon = self.monitor
+        if mon is None:
+            return [0]
+        if mon.stages.enabled:
+            g = np.asarray(arg[ca.nlpsol_out().index("g")], dtype=float).ravel()
+            viol = float(np.max(np.maximum(self.lbg - g, g - self.ubg), initial=0.0))
+            f = float(arg[ca.nlpsol_out().index("f")])
+            mon.stages.detail(
+                f"IPOPT iteration {self.iteration} of at most {_MAX_ITER}, objective {f:.6g}, "
+                f"constraint violation {viol:.1e}"
+            )
+        return [1 if mon.expired() else 0]
+
+
+def nlp_size(
+    ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]
+) -> tuple[int, int]:
+    """``(variables, constraints)`` of the transcribed NLP of one sequence, without building
+    it (the same count as :class:`_PhaseNLP`: states and controls at the nodes, collocation
+    defects, every other guard at every node, links, bounds' Bernstein coefficients and
+    path constraints).
+
+    Parameters
+    ----------
+    ocp
+        The problem.
+    guards
+        Guard indices of the events, in order.
+    degree, mesh
+        Collocation degree and elements per phase (one per phase).
+    """
+    nx, nu, d = ocp.nx, ocp.nu, degree
+    P = len(guards) + 1
+    n_b = int(np.count_nonzero(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max)))
+    n_c = 0 if ocp.path is None else int(ocp.path.size1_out(0))
+    n_w = P + sum(nx * (m * d + 1) + nu * m * d for m in mesh)
+    n_g = 1 + nx
+    for k, m in enumerate(mesh):
+        n_g += m * nx * d
+        if n_b and d > 1:
+            n_g += m * n_b * (d - 1)
+        n_g += n_c * (m * d + 1)
+        n_g += len(ocp.guards) * (m * d + 1)
+        n_g -= (k > 0) + (k < P - 1)  # the phase's own boundary guards
+        if k < P - 1:
+            n_g += 2 + nx  # guard, approach, link
+    return n_w, n_g
+
+
+def _check_size(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> None:
+    """A :class:`SceneError` naming the estimate when the NLP exceeds :data:`MAX_NLP_SIZE`."""
+    n_w, n_g = nlp_size(ocp, guards, degree, mesh)
+    if n_w + n_g > MAX_NLP_SIZE:
+        m = sorted(set(mesh))
+        raise SceneError(
+            f"the transcription of this {len(guards)}-event sequence would have {n_w} variables "
+            f"and {n_g} constraints ({len(guards) + 1} phases x {'/'.join(map(str, m))} elements x "
+            f"degree {degree}, {ocp.nx} states, {len(ocp.guards)} guard(s) kept apart at every "
+            f"node), more than MAX_NLP_SIZE = {MAX_NLP_SIZE} (IPOPT would run for hours); "
+            "use a smaller --mesh, fewer events (--sequence, another --initial), fewer bodies, "
+            "or --method gd"
+        )
+
+
 def _nlp_for(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> _PhaseNLP:
     cache = _NLPS.setdefault(ocp, {})
     key = (tuple(guards), degree, tuple(mesh))
     if key not in cache:
+        _check_size(ocp, guards, degree, mesh)  # before minutes of building
         cache[key] = _PhaseNLP(ocp, guards, degree, mesh)
     return cache[key]
 
@@ -497,6 +638,14 @@ def solve_dt_sequence(
     return _solve_nlp(nlp, w0, list(sequence), verbose)
 
 
+def _short_sequence(sequence: Sequence[str], most: int = 6) -> str:
+    """A sequence for a message: the first few guards and how many more."""
+    seq = list(sequence)
+    if len(seq) <= most:
+        return str(seq)
+    return str(seq[:most])[:-1] + f", ... {len(seq) - most} more]"
+
+
 def _is_int(x: Any) -> bool:
     return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
 
@@ -532,12 +681,24 @@ def _checked_mesh(mesh: Any, phases: int | None) -> list[int]:
 
 
 def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: bool) -> DTResult:
-    """Run IPOPT on a transcribed NLP from ``w0`` and collect the result."""
+    """Run IPOPT on a transcribed NLP from ``w0`` and collect the result (reporting to the
+    :func:`solve_dt` run in progress, if any)."""
     ocp, P = nlp.ocp, nlp.P
+    monitor = _MONITOR.get()
     solver = nlp.solver(verbose)
-    res = solver(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    assert nlp.callback is not None
+    nlp.callback.monitor, nlp.callback.iteration = monitor, 0
+    try:
+        res = solver(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    finally:
+        nlp.callback.monitor = None
     stats = solver.stats()
     status = str(stats.get("return_status", ""))
+    if monitor is not None and status == "User_Requested_Stop" and monitor.expired():
+        raise monitor.stop(
+            f"in IPOPT iteration {nlp.callback.iteration} of the {P - 1}-event sequence "
+            f"{_short_sequence(sequence)} ({nlp.n_w} variables, {nlp.n_g} constraints)"
+        )
     if not stats.get("success", False) and status != "Solved_To_Acceptable_Level":
         raise ConvergenceError(
             f"direct transcription for sequence {list(sequence)} did not converge (IPOPT: "
@@ -749,6 +910,8 @@ def solve_dt(
     degree: int = 3,
     mesh: int | Sequence[int] | None = None,
     verbose: bool = False,
+    progress: bool = False,
+    time_limit: float | None = None,
 ) -> Solution:
     """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
 
@@ -780,6 +943,14 @@ def solve_dt(
         the elements.
     verbose
         Print IPOPT's log and the candidates to stderr.
+    progress
+        Stage lines on stderr once the run has lasted a few seconds
+        (:mod:`hybridoc._progress`): the candidate, its NLP's size and IPOPT's iteration.
+    time_limit
+        Seconds of wall time: past them IPOPT is stopped and a
+        :class:`~hybridoc.errors.HybridocError` names the limit (``None``: no limit; the
+        work is at most one NLP of at most 500 IPOPT iterations per candidate, and a
+        refinement).
 
     Returns
     -------
@@ -805,24 +976,56 @@ def solve_dt(
     Raises
     ------
     SceneError
-        ``sequence`` names an event that is not a guard of the problem, or ``degree`` or
-        ``mesh`` is out of range.
+        ``sequence`` names an event that is not a guard of the problem, ``degree``, ``mesh``
+        or ``time_limit`` is out of range, or a candidate's NLP would have more than
+        :data:`MAX_NLP_SIZE` variables and constraints (:func:`nlp_size`).
+    HybridocError
+        The run passed ``time_limit``.
     ConvergenceError
         No candidate sequence's NLP converged.
     EvaluationError
         The judge cannot simulate the initial guess, or the control of any converged
         candidate (e.g. sustained contact).
     """
-    import sys
-
-    from hybridoc.solution import Solution, Status
-
     ocp = as_ocp(problem)
     t_start = time.perf_counter()
     if sequence is not None:
         sequence = ocp.check_sequence(sequence)
     degree = _checked_degree(degree)  # before any work
     _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
+    if time_limit is not None and not (
+        isinstance(time_limit, int | float)
+        and not isinstance(time_limit, bool)
+        and math.isfinite(time_limit)
+        and time_limit > 0
+    ):
+        raise SceneError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+    with Stages("dt", enabled=progress) as stages:
+        monitor = _Monitor(stages, time_limit)
+        token = _MONITOR.set(monitor)
+        try:
+            return _solve_dt(ocp, sequence, initial, degree, mesh, verbose, monitor, t_start)
+        finally:
+            _MONITOR.reset(token)
+
+
+def _solve_dt(
+    ocp: HybridOCP,
+    sequence: list[str] | None,
+    initial: Any,
+    degree: int,
+    mesh: Any,
+    verbose: bool,
+    monitor: _Monitor,
+    t_start: float,
+) -> Solution:
+    """:func:`solve_dt` after its arguments are checked."""
+    import sys
+
+    from hybridoc.solution import Solution, Status
+
+    stages = monitor.stages
+    stages.stage("simulating the initial guess")
     u0, seq_from_initial = _initial_controls(ocp, initial)
     guess, u0, perturbation = _evaluate_guess(ocp, u0)
     if sequence is not None:
@@ -832,17 +1035,21 @@ def solve_dt(
         cands = _candidates(observed)
     results: list[DTResult] = []
     tried: list[dict[str, Any]] = []
-    for cand in cands:
+    names = [g.name for g in ocp.guards]
+    for i, cand in enumerate(cands):
+        if monitor.expired():
+            raise monitor.stop(f"before candidate {i + 1} of {len(cands)}")
+        guards = [names.index(c) for c in cand]
+        mesh_list = _checked_mesh(mesh, len(cand) + 1)
+        n_w, n_g = nlp_size(ocp, guards, degree, mesh_list)
+        stages.stage(
+            f"candidate {i + 1} of {len(cands)}: a {len(cand)}-event sequence, NLP of {n_w} "
+            f"variables and {n_g} constraints"
+        )
         try:
-            r = solve_dt_sequence(
-                ocp,
-                cand,
-                guess=guess,
-                guess_controls=u0,
-                degree=degree,
-                mesh=mesh,
-                verbose=verbose,
-            )
+            nlp = _nlp_for(ocp, guards, degree, mesh_list)
+            w0, _ = _initial_point(nlp, guess, u0)
+            r = _solve_nlp(nlp, w0, list(cand), verbose)
         except ConvergenceError as exc:
             tried.append({"sequence": cand, "nlp_cost": None, "status": str(exc)})
             continue
@@ -878,6 +1085,7 @@ def solve_dt(
     matched: list[_Judged] = []  # reproduce their events, in order of NLP cost
     differ: list[_Judged] = []  # converged, but re-simulate to other events (or not at all)
     for r in sorted(results, key=lambda r: r.nlp_cost):
+        stages.stage(f"re-simulating the {len(r.sequence)}-event candidate with the judge")
         j = judge(r)
         ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
         refined = False
@@ -885,9 +1093,10 @@ def solve_dt(
             gap = _event_time_gap(ocp, r, j.ev)
             if gap is not None and gap <= _NEAR_MISS * ocp.horizon:
                 # a near miss: same events, times off by a little; a finer mesh may fix it
+                stages.stage(f"refining the {len(r.sequence)}-event candidate (twice the mesh)")
                 try:
                     rf = _refined(ocp, r, verbose)
-                except ConvergenceError:
+                except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
                     rf = None
                 jf = None if rf is None else judge(rf)
                 if jf is not None and jf.ev is not None:

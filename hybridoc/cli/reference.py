@@ -44,8 +44,9 @@ def cmd_reference(args: argparse.Namespace) -> int:
         initial, _ = load_controls_arg(args.initial, ocp)
     out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve_reference(
-        ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search
-    )
+        ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
+        progress=True,
+    )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
         files = write_reference_outputs(ocp, sol, output_stem(out_dir, ocp.name, "reference"))

@@ -62,6 +62,7 @@ _OPTIONS = {
     "starts": "starts",
     "seed": "seed",
     "hops": "hops",
+    "time_limit": "time_limit",
 }
 
 
@@ -116,13 +117,15 @@ def cmd_solve(args: argparse.Namespace) -> int:
         raise HybridocError(f"unknown method {args.method!r}")
     given = {k: getattr(args, k) for k in _OPTIONS if getattr(args, k, None) is not None}
     accepted = set(method.accepted())
-    wrong = [f"--{k}" for k in given if _OPTIONS[k] not in accepted]
+    wrong = [k for k in given if _OPTIONS[k] not in accepted]
     if wrong:
         owners = {
-            k: [m for m, mm in METHODS.items() if _OPTIONS[k] in mm.accepted()]
-            for k in (w[2:] for w in wrong)
+            k: [m for m, mm in METHODS.items() if _OPTIONS[k] in mm.accepted()] for k in wrong
         }
-        parts = [f"--{k} applies to --method {'/'.join(v) or '-'}" for k, v in owners.items()]
+        parts = [
+            f"--{k.replace('_', '-')} applies to --method {'/'.join(v) or '-'}"
+            for k, v in owners.items()
+        ]
         raise HybridocError(f"{'; '.join(parts)}, not to --method {args.method}")
     options = {_OPTIONS[k]: v for k, v in given.items()}
     if "smoothing" in options:
@@ -130,7 +133,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     ocp = load_problem_arg(args.problem)
     if args.initial is not None:
         options["initial"], _ = load_controls_arg(args.initial, ocp)
-    if args.method == "gd":
+    if "progress" in accepted:  # gd's bar, dt's and the reference's stage lines
         options["progress"] = True
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve(ocp, args.method, **options)
@@ -329,4 +332,7 @@ def _solve_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--search", type=nonnegative_int, default=None, metavar="K",
                    help=f"reference: enumerate event sequences of up to K events, K at most "
                    f"{MAX_SEARCH}")  # fmt: skip
+    g.add_argument("--time-limit", type=positive_float, default=None, metavar="SECONDS",
+                   help="dt: stop IPOPT and exit 2 after this much wall time (default: no "
+                   "limit; at most 500 IPOPT iterations per candidate sequence)")  # fmt: skip
     add_json_out(p, out_help="write DIR/<problem>_solve_<method>.npz + .json and figures")
