@@ -601,3 +601,27 @@ def test_cart_reference_default_discovery_from_rest(cart_optimum: Any) -> None:
     _assert_trusted(ref, hybridoc.solve(_cart(push=2.0), "reference"))
     assert ref.sequence == ["wall"]
     assert ref.cost == pytest.approx(cost, rel=1e-9)
+
+
+@pytest.mark.parametrize("far", [None, 1e15], ids=["alone", "far-disc-at-1e15"])
+def test_reference_sees_non_commuting_near_impacts_past_a_far_body(far: float | None) -> None:
+    """The reference's test for two impacts of a known control that nearly coincide and do
+    not commute takes the judge's per-component scale: a passive disc at 1e15 once made its
+    tolerance 1e-9 * 1e15 and hid the pair."""
+    import dataclasses
+
+    from hybridoc.reference.solve import _coalescing, _Known
+
+    sc = _scene("symmetric-striker")
+    if far is not None:
+        sc = dataclasses.replace(
+            sc, discs=(*sc.discs, hybridoc.Disc(name="far", position=(far, 0.0), radius=0.2))
+        )
+    ocp = sc.to_ocp()
+    u = np.tile([4.0, 1e-6], (ocp.steps, 1))  # the impacts 1.5e-7 apart
+    ev = hybridoc.evaluate(ocp, u)
+    assert [e.name for e in ev.events] == ["striker|a", "striker|b"]
+    known = _Known("test", ev.cost, [e.name for e in ev.events], u, ev)
+    pair = _coalescing(ocp, known)
+    assert pair is not None and set(pair[:2]) == {"striker|a", "striker|b"}
+    assert 0 < pair[2] < 1e-6
