@@ -46,7 +46,7 @@ docs: $(STAMP)
 # CI's docs check: every page built, warnings as errors, without running the tutorials
 # (make test has just run each of them, in its quick mode).
 docs-check: $(STAMP)
-	HYBRIDOC_DOCS_EXECUTE=0 $(BIN)/sphinx-build -E -W --keep-going -b html docs docs/_build/html-check
+	HYBRIDOC_DOCS_EXECUTE=0 $(BIN)/sphinx-build -E -W --keep-going -q -b html docs docs/_build/html-check
 
 # Headless Chromium screenshots of the landing page and every tutorial page of the built
 # docs, in docs/_build/screenshots (not part of `make test`; installs Debian's chromium when

@@ -116,7 +116,12 @@ def test_long_horizon_closed_form_counts() -> None:
 # grow with the coordinates (|y| ~ 0.75 T^2; at T = 1e4 one ulp is 1.5e-8) and with the number
 # of impacts; measured: 8e-9 / 2e-10 / 2e-13 at T = 300, 8e-7 / 1e-8 / 2e-12 at 1000 and
 # 0.015 / 9e-6 / 3e-10 at 1e4 (the oracle at 1e4: 0.0027 / 3e-6).
-LONG_CASES = [(300.0, 1e-7, 1e-8, 1e-11), (1000.0, 1e-5, 1e-7, 1e-10), (1e4, 0.05, 2e-5, 1e-8)]
+# T = 1e4 (7906 events) tests a scale: slow, in make test-all.
+LONG_CASES = [
+    (300.0, 1e-7, 1e-8, 1e-11),
+    (1000.0, 1e-5, 1e-7, 1e-10),
+    pytest.param(1e4, 0.05, 2e-5, 1e-8, marks=pytest.mark.slow),
+]
 
 
 @pytest.mark.parametrize(("T", "tol_t", "tol_spacing", "tol_state"), LONG_CASES)
