@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_datasets import SCENE_TOML as DATASET_SCENE_TOML
 
 import hybridoc
 import hybridoc.dataset as dsmod
@@ -32,30 +33,8 @@ M = 8  # draws: four chunks of two
 CHUNK = 2
 
 # test_datasets.py's scene on a coarser grid (the same draws and events, faster)
-SCENE_TOML = """
-name = "sc-dist"
-horizon = 1.0
-steps = 40
-control_weight = 0.01
-
-[[discs]]
-name = "ball1"
-position = [-1.0, -2.0]
-radius = 0.2
-actuated = true
-initial_control = [0.0, 3.0]
-
-[[discs]]
-name = "ball2"
-position = [-1.0, -1.0]
-radius = 0.2
-target = [0.0, 0.0]
-
-[distribution]
-seed = 7
-[distribution.discs.ball2]
-position = { uniform = [0.3, 0.3] }
-"""
+SCENE_TOML = DATASET_SCENE_TOML.replace("steps = 480", "steps = 40")
+assert "steps = 40" in SCENE_TOML
 
 # `hybridoc dataset ...` with chunks of two draws; with HYBRIDOC_TEST_GATE set, every chunk
 # waits until that file exists

@@ -425,6 +425,26 @@ def _cascade(ev: Any, T: float) -> bool:
     return False
 
 
+def _baseline(ocp: Any, u: np.ndarray, T: float) -> Any:
+    """The judge's answer on the scene before a translation or a change of units, or
+    ``None`` when there is nothing to compare: the judge raised (noted), or a cascade."""
+    want = _judge(ocp, u)
+    if isinstance(want, Exception):
+        event(f"judge raised {type(want).__name__}")
+        return None
+    return None if _cascade(want, T) else want
+
+
+def _conditioned_spread(
+    ocp: Any, u: np.ndarray, want: Any, T: float, length: float = 1.0
+) -> tuple[float, float, float]:
+    """:func:`_own_spread`, with the case skipped (``assume``) when it is ill-conditioned."""
+    spread = _own_spread(ocp, u, want, length)
+    assume(spread is not None and spread[1] < 1e-4 * max(1.0, T))
+    assert spread is not None
+    return spread
+
+
 def _assert_same_answer(
     got: Any,
     want: Any,
@@ -512,9 +532,7 @@ def test_a_far_body_or_wall_changes_nothing(case: Any, far: dict[str, Any]) -> N
         # same rounding levels, cascades included): the same outcome
         assert type(got) is type(want), f"base: {want!r}; with the far {far['kind']}: {got!r}"
         return
-    spread = _own_spread(ocp, u, want)
-    assume(spread is not None and spread[1] < 1e-4 * max(1.0, T))
-    assert spread is not None
+    spread = _conditioned_spread(ocp, u, want, T)
     same = got.cost == want.cost and np.array_equal(got.final_state[keep], want.final_state)
     event(f"far {far['kind']}: " + ("identical" if same else "equal to rounding"))
     # the same roundings at the same scale; only event times may be located by another path
@@ -547,17 +565,12 @@ def test_translating_the_scene_changes_nothing(case: Any, log_offset: float, ang
     T = scene.horizon
     c = 10.0**log_offset * np.array([math.cos(angle), math.sin(angle)])
     ocp = scene.to_ocp()
-    want = _judge(ocp, u)
-    if isinstance(want, Exception):
-        event(f"judge raised {type(want).__name__}")
-        return
-    if _cascade(want, T):
+    want = _baseline(ocp, u, T)
+    if want is None:
         return
     # the translated scene rounds every position at the scale |c| + the scene's extent
     length = float(np.abs(c).max()) + _extent(want)[0]
-    spread = _own_spread(ocp, u, want, length)
-    assume(spread is not None and spread[1] < 1e-4 * max(1.0, T))
-    assert spread is not None
+    spread = _conditioned_spread(ocp, u, want, T, length)
     got = _judge(_translated(scene, c), u)
     assert not isinstance(got, Exception), f"translated by {c}: {got!r}; untranslated: fine"
     event(f"translated by 1e{math.floor(log_offset)}")
@@ -607,16 +620,11 @@ def test_scaling_lengths_scales_the_answer(
     walls = tuple(dataclasses.replace(w, point=sc(w.point)) for w in scene.walls)
     scaled = dataclasses.replace(scene, discs=discs, walls=walls)
     ocp = scene.to_ocp()
-    want = _judge(ocp, u)
-    if isinstance(want, Exception):
-        event(f"judge raised {type(want).__name__}")
-        return
-    if _cascade(want, T):
+    want = _baseline(ocp, u, T)
+    if want is None:
         return
     length = max(_extent(want)[0], 1.0 / lam)
-    spread = _own_spread(ocp, u, want, length)
-    assume(spread is not None and spread[1] < 1e-4 * max(1.0, T))
-    assert spread is not None
+    spread = _conditioned_spread(ocp, u, want, T, length)
     got = _judge(scaled, lam * u, graze_tol=1e-10 * lam, penetration_tol=1e-9 * lam)
     assert not isinstance(got, Exception), f"lengths times {lam}: {got!r}; unscaled: fine"
     event("power of two" if power_of_two else "any factor")
