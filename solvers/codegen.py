@@ -9,7 +9,8 @@ time, into a cache folder keyed by a hash of the function's serialisation: a lat
 the library at once. Without a compiler,
 or when compilation fails, the virtual machine simply stays in use.
 
-The cache is private and checked: its folder is created with mode 0700 and used only while
+The cache is private and checked: its folder is created with mode 0700 (an existing one of
+the user's that others may read is narrowed to 0700) and used only while
 it is owned by the user and writable by nobody else, and a library is loaded only when its
 SHA-256 matches the one hybridoc recorded beside it when it built it (``<lib>.sha256``);
 anything else is not loaded. The least recently used libraries are deleted when the cache
@@ -48,7 +49,7 @@ import threading
 import time
 import warnings
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -189,7 +190,13 @@ def _private_dir(create: bool) -> Iterator[tuple[int | None, bool]]:
         yield None, True
         return
     try:
-        reason = _unsafe(os.fstat(fd))
+        st = os.fstat(fd)
+        reason = _unsafe(st)
+        if reason is None and create and stat.S_IMODE(st.st_mode) & 0o077:
+            # a folder of ours that others may read or list (an older hybridoc made it
+            # 0755): made private, as a new one is
+            with suppress(OSError):
+                os.fchmod(fd, 0o700)
         if reason is not None:
             _warn_once(
                 f"the code cache {str(path)!r} is not private: {reason}; compiled code is "

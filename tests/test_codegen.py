@@ -197,6 +197,19 @@ def test_a_new_cache_folder_is_private(
     assert stat.S_IMODE(cache.stat().st_mode) == 0o700
 
 
+def test_an_existing_readable_cache_folder_is_made_private(
+    compiling: None, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # an older hybridoc created the folder 0755: others could list and read the libraries
+    cache = tmp_path / "old"
+    cache.mkdir(mode=0o755)
+    cache.chmod(0o755)
+    monkeypatch.setenv("HYBRIDOC_CACHE", str(cache))
+    acc = codegen.Accelerated(_probe(), wait=True)
+    assert acc.compiled, acc.error
+    assert stat.S_IMODE(cache.stat().st_mode) == 0o700
+
+
 def test_eviction_keeps_the_cache_under_its_bound(private: Path) -> None:
     libs = [_fake_library(private, f"f{k}", 1000, age_s=100.0 - k) for k in range(5)]
     stranger = private / "notes.bin"
