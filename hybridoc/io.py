@@ -170,7 +170,9 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
         arr = raw.astype(np.float64)
     else:
         try:
-            text = p.read_text(encoding="utf-8")
+            # utf-8-sig: spreadsheets ("CSV UTF-8") start the file with a byte-order mark,
+            # which would otherwise stick to the first label
+            text = p.read_text(encoding="utf-8-sig")
         except (OSError, UnicodeDecodeError) as exc:
             raise ControlsError(f"{where} cannot be read: {exc}") from None
         header, arr = _parse_csv(text, where)

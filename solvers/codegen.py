@@ -10,7 +10,8 @@ the library at once. Without a compiler,
 or when compilation fails, the virtual machine simply stays in use.
 
 The cache is private and checked: its folder is created with mode 0700 (an existing one of
-the user's that others may read is narrowed to 0700) and used only while
+the user's that others may read or write is narrowed to 0700, its compiled files discarded
+when others could write there) and used only while
 it is owned by the user and writable by nobody else, and a library is loaded only when its
 SHA-256 matches the one hybridoc recorded beside it when it built it (``<lib>.sha256``);
 anything else is not loaded. The least recently used libraries are deleted when the cache
@@ -49,7 +50,7 @@ import threading
 import time
 import warnings
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -171,6 +172,28 @@ def check_cache_dir(path: str | Path | None = None) -> str | None:
     return _unsafe(st)
 
 
+def _make_private(dfd: int, path: Path, st: os.stat_result) -> None:
+    """Narrow a cache folder of this user's that others may read or write to 0700.
+
+    Older versions made it with the default mode (0755, or 0775 under umask 002). A folder
+    others could write to may hold their files: its libraries and records are discarded
+    (compiled again when needed), with one warning, before anything is loaded from it.
+    """
+    try:
+        os.fchmod(dfd, 0o700)
+    except OSError:
+        return  # stays as it is; _unsafe then decides
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        names = [name for name, _ in _entries(dfd)]
+        for name in names:
+            _unlink(dfd, name)
+        _warn_once(
+            f"the code cache {str(path)!r} was writable by other users (mode "
+            f"{stat.S_IMODE(st.st_mode):04o}): it is now private (0700), and its {len(names)} "
+            "compiled file(s) were discarded, to be compiled again"
+        )
+
+
 @contextmanager
 def _private_dir(create: bool) -> Iterator[tuple[int | None, bool]]:
     """A descriptor of the checked cache folder and whether it was refused: ``(fd, False)``,
@@ -191,12 +214,15 @@ def _private_dir(create: bool) -> Iterator[tuple[int | None, bool]]:
         return
     try:
         st = os.fstat(fd)
+        if (
+            stat.S_ISDIR(st.st_mode)
+            and hasattr(os, "geteuid")
+            and st.st_uid == os.geteuid()
+            and stat.S_IMODE(st.st_mode) & 0o077
+        ):
+            _make_private(fd, path, st)
+            st = os.fstat(fd)
         reason = _unsafe(st)
-        if reason is None and create and stat.S_IMODE(st.st_mode) & 0o077:
-            # a folder of ours that others may read or list (an older hybridoc made it
-            # 0755): made private, as a new one is
-            with suppress(OSError):
-                os.fchmod(fd, 0o700)
         if reason is not None:
             _warn_once(
                 f"the code cache {str(path)!r} is not private: {reason}; compiled code is "

@@ -471,8 +471,9 @@ def _converged(message: str, history: Sequence[float], k: int, iters: int) -> tu
 
     The test: the optimiser stopped because it could make no further progress (L-BFGS: a
     fresh start moves nowhere; L-BFGS-B: SciPy's own test), or, at the iteration limit, the
-    loss changed by at most :data:`STALL_RTOL` (relative) over the last
-    :func:`stall_window` iterations. Plain ``gd`` and ``adam`` have only the second.
+    loss spread by at most :data:`STALL_RTOL` (relative, ``max - min`` over the last
+    :func:`stall_window` iterations; a loss tending to 0 is measured against 1e-12 of the
+    initial one). Plain ``gd`` and ``adam`` have only the second.
     """
     if message.startswith("converged"):
         return True, ""
@@ -482,11 +483,21 @@ def _converged(message: str, history: Sequence[float], k: int, iters: int) -> tu
         return False, "iters = 0: no descent was run; the controls are the initial guess"
     w = stall_window(iters)
     if len(history) > w:
-        last, before = history[-1], history[-1 - w]
-        change = abs(before - last) / max(abs(last), 1e-300)
+        window = np.asarray(history[-w - 1 :], dtype=float)
+        # the spread over the window, not two end points (a 2-cycle would pass), relative
+        # to the loss, with a floor for a loss that falls towards 0
+        scale = max(abs(float(window.min())), 1e-12 * abs(float(history[0])), 1e-300)
+        change = float(window.max() - window.min()) / scale
         if change <= STALL_RTOL:
             return True, ""
         tail = f"the loss still changed by {change:.2e} (relative) over the last {w} iterations"
+        if float(window[1:].min()) >= float(np.min(history[:-w])):
+            # no better than before the window: it oscillates, more iterations will not help
+            return False, (
+                f"stopped at the iteration limit ({iters}) before converging: {tail} without "
+                "improving on its best loss (it oscillates: a smaller --lr, or the default "
+                "optimizer lbfgs, may settle)"
+            )
     else:
         tail = (
             f"{k} iteration(s) are too few to tell (the test: a relative change of the loss of "

@@ -162,11 +162,42 @@ def test_a_tampered_library_is_not_loaded(compiling: None, private: Path, marker
     assert not marker.exists()
 
 
-def test_an_unsafe_cache_folder_is_refused(compiling: None, private: Path) -> None:
+def test_a_cache_folder_others_can_write_is_made_private_and_emptied(
+    compiling: None, private: Path
+) -> None:
+    # an older hybridoc under umask 002 made the folder 0775: anyone in the group could have
+    # put a library and its record there. It is narrowed to 0700, everything hybridoc-named
+    # in it is discarded, and the function is compiled again.
     fn = _probe()
     assert codegen.Accelerated(fn, wait=True).compiled  # a genuine, recorded library
+    (old,) = private.glob("*.so")
+    old.write_bytes(old.read_bytes() + b"planted")  # what someone else could have done...
+    old.with_name(old.name + ".sha256").write_text(  # ...with a record to match
+        f"{hashlib.sha256(old.read_bytes()).hexdigest()}  {old.name}\n"
+    )
     private.chmod(0o777)
     assert "other users can write" in codegen.check_cache_dir()
+    with pytest.warns(codegen.CacheWarning, match=r"was writable by other users \(mode 0777\)"):
+        acc = codegen.Accelerated(fn, wait=True)
+    assert stat.S_IMODE(private.stat().st_mode) == 0o700
+    assert acc.compiled, acc.error
+    assert b"planted" not in old.read_bytes()  # compiled again, not the planted bytes
+    assert float(acc(0.5)) == float(fn(0.5))
+
+
+def test_an_unsafe_cache_folder_is_refused(
+    compiling: None, private: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a folder that cannot be made private (here: chmod fails, as on a folder of another
+    # user's or a read-only mount) is never loaded from
+    fn = _probe()
+    assert codegen.Accelerated(fn, wait=True).compiled
+    private.chmod(0o777)
+
+    def refuse(*args: object) -> None:
+        raise PermissionError("not allowed")
+
+    monkeypatch.setattr(os, "fchmod", refuse)
     with pytest.warns(codegen.CacheWarning, match="not private"):
         acc = codegen.Accelerated(fn, hot=0)
     assert not acc.compiled and acc._calls_left == -1  # nothing loaded, nothing built

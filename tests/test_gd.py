@@ -168,6 +168,12 @@ def test_convergence_test_at_the_iteration_limit() -> None:
     assert not ok and "too few" in why
     assert _converged("converged: L-BFGS made no further progress", [1.0, 0.5], 1, 300)[0]
     assert not _converged("stopped by the callback", flat, 21, 50)[0]
+    # a 2-cycle has equal end points over an even window: the spread counts, and it says why
+    cycle = [1.0] + [0.5, 0.7] * 300
+    ok, why = _converged(done, cycle, 600, 600)
+    assert not ok and "oscillates" in why and "--lr" in why
+    # a loss falling geometrically towards 0 settles, measured against the initial loss
+    assert _converged(done, [0.9**k for k in range(1001)], 1000, 1000) == (True, "")
     assert _converged(done, [1.0], 0, 0) == (
         False,
         "iters = 0: no descent was run; the controls are the initial guess",

@@ -60,6 +60,10 @@ def test_csv_header_columns_found_by_label(tmp_path, scene, values):
     quoted = tmp_path / "quoted.csv"
     quoted.write_text('"striker.uy","striker.ux"\n' + rows + "\n")
     assert np.array_equal(load_controls(quoted, scene), values)
+    # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
+    bom = tmp_path / "bom.csv"
+    bom.write_text("striker.uy,striker.ux\n" + rows + "\n", encoding="utf-8-sig")
+    assert np.array_equal(load_controls(bom, scene), values)
     # save_controls' default names u0, u1, ... keep the file's order
     generic = save_controls(tmp_path / "generic.csv", values)
     assert generic.read_text().startswith("u0,u1\n")
