@@ -590,9 +590,13 @@ def _is_ours(folder: Path) -> bool:
         return False
 
 
-def _shard_dir(out: Path) -> Path:
+def _shard_dir(out: Path, resuming: bool = False) -> Path:
     """The shard folder of ``out``: made with its marker in one rename (a kill leaves no
     unmarked folder of ours), or ours already.
+
+    ``resuming``: ``out`` holds our manifest of an unfinished run with the same settings.
+    A run of an older hybridoc (no marker) left a ``shards/`` there holding nothing but
+    chunk files; it is adopted (marked), and its chunks are checked like any other.
 
     Raises
     ------
@@ -600,6 +604,10 @@ def _shard_dir(out: Path) -> Path:
         ``out/shards`` exists and is not ours: nothing in it is touched.
     """
     d = out / SHARD_DIR
+    if resuming and d.is_dir() and not d.is_symlink() and not _is_ours(d):
+        names = os.listdir(d)
+        if all(_CHUNK_NAME.fullmatch(n) or _TMP_NAME.fullmatch(n) for n in names):
+            (d / SHARD_MARK).write_text(_MARK_TEXT, encoding="utf-8")
     if not d.exists() and not d.is_symlink():
         tmp = _tmp_name(d)
         try:
@@ -1041,7 +1049,7 @@ def _make(
             manifest["complete"] = False
             _write_json(mpath, manifest)
     # before the nominal solve, so that a folder that is not ours fails at once
-    sdir = _shard_dir(out)
+    sdir = _shard_dir(out, resuming=manifest is not None)
     _sweep(sdir, lambda n: bool(_CHUNK_NAME.fullmatch(n)), lambda n: False)
     t0 = time.perf_counter()
     samples, seed, tol, full = (settings[k] for k in ("samples", "seed", "tol", "full"))

@@ -295,6 +295,36 @@ def test_bad_shards_are_computed_again(
     assert listing(tmp_path) == ["dataset.npz", "manifest.json", "shards"]
 
 
+def test_an_older_versions_unfinished_run_is_resumed(
+    files: Path, reference: bytes, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # hybridoc before the marker left shards/ with chunk files only: with our manifest of
+    # the same settings beside it, the folder is adopted and the run finishes to the same
+    # bytes; with a file of anyone else's in it, it is still refused and left alone
+    monkeypatch.setattr(dsmod, "CHUNK", CHUNK)
+    solve = dsmod._solve_chunk
+
+    def interrupted(spec: Any, idx: list[int]) -> Any:
+        if idx[0] >= 4:
+            raise KeyboardInterrupt
+        return solve(spec, idx)
+
+    monkeypatch.setattr(dsmod, "_solve_chunk", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        make_dataset(files / "scene.toml", M, tmp_path, workers=1, progress=False)
+    monkeypatch.setattr(dsmod, "_solve_chunk", solve)
+    shards = tmp_path / "shards"
+    (shards / ".hybridoc-shards").unlink()  # as the older version left it
+    (shards / "keep.txt").write_text("x")
+    with pytest.raises(HybridocError, match="was not made by 'hybridoc dataset'"):
+        make_dataset(files / "scene.toml", M, tmp_path, workers=1, progress=False)
+    assert (shards / "keep.txt").read_text() == "x"
+    (shards / "keep.txt").unlink()
+    make_dataset(files / "scene.toml", M, tmp_path, workers=1, progress=False)
+    assert (tmp_path / "dataset.npz").read_bytes() == reference
+    assert listing(tmp_path) == ["dataset.npz", "manifest.json"]
+
+
 def test_read_shard_rejects_every_kind_of_bad_shard(files: Path, tmp_path: Path) -> None:
     cols = {k: np.zeros(2) for k in dsmod.COLUMNS}
     cols["index"] = np.array([4, 5], dtype=np.int64)
