@@ -55,3 +55,13 @@ def compiling(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
         pytest.skip("no C compiler on this machine")
     monkeypatch.setenv("HYBRIDOC_CODEGEN", "1")
     monkeypatch.setenv("HYBRIDOC_CACHE", str(tmp_path / "cache"))
+
+
+#: test modules with the longest tests (tutorials, cross-validations, regression scenes):
+#: started first, so that pytest-xdist's workers do not wait on one of them at the end
+LONG_FIRST = ("test_tutorials.py", "test_validation.py", "test_trust_regressions.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Run the modules of :data:`LONG_FIRST` first (a stable sort: order within is kept)."""
+    items.sort(key=lambda item: item.path.name not in LONG_FIRST)
