@@ -76,6 +76,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
+import errno
 import hashlib
 import io
 import json
@@ -88,6 +89,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 import zipfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -533,6 +535,10 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_drop_inherited_locks)
 
 
+_NO_LOCKS = {errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK}
+"""``flock`` errors of a file system without locks (not of a lock held by another run)."""
+
+
 @contextlib.contextmanager
 def _locked(out: Path) -> Iterator[None]:
     """Hold the lock of the output directory ``out`` (``flock`` on :data:`LOCK_FILE`,
@@ -561,6 +567,20 @@ def _locked(out: Path) -> Iterator[None]:
                     f"another hybridoc dataset run holds the lock on {str(out)!r} "
                     f"({LOCK_FILE}); wait for it to end or choose another --out"
                 ) from None
+            if exc.errno in _NO_LOCKS:
+                # some network file systems (Lustre without -o flock, some NFS/SMB mounts)
+                # have no locks at all: run, but say what is not protected
+                warnings.warn(
+                    f"the file system of {str(out)!r} does not support locks "
+                    f"({exc.strerror}): running without the lock on the folder; do not "
+                    "start a second run into it until this one ends",
+                    UserWarning,
+                    stacklevel=3,
+                )
+                with contextlib.suppress(OSError):
+                    path.unlink()
+                yield
+                return
             raise HybridocError(f"cannot lock {str(path)!r}: {exc.strerror}") from None
         # the run before may have removed the file as it ended, after we opened it: the
         # lock counts only on the file that is at the path now

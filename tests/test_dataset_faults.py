@@ -243,6 +243,29 @@ def test_the_lock_is_held_and_released(files: Path, tmp_path: Path) -> None:
         pass
 
 
+@pytest.mark.parametrize("code", ["ENOSYS", "EOPNOTSUPP", "ENOLCK"])
+def test_a_file_system_without_locks_runs_with_a_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, code: str
+) -> None:
+    # Lustre without -o flock answers ENOSYS: a run goes on, saying what is not protected
+    import errno
+    import fcntl
+
+    def no_locks(fd: int, op: int) -> None:
+        raise OSError(getattr(errno, code), os.strerror(getattr(errno, code)))
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.warns(UserWarning, match="does not support locks"):
+        with dsmod._locked(tmp_path):
+            pass
+    assert listing(tmp_path) == []
+    # any other failure to lock is an error
+    monkeypatch.setattr(fcntl, "flock", lambda fd, op: (_ for _ in ()).throw(OSError(5, "EIO")))
+    with pytest.raises(HybridocError, match="cannot lock"):
+        with dsmod._locked(tmp_path):
+            pass
+
+
 # ---------------------------------------------------------------------------- shards
 
 
