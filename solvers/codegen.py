@@ -410,8 +410,8 @@ def cache_info() -> dict[str, Any]:
         "other_files": 0,
         "enabled": enabled(),
     }
-    if not info["exists"]:
-        return info
+    if not info["exists"] or not hasattr(os, "O_DIRECTORY"):
+        return info  # without directory descriptors (Windows) nothing is compiled either
     try:
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as exc:
@@ -446,6 +446,8 @@ def clear_cache() -> dict[str, Any]:
     """
     path = cache_dir()
     out: dict[str, Any] = {"path": str(path), "removed": 0, "freed_bytes": 0, "other_files": 0}
+    if not hasattr(os, "O_DIRECTORY"):
+        return out  # Windows: hybridoc compiles nothing there, so made nothing to clear
     try:
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     except FileNotFoundError:

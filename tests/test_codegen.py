@@ -308,3 +308,15 @@ def test_cache_info_and_clear(private: Path, capsys: pytest.CaptureFixture[str])
     assert main(["cache", "info"]) == 1
     err = capsys.readouterr().err
     assert "hybridoc: warning: the code cache" in err and "not private" in err
+
+
+def test_cache_info_and_clear_without_directory_descriptors(
+    private: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Windows has no O_DIRECTORY (and compiles nothing): info and clear answer, not crash
+    _fake_library(private, "f", 100, age_s=1.0)
+    monkeypatch.delattr(os, "O_DIRECTORY")
+    info = codegen.cache_info()
+    assert info["exists"] and info["libraries"] == 0
+    assert codegen.clear_cache()["removed"] == 0
+    assert len(list(private.glob("*.so"))) == 1
