@@ -44,7 +44,7 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
 
-__all__ = ["MAX_STEPS", "Guard", "HybridOCP", "Structure", "as_float_array"]
+__all__ = ["MAX_STEPS", "Guard", "HybridOCP", "Structure", "as_float_array", "checked_steps"]
 
 MAX_STEPS = 10**6
 """The largest grid ``N`` a problem may have: a million cells (the controls alone are then
@@ -210,7 +210,7 @@ class HybridOCP:
             self.horizon = float(self.horizon)
         except (TypeError, ValueError):
             raise SceneError(f"horizon must be a number, got {self.horizon!r}") from None
-        self.steps = _checked_steps(self.steps)
+        self.steps = checked_steps(self.steps)
         if self.horizon <= 0 or not np.isfinite(self.horizon):
             raise SceneError(f"horizon must be positive and finite, got {self.horizon}")
         if not np.all(np.isfinite(self.x0)):
@@ -302,7 +302,7 @@ class HybridOCP:
         if unknown:
             raise TypeError(f"unknown HybridOCP field(s): {sorted(unknown)}")
         if "steps" in changes and "u_guess" not in changes:
-            n_new = _checked_steps(changes["steps"])  # before allocating the new guess
+            n_new = checked_steps(changes["steps"])  # before allocating the new guess
             mids = (np.arange(n_new) + 0.5) / n_new
             assert self.u_guess is not None
             changes["u_guess"] = self.u_guess[
@@ -444,12 +444,11 @@ def as_float_array(value: Any, what: str, *, error: type[Exception] = SceneError
     return np.array(raw, dtype=np.float64)
 
 
-def _checked_steps(steps: Any) -> int:
-    """``steps`` as an int in ``[1, MAX_STEPS]``, or a :class:`SceneError`."""
-    if isinstance(steps, bool) or not isinstance(steps, int | np.integer):
-        raise SceneError(f"steps must be an integer >= 1, got {steps!r}")
-    if steps < 1:
-        raise SceneError(f"steps must be >= 1, got {steps}")
+def checked_steps(steps: Any) -> int:
+    """``steps`` as an int in ``[1, MAX_STEPS]``, or a :class:`SceneError` (the one check of
+    a grid size, for problems and scenes alike)."""
+    if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 1:
+        raise SceneError(f"steps must be a positive integer, got {steps!r}")
     if steps > MAX_STEPS:
         raise SceneError(f"steps must be at most {MAX_STEPS} (hybridoc.ocp.MAX_STEPS), got {steps}")
     return int(steps)

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.errors import SceneError
-from hybridoc.ocp import MAX_STEPS
+from hybridoc.ocp import checked_steps
 
 __all__ = ["NAME_PATTERN", "Disc", "DiscSpread", "Distribution", "Scene", "Spread", "Wall"]
 
@@ -509,13 +509,7 @@ class Scene:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "horizon", _positive(self.horizon, "horizon"))
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int | np.integer):
-            raise SceneError(f"steps must be a positive integer, got {self.steps!r}")
-        if self.steps < 1:
-            raise SceneError(f"steps must be a positive integer, got {self.steps}")
-        if self.steps > MAX_STEPS:
-            raise SceneError(f"steps must be at most {MAX_STEPS}, got {self.steps}")
-        object.__setattr__(self, "steps", int(self.steps))
+        object.__setattr__(self, "steps", checked_steps(self.steps))
         object.__setattr__(self, "control_weight", _positive(self.control_weight, "control_weight"))
         e = _number(self.restitution, "restitution")
         if not 0.0 <= e <= 1.0:
