@@ -238,9 +238,7 @@ def draw_ocp(ctx_scene: Any, ocp: Any, scene_i: Any) -> Any:
     only positions and velocities changed, a fresh compile when a target did."""
     same = all(a.target == b.target for a, b in zip(ctx_scene.discs, scene_i.discs, strict=True))
     if same:
-        meta = dict(ocp.meta)
-        meta["scene"] = scene_i
-        return ocp.replace(x0=scene_i.initial_state(), name=scene_i.name, meta=meta)
+        return ocp.replace(x0=scene_i.initial_state(), name=scene_i.name, source_scene=scene_i)
     return scene_i.to_ocp()
 
 

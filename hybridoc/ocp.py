@@ -37,7 +37,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import casadi as ca
 import numpy as np
@@ -201,6 +201,9 @@ class HybridOCP:
     meta: dict[str, Any] = field(default_factory=dict)
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
+    DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
+    """The fields that :meth:`replace` may change without building a new structure."""
+
     def __post_init__(self) -> None:
         for attr in ("f", "L", "phi"):
             if not isinstance(getattr(self, attr), ca.Function):
@@ -308,7 +311,7 @@ class HybridOCP:
             changes["u_guess"] = self.u_guess[
                 np.minimum((mids * self.steps).astype(int), -1 + self.steps)
             ]
-        if set(changes) <= _DATA_FIELDS:
+        if set(changes) <= self.DATA_FIELDS:
             changes.setdefault("structure", self.structure)
         else:
             changes["structure"] = None

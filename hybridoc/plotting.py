@@ -512,7 +512,9 @@ def plot_trajectories(
 ) -> Figure:
     """The trajectories of one or more evaluations: a disc scene drawn to scale with the
     paths overlaid, any other problem as states against time."""
-    scene = ocp.meta.get("scene")
+    from hybridoc.problems.disc_ocp import DiscOCP
+
+    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
     if scene is not None:
         return _scene_overlay(scene, evaluations, title=title or ocp.name)
     return plot_states(evaluations, list(ocp.state_labels), title=title)

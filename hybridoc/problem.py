@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from hybridoc.problems.scene import Scene
     from hybridoc.solution import Solution
 
-__all__ = ["ControlsLike", "ProblemLike", "as_ocp"]
+__all__ = ["ControlsLike", "ProblemLike", "as_ocp", "disc_scene"]
 
 ProblemLike: TypeAlias = "HybridOCP | Scene | str | Path"
 """A HybridOCP, a Scene, a built-in name, a ``.toml`` path or ``file.py:function``."""
@@ -62,3 +62,24 @@ def as_ocp(problem: ProblemLike) -> HybridOCP:
     if not isinstance(ocp, HybridOCP):
         raise SceneError(f"{type(problem).__name__}.to_ocp() did not return a HybridOCP")
     return ocp
+
+
+def disc_scene(problem: ProblemLike) -> Scene:
+    """The :class:`~hybridoc.problems.Scene` of a disc problem (a name, a Scene or a
+    :class:`~hybridoc.problems.DiscOCP`), with the problem's current data.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For a problem that is not a disc scene.
+    """
+    from hybridoc.problems import DiscOCP, Scene
+
+    if isinstance(problem, Scene):
+        return problem
+    ocp = as_ocp(problem)
+    if not isinstance(ocp, DiscOCP):
+        raise SceneError(
+            f"{ocp.name!r} is not a disc scene (a generic HybridOCP): this needs a disc scene"
+        )
+    return ocp.scene

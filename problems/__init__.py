@@ -8,15 +8,13 @@ hybrid OCPs (installed as ``hybridoc.problems``).
 
 from __future__ import annotations
 
-import dataclasses
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import SceneError
+from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.problems.scene import Disc, Scene, Wall
 
 if TYPE_CHECKING:
@@ -24,10 +22,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Disc",
+    "DiscOCP",
     "Scene",
     "Wall",
     "builtin_names",
-    "disc_scene",
     "library_names",
     "load_problem",
     "load_scene",
@@ -146,31 +144,3 @@ def _from_python(path: Path, func: str, *, explicit: bool) -> Any:
     if not isinstance(out, HybridOCP | Scene):
         raise SceneError(f"{where}() returned {type(out).__name__}, not a HybridOCP or a Scene")
     return out
-
-
-def disc_scene(problem: Any) -> Any:
-    """The :class:`~hybridoc.problems.Scene` of a disc problem (name, Scene or its OCP).
-
-    Raises
-    ------
-    hybridoc.errors.SceneError
-        For a problem that is not a disc scene.
-    """
-    from hybridoc.problem import as_ocp
-
-    if isinstance(problem, Scene):
-        return problem
-    ocp = as_ocp(problem)
-    scene = ocp.meta.get("scene")
-    if not isinstance(scene, Scene):
-        raise SceneError(
-            f"{ocp.name!r} is not a disc scene (a generic HybridOCP): this needs a disc scene"
-        )
-    # the problem's data may differ from the scene it was compiled from (HybridOCP.replace)
-    if ocp.steps != scene.steps:
-        scene = scene.with_steps(ocp.steps)
-    if ocp.horizon != scene.horizon:
-        scene = dataclasses.replace(scene, horizon=ocp.horizon)
-    if not np.array_equal(ocp.x0, scene.initial_state()):
-        scene = scene.with_initial_state(ocp.x0)
-    return scene

@@ -8,17 +8,22 @@ gaps, normals and impulses of :mod:`hybridoc.problems.physics`.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import casadi as ca
 import numpy as np
 
-from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.ocp import Guard
 from hybridoc.problems import physics as ph
-from hybridoc.problems.scene import Scene
+from hybridoc.problems.disc_ocp import DiscOCP
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems.scene import Scene
 
 __all__ = ["scene_to_ocp"]
 
 
-def scene_to_ocp(scene: Scene) -> HybridOCP:
+def scene_to_ocp(scene: Scene) -> DiscOCP:
     """Build the hybrid OCP of a disc scene (exact polynomial flow map, impulse resets)."""
     ops = ph.CASADI
     n = scene.n_discs
@@ -89,7 +94,7 @@ def scene_to_ocp(scene: Scene) -> HybridOCP:
 
     labels = [f"{d.name}.{c}" for d in scene.discs for c in ("x", "y")]
     labels += [f"{d.name}.{c}" for d in scene.discs for c in ("vx", "vy")]
-    return HybridOCP(
+    return DiscOCP(
         f=ca.Function("f", [s, u], [f]),
         L=ca.Function("L", [s, u], [L]),
         phi=ca.Function("phi", [s], [phi]),
@@ -102,8 +107,8 @@ def scene_to_ocp(scene: Scene) -> HybridOCP:
         state_labels=labels,
         control_labels=scene.control_labels(),
         name=scene.name,
+        source_scene=scene,
         meta={
-            "scene": scene,
             "n_discs": n,
             "disc_names": [d.name for d in scene.discs],
             "masses": np.array(masses),

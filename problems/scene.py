@@ -46,12 +46,15 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import SceneError
 from hybridoc.ocp import checked_steps
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = ["NAME_PATTERN", "Disc", "DiscSpread", "Distribution", "Scene", "Spread", "Wall"]
 
@@ -678,8 +681,8 @@ class Scene:
             distribution=self.distribution,
         )
 
-    def to_ocp(self) -> Any:
-        """Compile to a :class:`hybridoc.HybridOCP` (cached)."""
+    def to_ocp(self) -> DiscOCP:
+        """Compile to a :class:`~hybridoc.problems.DiscOCP` (cached)."""
         if "ocp" not in self._derived:
             from hybridoc.problems.compile import scene_to_ocp
 

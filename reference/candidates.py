@@ -21,6 +21,7 @@ import numpy as np
 
 from hybridoc.evaluation import Evaluation
 from hybridoc.ocp import HybridOCP
+from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = ["enumerate_sequences", "guess_candidates", "guess_times", "lower_bound"]
 
@@ -96,9 +97,9 @@ def guess_times(ocp: HybridOCP, sequence: Sequence[str], ev: Evaluation | None) 
 
 
 def _disc_layout(ocp: HybridOCP) -> dict[str, Any] | None:
-    scene = ocp.meta.get("scene")
-    if scene is None:
+    if not isinstance(ocp, DiscOCP):
         return None
+    scene = ocp.scene
     moving = {d.name for d in scene.discs if d.actuated or any(d.velocity)}
     passive = {d.name for d in scene.discs if not d.actuated}
     walls = {w.name for w in scene.walls}

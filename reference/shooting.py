@@ -53,6 +53,7 @@ import numpy as np
 
 from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP, Structure
+from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
     "NewtonResult",
@@ -76,7 +77,7 @@ _LOCK = threading.Lock()
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
     """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``."""
-    return "n_discs" in ocp.meta and "control_weight" in ocp.meta
+    return isinstance(ocp, DiscOCP)
 
 
 def hamiltonian_check(ocp: HybridOCP) -> str | None:

@@ -473,7 +473,7 @@ def make_step(
         An unknown model or setting, or a combination without a CasADi form (one line that
         says why, from :meth:`~hybridoc.solvers.contacts.ContactModel.casadi_unsupported`).
     """
-    from hybridoc.problems import disc_scene
+    from hybridoc.problem import disc_scene
     from hybridoc.solvers.contacts import contact_model
 
     scene = disc_scene(scene)

@@ -26,6 +26,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
+from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.solvers.codegen import Accelerated
 
 __all__ = ["CompiledLoss", "SIMULATIONS"]
@@ -92,7 +93,7 @@ class CompiledLoss:
                 f"simulation must be one of {', '.join(SIMULATIONS)}, got {simulation!r}"
             )
         ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
-        is_disc = isinstance(ocp.meta.get("scene"), Scene)
+        is_disc = isinstance(ocp, DiscOCP)
         if simulation == "disc" and not is_disc:
             raise SceneError(f"{ocp.name!r} is not a disc scene: use simulation='generic'")
         use_disc = is_disc and simulation != "generic"
@@ -104,7 +105,7 @@ class CompiledLoss:
         s = ca.SX.sym("s", nx)
         u = ca.SX.sym("u", nu)
         if use_disc:
-            from hybridoc.problems import disc_scene
+            from hybridoc.problem import disc_scene
             from hybridoc.solvers.casadi_step import make_step
 
             scene = disc_scene(ocp)

@@ -40,6 +40,7 @@ import numpy as np
 from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problem import ProblemLike, as_ocp
+from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.solution import Solution, Status
 from hybridoc.solvers.threads import torch_threads
 
@@ -149,12 +150,11 @@ def make_loss(
     are kept per problem structure and settings: building one takes milliseconds, but
     continuation stages and repeated solves reuse it.
     """
-    from hybridoc.problems import Scene
     from hybridoc.solvers.contacts import contact_model
 
     if path not in ("auto", "compiled", "torch"):
         raise SceneError(f"unknown path {path!r}; choose auto, compiled or torch")
-    is_disc = isinstance(ocp.meta.get("scene"), Scene)
+    is_disc = isinstance(ocp, DiscOCP)
     if integrator not in INTEGRATORS:
         raise SceneError(
             f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
@@ -163,7 +163,7 @@ def make_loss(
         model = contact_model(contact, toi=toi)
         # every registered model has a CasADi step, within limits (e.g. the scene's number of
         # contacts for the coupled impulse models): auto falls back to torch outside them
-        reason = model.casadi_unsupported(ocp.meta["scene"], integrator)
+        reason = model.casadi_unsupported(ocp.scene, integrator)
         if path == "compiled" and reason is not None:
             raise SceneError(f"no compiled path: {reason}")
         use_compiled = path == "compiled" or (path == "auto" and reason is None)
@@ -203,7 +203,7 @@ def make_loss(
 def default_integrator(ocp: HybridOCP, contact: str, toi: str) -> str:
     """``"exact"`` where it exists (impulse models with both TOI corrections, generic
     problems), else the paper's ``"symplectic-euler"``."""
-    if "scene" not in ocp.meta:
+    if not isinstance(ocp, DiscOCP):
         return "exact"
     from hybridoc.solvers.contacts import contact_model
 
@@ -391,7 +391,7 @@ def solve_gd(
         "iters": iters,
         "lr": lr,
         "path": used_path,
-        "simulation": "disc" if "scene" in ocp.meta else "generic",
+        "simulation": "disc" if isinstance(ocp, DiscOCP) else "generic",
     }
     if smoothing:
         kwargs = dict(
@@ -607,7 +607,7 @@ def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str
     from hybridoc.solvers.multistart import explore
 
     t0 = time.perf_counter()
-    if "scene" in ocp.meta and options["contact"] != "direct":
+    if isinstance(ocp, DiscOCP) and options["contact"] != "direct":
         raise SceneError(
             "the batched multi-start explores with the compiled exact simulation of contact "
             "'direct'; other contact models start from its result with --initial"

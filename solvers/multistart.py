@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.ocp import HybridOCP
+from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
     "EXPLORE_SMOOTHING",
@@ -64,9 +65,9 @@ def _aimed(ocp: HybridOCP) -> list[np.ndarray]:
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
 
-    scene = ocp.meta.get("scene")
-    if scene is None:
+    if not isinstance(ocp, DiscOCP):
         return []
+    scene = ocp.scene
     try:
         ev = evaluate(ocp)
     except HybridocError:

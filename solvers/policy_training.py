@@ -56,8 +56,7 @@ import torch
 from hybridoc.errors import ControlsError, SceneError
 from hybridoc.evaluator import adjoint, evaluate
 from hybridoc.ocp import HybridOCP, as_float_array
-from hybridoc.problem import ProblemLike, as_ocp
-from hybridoc.problems import disc_scene
+from hybridoc.problem import ProblemLike, as_ocp, disc_scene
 from hybridoc.solvers.simulator import Simulator
 from hybridoc.solvers.threads import torch_threads
 

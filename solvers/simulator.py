@@ -74,7 +74,7 @@ import numpy as np
 import torch
 
 from hybridoc.errors import ControlsError, SceneError
-from hybridoc.problems import disc_scene
+from hybridoc.problem import disc_scene
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts import TOI_MODES, ContactModel, contact_model
 from hybridoc.solvers.threads import torch_threads

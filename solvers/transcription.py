@@ -52,6 +52,7 @@ from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
+from hybridoc.problems.disc_ocp import DiscOCP
 
 if TYPE_CHECKING:
     from hybridoc.solution import Solution
@@ -1160,8 +1161,7 @@ def _solve_dt(
     solve_time = time.perf_counter() - t_start
     grid = ocp.time_grid()
     controls = best.cell_averages(grid)
-    scene = ocp.meta.get("scene")
-    scene_name = getattr(scene, "name", ocp.name)
+    scene_name = ocp.scene.name if isinstance(ocp, DiscOCP) else ocp.name
     info = {
         "sequence": best.sequence,
         "event_times": [float(t) for t in best.event_times],

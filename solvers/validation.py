@@ -29,6 +29,7 @@ import numpy as np
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.evaluator import evaluate
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
+from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.solution import Solution
 
 __all__ = [
@@ -250,7 +251,7 @@ def crossval(
         raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
     opts = {k: dict(v) for k, v in (options or {}).items()}
     gd_opts = opts.setdefault("gd", {})
-    gd_opts.setdefault("starts", GD_STARTS["disc" if "scene" in ocp.meta else "generic"])
+    gd_opts.setdefault("starts", GD_STARTS["disc" if isinstance(ocp, DiscOCP) else "generic"])
     if gd_opts.get("integrator") == "symplectic-euler":
         # the paper's objective kinks where a contact changes step: restarts get past them
         gd_opts.setdefault("hops", GD_HOPS)
@@ -333,7 +334,7 @@ def discrete_gap(problem: ProblemLike, sol: Solution) -> dict[str, Any]:
         ``discrete_loss`` (gd's), ``discrete_optimum`` and ``discrete_gap_relative``; or
         ``discrete_error`` when the transcription of the discrete problem failed.
     """
-    from hybridoc.problems import disc_scene
+    from hybridoc.problem import disc_scene
     from hybridoc.solvers.discrete_transcription import solve_discrete
 
     loss = float(sol.info.get("loss", float("nan")))

@@ -361,7 +361,7 @@ def test_python_object_scene_evaluates():
     assert [e.bodies for e in ev.events] == [("a", "b")]
     assert ev.events[0].time == pytest.approx(math.sqrt(0.6), abs=1e-14)
     ocp = sc.to_ocp()
-    assert ocp.meta["scene"] is sc
+    assert ocp.source_scene is sc and ocp.scene is sc
     np.testing.assert_array_equal(ocp.meta["masses"], [1.0, 3.0])
 
 

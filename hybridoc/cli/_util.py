@@ -198,10 +198,11 @@ def load_problem_arg(text: str) -> Any:
 
 def disc_scene_of(ocp: Any, command: str) -> Any:
     """The Scene of a disc problem, or a one-line error naming the command."""
-    scene = ocp.meta.get("scene")
-    if scene is None:
+    from hybridoc.problems import DiscOCP
+
+    if not isinstance(ocp, DiscOCP):
         raise HybridocError(f"{command} needs a disc scene; {ocp.name!r} is a generic HybridOCP")
-    return scene
+    return ocp.scene
 
 
 def add_json_out(parser: argparse.ArgumentParser, *, out_help: str | None = None) -> None:

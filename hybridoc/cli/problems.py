@@ -149,7 +149,9 @@ def cmd_show(args: argparse.Namespace) -> int:
         from hybridoc.plotting import figure_path
 
         figure_path(args.plot)  # a bad suffix fails before the description is printed
-    scene = ocp.meta.get("scene")
+    from hybridoc.problems.disc_ocp import DiscOCP
+
+    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
     lines = _scene_lines(scene) if scene is not None else _ocp_lines(ocp)
     ev = None
     try:
