@@ -1,0 +1,297 @@
+"""What a solver is: :class:`Method`, its typed options (:func:`option`), and the registry.
+
+A method is one module that defines a run function, a dataclass of its options and a
+``METHOD = Method(...)`` that ties them together, plus one registration line
+(:func:`register_method`, or an entry of :data:`BUILTIN` for the methods that ship with
+hybridoc). Everything that treats methods generally reads the :class:`Method`:
+
+* ``hybridoc.solve(problem, method, **options)`` checks the options against
+  :attr:`Method.options`;
+* ``hybridoc solve`` builds one flag per option field (its help, choices and parser come
+  from the field's :func:`option` metadata) and prints :attr:`Method.summary_lines`;
+* ``crossval`` reads :attr:`Method.tolerance`, :attr:`Method.crossval_defaults` and
+  :attr:`Method.crossval_check`.
+
+None of them names a method. The contract of a method's ``run``:
+``run(ocp, *, initial=None, progress=None, **options) -> Solution``, where ``ocp`` is a
+:class:`~hybridoc.HybridOCP`, ``initial`` the initial guess (``None``, ``(N, nu)`` controls or
+a Solution), ``progress`` a :data:`~hybridoc.progress.ProgressLike` and ``options`` the
+fields of :attr:`Method.options`. It raises :class:`~hybridoc.errors.HybridocError`
+subclasses for user errors and returns a :class:`~hybridoc.solution.Solution` whose cost is
+the judge's cost of its control and whose status says what the result is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import inspect
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from hybridoc.errors import SceneError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
+    from hybridoc.solution import Solution
+
+__all__ = [
+    "BUILTIN",
+    "DEFAULT_TOLERANCE",
+    "METHODS",
+    "Method",
+    "NoOptions",
+    "OptionSpec",
+    "get_method",
+    "option",
+    "option_specs",
+    "register_method",
+]
+
+DEFAULT_TOLERANCE = 5e-3
+"""Relative cost gap to the reference within which a method agrees with it in crossval,
+unless the method declares its own (:attr:`Method.tolerance`)."""
+
+RUN_KEYWORDS = ("initial", "progress")
+"""Keywords every method's ``run`` takes besides its options."""
+
+
+def option(
+    default: Any,
+    help: str,
+    *,
+    choices: Sequence[Any] | Callable[[], Sequence[Any]] | None = None,
+    parse: Callable[[str], Any] | None = None,
+    metavar: str | None = None,
+    cli: bool = True,
+) -> Any:
+    """A field of a method's options dataclass, with what the CLI needs to offer it.
+
+    Parameters
+    ----------
+    default
+        The default value (``None``: the method decides, and says so in ``help``).
+    help
+        One line for ``hybridoc solve --help`` and the documentation.
+    choices
+        The allowed values, or a function returning them (read when the flags are built, so
+        that a registry of contact models, say, is imported only then).
+    parse
+        Turns the command-line text into the value and raises ``ValueError`` (or
+        ``argparse.ArgumentTypeError``) with a one-line reason; default: the text itself,
+        or ``int``/``float`` for a numeric default.
+    metavar
+        The placeholder in ``--help``.
+    cli
+        ``False`` for options that only the Python API can pass (callbacks, objects).
+    """
+    meta = {
+        "help": help,
+        "choices": choices,
+        "parse": parse,
+        "metavar": metavar,
+        "cli": cli,
+    }
+    if isinstance(default, list | dict | set):
+        raise TypeError("option defaults must be immutable (a tuple, not a list)")
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One option of a method, as the CLI and the docs see it (:func:`option_specs`)."""
+
+    name: str
+    default: Any
+    help: str
+    choices: tuple[Any, ...] | None
+    parse: Callable[[str], Any] | None
+    metavar: str | None
+    cli: bool
+
+    @property
+    def flag(self) -> str:
+        """The command-line flag, e.g. ``--time-limit``."""
+        return "--" + self.name.replace("_", "-")
+
+
+def option_specs(options: type) -> list[OptionSpec]:
+    """The :class:`OptionSpec` of every field of an options dataclass, in order."""
+    out = []
+    for f in dataclasses.fields(options):
+        meta = f.metadata
+        choices = meta.get("choices")
+        if callable(choices):
+            choices = choices()
+        out.append(
+            OptionSpec(
+                name=f.name,
+                default=f.default,
+                help=meta.get("help", ""),
+                choices=None if choices is None else tuple(choices),
+                parse=meta.get("parse"),
+                metavar=meta.get("metavar"),
+                cli=meta.get("cli", True),
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class NoOptions:
+    """The options of a method that takes none."""
+
+
+def _settings_lines(sol: Solution) -> list[tuple[str, str]]:
+    settings = ", ".join(f"{k} {v}" for k, v in sol.settings.items() if v is not None)
+    return [("settings", settings)] if settings else []
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered solver and everything about it.
+
+    Attributes
+    ----------
+    name
+        The ``method=`` value and ``--method`` choice.
+    summary
+        One line for listings and ``--help``.
+    run
+        ``run(ocp, *, initial=None, progress=None, **options) -> Solution`` (module notes),
+        or ``"module:function"`` naming it, imported on first use.
+    options
+        A frozen dataclass whose fields, made with :func:`option`, are the method's options
+        (the keywords of ``run`` besides :data:`RUN_KEYWORDS`).
+    tolerance
+        Relative cost gap to the reference within which crossval says the method agrees.
+    supports
+        ``supports(ocp) -> None`` when the method can solve the problem, else a one-line
+        reason.
+    summary_lines
+        ``summary_lines(sol) -> [(label, text), ...]``: what ``hybridoc solve`` prints about
+        a solution besides status, cost and events.
+    crossval_defaults
+        ``crossval_defaults(ocp, options) -> options``: the options crossval runs the method
+        with when the caller sets none (gd's multi-start, say); default: as given.
+    crossval_check
+        ``crossval_check(ocp, sol) -> (entry, reasons)``: a method's own check in crossval
+        (fields added to its report entry, and the reasons it disagrees); default: none.
+    """
+
+    name: str
+    summary: str
+    run: Callable[..., Solution] | str
+    options: type = NoOptions
+    tolerance: float = DEFAULT_TOLERANCE
+    supports: Callable[[HybridOCP], str | None] = field(default=lambda ocp: None)
+    summary_lines: Callable[[Solution], list[tuple[str, str]]] = _settings_lines
+    crossval_defaults: Callable[[HybridOCP, dict[str, Any]], dict[str, Any]] | None = None
+    crossval_check: Callable[[HybridOCP, Solution], tuple[dict[str, Any], list[str]]] | None = (
+        None
+    )
+
+    def __post_init__(self) -> None:
+        if not dataclasses.is_dataclass(self.options):
+            raise TypeError(f"method {self.name!r}: options must be a dataclass")
+
+    def function(self) -> Callable[..., Solution]:
+        """The run function."""
+        if callable(self.run):
+            return self.run
+        module, _, attr = self.run.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+    def option_names(self) -> tuple[str, ...]:
+        """The names of the method's options."""
+        return tuple(f.name for f in dataclasses.fields(self.options))
+
+    def accepted(self) -> tuple[str, ...]:
+        """Every keyword ``run`` accepts: :data:`RUN_KEYWORDS` and the options."""
+        return RUN_KEYWORDS + self.option_names()
+
+    def specs(self) -> list[OptionSpec]:
+        """The options as :class:`OptionSpec` (:func:`option_specs`)."""
+        return option_specs(self.options)
+
+    def check_signature(self) -> None:
+        """Raise ``TypeError`` unless ``run`` takes ``ocp`` and exactly :meth:`accepted` as
+        keywords (the conformance test runs this on every registered method)."""
+        params = inspect.signature(self.function()).parameters
+        taken = {
+            p.name
+            for p in list(params.values())[1:]
+            if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and not p.name.startswith("_")
+        }
+        if taken != set(self.accepted()):
+            raise TypeError(
+                f"method {self.name!r}: run takes {sorted(taken)}, options and run keywords "
+                f"are {sorted(self.accepted())}"
+            )
+
+
+BUILTIN: dict[str, str] = {
+    "reference": "hybridoc.reference.solve:METHOD",
+    "dt": "hybridoc.solvers.transcription:METHOD",
+    "gd": "hybridoc.solvers.gd:METHOD",
+}
+"""The methods that ship with hybridoc: ``name -> "module:attribute"`` of their
+:class:`Method`, imported on first use."""
+
+
+class _Registry(Mapping[str, Method]):
+    """The registered methods by name; built-in ones are imported when first looked up."""
+
+    def __init__(self) -> None:
+        self._lazy: dict[str, str] = dict(BUILTIN)
+        self._loaded: dict[str, Method] = {}
+
+    def __getitem__(self, name: str) -> Method:
+        if name in self._loaded:
+            return self._loaded[name]
+        where = self._lazy[name]  # KeyError for an unknown name, as a Mapping should
+        module, _, attr = where.partition(":")
+        method = getattr(importlib.import_module(module), attr)
+        if not isinstance(method, Method) or method.name != name:
+            raise TypeError(f"{where} is not the Method {name!r}")
+        self._loaded[name] = method
+        return method
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._lazy or name in self._loaded
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(dict.fromkeys([*self._lazy, *self._loaded]))
+
+    def __len__(self) -> int:
+        return len(set(self._lazy) | set(self._loaded))
+
+    def add(self, method: Method) -> None:
+        self._lazy.pop(method.name, None)
+        self._loaded[method.name] = method
+
+
+METHODS = _Registry()
+"""Every registered method, by name (a read-only mapping; :func:`register_method` adds)."""
+
+
+def register_method(method: Method) -> Method:
+    """Add a method to :data:`METHODS`, replacing one of the same name; returns it."""
+    if not isinstance(method, Method):
+        raise TypeError(f"register_method takes a Method, got {type(method).__name__}")
+    METHODS.add(method)
+    return method
+
+
+def get_method(name: str) -> Method:
+    """The registered method called ``name``.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For an unknown name (one line listing the registered ones).
+    """
+    if not isinstance(name, str) or name not in METHODS:
+        raise SceneError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+    return METHODS[name]
