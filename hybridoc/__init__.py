@@ -14,9 +14,18 @@ evaluate`` imports what ``evaluate`` needs.
 from __future__ import annotations
 
 import importlib
+import os
 from typing import TYPE_CHECKING, Any
 
-from hybridoc import _layout  # noqa: F401  (running from a source checkout)
+# The install maps the repository's top-level reference/, solvers/ and problems/ into
+# hybridoc.*. Python started in a source checkout's root finds this bare folder first, where
+# they are missing: searching the checkout's root as part of this package finds them there.
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if not os.path.isdir(os.path.join(os.path.dirname(__file__), "problems")) and all(
+    os.path.isfile(os.path.join(_ROOT, name, "__init__.py"))
+    for name in ("reference", "solvers", "problems")
+):
+    __path__.append(_ROOT)
 
 if TYPE_CHECKING:  # pragma: no cover - what type checkers and editors see
     from hybridoc.callable_eval import evaluate_callable

@@ -11,7 +11,8 @@ def test_import_subpackages():
 
 def test_import_from_the_repository_root():
     """``import hybridoc`` and ``python -m pytest`` work from a source checkout's root, where
-    the bare ``hybridoc/`` folder shadows the installed package (hybridoc/_layout.py)."""
+    the bare ``hybridoc/`` folder shadows the installed package (hybridoc/__init__.py extends
+    its ``__path__``)."""
     import subprocess
     import sys
     from pathlib import Path
