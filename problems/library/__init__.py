@@ -11,16 +11,20 @@ order); ``None`` for any other configuration (no claim).
 - :func:`juggling_paddle`: an actuated paddle that drives a passive ball only by impacts.
 - :func:`pendulum_wall`: a torque-controlled pendulum bouncing on a wall (non-polynomial).
 
+A new problem is one module here whose function carries :func:`library_problem`.
+
 All have a running cost quadratic in ``u`` and a flow affine in ``u``, so the HMP minimiser
 ``u* = argmin_u H`` is explicit.
 """
 
-from functools import partial
+import importlib
+import pkgutil
 
-from .ball_on_slope import ball_on_slope
-from .bouncing_ball import bouncing_ball
-from .juggling_paddle import juggling_paddle
-from .pendulum_wall import pendulum_wall
+from hybridoc.problems.library.ball_on_slope import ball_on_slope
+from hybridoc.problems.library.bouncing_ball import bouncing_ball
+from hybridoc.problems.library.juggling_paddle import juggling_paddle
+from hybridoc.problems.library.pendulum_wall import pendulum_wall
+from hybridoc.problems.library.registry import LIBRARY, NOTES, library_problem
 
 __all__ = [
     "LIBRARY",
@@ -28,18 +32,14 @@ __all__ = [
     "bouncing_ball",
     "describe",
     "juggling_paddle",
+    "library_problem",
     "pendulum_wall",
 ]
 
-#: built-in name (as ``hybridoc problems`` lists it) -> function returning the problem with
-#: its defaults; other configurations: ``path/to/file.py:function`` or the functions in Python
-LIBRARY = {
-    "bouncing-ball": bouncing_ball,
-    "bouncing-ball-2": partial(bouncing_ball, bounces=2),
-    "ball-on-slope": ball_on_slope,
-    "juggling-paddle": juggling_paddle,
-    "pendulum-wall": pendulum_wall,
-}
+# every module of the package registers its problems (adding a problem is adding a file)
+for _info in pkgutil.iter_modules(__path__):
+    if not _info.name.startswith("_"):
+        importlib.import_module(f"{__name__}.{_info.name}")
 
 
 def describe(name: str) -> str:
@@ -47,4 +47,4 @@ def describe(name: str) -> str:
     fn = LIBRARY[name]
     doc = getattr(fn, "func", fn).__doc__ or ""
     line = doc.strip().splitlines()[0] if doc.strip() else name
-    return line + (" (two bounces)" if name.endswith("-2") else "")
+    return line + (f" ({NOTES[name]})" if name in NOTES else "")

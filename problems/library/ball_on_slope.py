@@ -9,6 +9,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problems.library.registry import library_problem
 
 from ._common import affine_flow_map, check_positive, check_restitution, verified_claim
 
@@ -52,6 +53,7 @@ def free_flight_on_slope(
     return out
 
 
+@library_problem("ball-on-slope")
 def ball_on_slope(
     bounces: int = 1,
     restitution: float = 0.9,

@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problems.library.registry import library_problem
 
 from ._common import affine_flow_map, check_positive, check_restitution, verified_claim
 
@@ -32,6 +33,8 @@ def free_drop_times(height: float, gravity: float, restitution: float, count: in
     return out
 
 
+@library_problem("bouncing-ball-2", bounces=2, note="two bounces")
+@library_problem("bouncing-ball")
 def bouncing_ball(
     bounces: int = 1,
     restitution: float = 0.8,

@@ -6,6 +6,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problems.library.registry import library_problem
 
 from ._common import affine_flow_map, check_positive, check_restitution, verified_claim
 
@@ -15,6 +16,7 @@ __all__ = ["juggling_paddle"]
 _VERIFIED = {(0.8, 0.0): 1, (1.0, 0.0): 1, (0.8, 0.5): 2}
 
 
+@library_problem("juggling-paddle")
 def juggling_paddle(
     restitution: float = 0.8,
     *,

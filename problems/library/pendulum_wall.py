@@ -6,6 +6,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.ocp import Guard, HybridOCP
+from hybridoc.problems.library.registry import library_problem
 
 from ._common import check_positive, check_restitution, verified_claim
 
@@ -15,6 +16,7 @@ __all__ = ["pendulum_wall"]
 _VERIFIED = {(0.8,): 1, (1.0,): 1}
 
 
+@library_problem("pendulum-wall")
 def pendulum_wall(
     restitution: float = 0.8,
     *,
