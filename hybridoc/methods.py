@@ -26,6 +26,8 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
+import math
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -34,19 +36,31 @@ from hybridoc.errors import SceneError
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
+    from hybridoc.problem import ControlsLike, ProblemLike
+    from hybridoc.progress import ProgressLike
     from hybridoc.solution import Solution
 
 __all__ = [
     "BUILTIN",
+    "CLI_METHOD",
+    "DEFAULT_METHOD",
     "DEFAULT_TOLERANCE",
     "METHODS",
+    "RUN_KEYWORDS",
     "Method",
     "NoOptions",
     "OptionSpec",
     "get_method",
+    "nonnegative_int",
     "option",
     "option_specs",
+    "parse_bool",
+    "positive_float",
+    "positive_int",
     "register_method",
+    "settings_lines",
+    "solve",
+    "unregister_method",
 ]
 
 DEFAULT_TOLERANCE = 5e-3
@@ -55,6 +69,62 @@ unless the method declares its own (:attr:`Method.tolerance`)."""
 
 RUN_KEYWORDS = ("initial", "progress")
 """Keywords every method's ``run`` takes besides its options."""
+
+DEFAULT_METHOD = "reference"
+"""The method :func:`solve` runs when none is named (the ground truth)."""
+
+CLI_METHOD = "gd"
+"""The method ``hybridoc solve`` runs without ``--method`` (the quick one)."""
+
+
+# ------------------------------------------------------------- parsers of option values
+def _number(text: str, kind: type, test: Callable[[Any], bool], what: str) -> Any:
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"expected {what}, got {text!r}") from None
+    if not test(value):
+        raise ValueError(f"expected {what}, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """Parse a finite number > 0 (a ``parse=`` of :func:`option`); ``ValueError`` otherwise."""
+    return _number(text, float, lambda x: math.isfinite(x) and x > 0, "a finite number > 0")
+
+
+def positive_int(text: str) -> int:
+    """Parse an integer >= 1 (a ``parse=`` of :func:`option`); ``ValueError`` otherwise."""
+    return _number(text, int, lambda n: n >= 1, "an integer >= 1")
+
+
+def nonnegative_int(text: str) -> int:
+    """Parse an integer >= 0 (a ``parse=`` of :func:`option`); ``ValueError`` otherwise."""
+    return _number(text, int, lambda n: n >= 0, "an integer >= 0")
+
+
+def _finite_float(text: str) -> float:
+    return _number(text, float, math.isfinite, "a finite number")
+
+
+def _integer(text: str) -> int:
+    return _number(text, int, lambda n: True, "an integer")
+
+
+def parse_bool(text: str) -> bool:
+    """Parse ``yes``/``no``, ``true``/``false``, ``on``/``off`` or ``1``/``0`` (any case).
+
+    Raises
+    ------
+    ValueError
+        For any other text.
+    """
+    word = str(text).strip().lower()
+    if word in ("yes", "true", "on", "1"):
+        return True
+    if word in ("no", "false", "off", "0"):
+        return False
+    raise ValueError(f"expected yes or no, got {text!r}")
 
 
 def option(
@@ -79,8 +149,9 @@ def option(
         that a registry of contact models, say, is imported only then).
     parse
         Turns the command-line text into the value and raises ``ValueError`` (or
-        ``argparse.ArgumentTypeError``) with a one-line reason; default: the text itself,
-        or ``int``/``float`` for a numeric default.
+        ``argparse.ArgumentTypeError``) with a one-line reason (:func:`positive_float`,
+        :func:`positive_int`, :func:`nonnegative_int`, :func:`parse_bool` or the method's
+        own); default: by the type of ``default`` (:attr:`OptionSpec.parser`).
     metavar
         The placeholder in ``--help``.
     cli
@@ -115,6 +186,21 @@ class OptionSpec:
         """The command-line flag, e.g. ``--time-limit``."""
         return "--" + self.name.replace("_", "-")
 
+    @property
+    def parser(self) -> Callable[[str], Any]:
+        """What turns the command-line text into the value: ``parse``, or by the type of the
+        default (:func:`parse_bool` for a bool, an integer or a finite number for a number,
+        the text itself otherwise)."""
+        if self.parse is not None:
+            return self.parse
+        if isinstance(self.default, bool):
+            return parse_bool
+        if isinstance(self.default, int):
+            return _integer
+        if isinstance(self.default, float):
+            return _finite_float
+        return str
+
 
 def option_specs(options: type) -> list[OptionSpec]:
     """The :class:`OptionSpec` of every field of an options dataclass, in order."""
@@ -143,7 +229,9 @@ class NoOptions:
     """The options of a method that takes none."""
 
 
-def _settings_lines(sol: Solution) -> list[tuple[str, str]]:
+def settings_lines(sol: Solution) -> list[tuple[str, str]]:
+    """The default :attr:`Method.summary_lines`: one ``("settings", "k v, ...")`` line of
+    ``sol.settings`` (none when it is empty); a method's own summary ends with it."""
     settings = ", ".join(f"{k} {v}" for k, v in sol.settings.items() if v is not None)
     return [("settings", settings)] if settings else []
 
@@ -186,11 +274,9 @@ class Method:
     options: type = NoOptions
     tolerance: float = DEFAULT_TOLERANCE
     supports: Callable[[HybridOCP], str | None] = field(default=lambda ocp: None)
-    summary_lines: Callable[[Solution], list[tuple[str, str]]] = _settings_lines
+    summary_lines: Callable[[Solution], list[tuple[str, str]]] = settings_lines
     crossval_defaults: Callable[[HybridOCP, dict[str, Any]], dict[str, Any]] | None = None
-    crossval_check: Callable[[HybridOCP, Solution], tuple[dict[str, Any], list[str]]] | None = (
-        None
-    )
+    crossval_check: Callable[[HybridOCP, Solution], tuple[dict[str, Any], list[str]]] | None = None
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.options):
@@ -271,6 +357,12 @@ class _Registry(Mapping[str, Method]):
         self._lazy.pop(method.name, None)
         self._loaded[method.name] = method
 
+    def remove(self, name: str) -> None:
+        if name not in self:
+            raise KeyError(name)
+        self._lazy.pop(name, None)
+        self._loaded.pop(name, None)
+
 
 METHODS = _Registry()
 """Every registered method, by name (a read-only mapping; :func:`register_method` adds)."""
@@ -284,6 +376,13 @@ def register_method(method: Method) -> Method:
     return method
 
 
+def unregister_method(name: str) -> None:
+    """Remove the method called ``name`` from :data:`METHODS` (a test's or a plugin's);
+    ``KeyError`` when there is none. A built-in one comes back with :func:`register_method`
+    of its ``METHOD``."""
+    METHODS.remove(name)
+
+
 def get_method(name: str) -> Method:
     """The registered method called ``name``.
 
@@ -295,3 +394,66 @@ def get_method(name: str) -> Method:
     if not isinstance(name, str) or name not in METHODS:
         raise SceneError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
     return METHODS[name]
+
+
+def solve(
+    problem: ProblemLike,
+    method: str = DEFAULT_METHOD,
+    *,
+    initial: ControlsLike | None = None,
+    progress: ProgressLike = None,
+    **options: Any,
+) -> Solution:
+    """Solve a problem with a registered method.
+
+    Parameters
+    ----------
+    problem
+        Any problem (:func:`hybridoc.problem.as_ocp`): a built-in name, a ``.toml`` file,
+        ``file.py:function``, a Scene or a HybridOCP.
+    method
+        ``"reference"`` (HMP shooting), ``"dt"`` (direct transcription), ``"gd"`` (gradient
+        descent through the differentiable simulation), or any method registered later
+        (:data:`METHODS`).
+    initial
+        The initial guess: ``None`` (the problem's), ``(N, nu)`` controls or a Solution.
+    progress
+        ``None``/``False`` (silent), ``True`` (a meter on stderr) or a
+        :class:`~hybridoc.progress.Progress`.
+    **options
+        The method's options: the fields of ``METHODS[method].options``.
+
+    Returns
+    -------
+    Solution
+        With ``status``, ``success``, ``message``, the judge's ``cost`` and ``events``, and
+        ``timings["wall_time_s"]``.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        An unknown method or option, or a problem the method cannot handle (one line).
+    hybridoc.errors.ConvergenceError
+        The method found no solution at all.
+
+    Examples
+    --------
+    >>> sol = hybridoc.solve("head-on", "gd", iters=50)  # doctest: +SKIP
+    >>> sol.status, sol.cost  # doctest: +SKIP
+    """
+    from hybridoc.problem import as_ocp
+
+    ocp = as_ocp(problem)
+    m = get_method(method)
+    reason = m.supports(ocp)
+    if reason:
+        raise SceneError(f"method {method!r} cannot solve {ocp.name!r}: {reason}")
+    names = m.option_names()
+    bad = sorted(set(options) - set(names))
+    if bad:
+        takes = ", ".join(names) if names else "none"
+        raise SceneError(f"method {method!r} takes no option(s) {', '.join(bad)}; it takes {takes}")
+    t0 = time.perf_counter()
+    sol = m.function()(ocp, initial=initial, progress=progress, **options)
+    sol.timings.setdefault("wall_time_s", time.perf_counter() - t0)
+    return sol

@@ -30,13 +30,18 @@ from typing import TYPE_CHECKING, Any
 from hybridoc.errors import HybridocError
 
 if TYPE_CHECKING:  # pragma: no cover
+    from collections.abc import Mapping
+
     import numpy as np
+
+    from hybridoc.methods import Method, OptionSpec
 
 __all__ = [
     "HybridocArgumentParser",
     "add_controls_arg",
     "add_initial_arg",
     "add_json_out",
+    "add_method_options",
     "emit_json",
     "ensure_dir",
     "exit_code",
@@ -45,7 +50,10 @@ __all__ = [
     "grid_steps",
     "load_controls_arg",
     "load_problem_arg",
+    "method_flags",
+    "method_options_given",
     "nonnegative_int",
+    "option_type",
     "output_stem",
     "positive_float",
     "positive_int",
@@ -104,29 +112,45 @@ class HybridocArgumentParser(argparse.ArgumentParser):
         self.exit(2, f"hybridoc: error: {where}{message} (see '{self.prog} --help')\n")
 
 
-def _number(text: str, kind: type, test: Any, what: str) -> Any:
-    try:
-        value = kind(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-    if not test(value):
-        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-    return value
+def option_type(parse: Callable[[str], Any], name: str = "value") -> Callable[[str], Any]:
+    """An argparse ``type`` from a parser that raises ``ValueError`` with a one-line reason.
+
+    argparse shows the reason of an ``ArgumentTypeError`` but replaces that of a
+    ``ValueError`` by "invalid <type> value": the reason is kept by raising it as an
+    ``ArgumentTypeError`` (a :class:`~hybridoc.errors.SceneError` is a ``ValueError`` too).
+    """
+
+    def convert(text: str) -> Any:
+        try:
+            return parse(text)
+        except argparse.ArgumentTypeError:
+            raise
+        except (TypeError, ValueError) as exc:
+            raise argparse.ArgumentTypeError(" ".join(str(exc).split()) or repr(text)) from None
+
+    convert.__name__ = name
+    return convert
 
 
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
-    return _number(text, float, lambda x: math.isfinite(x) and x > 0, "a finite number > 0")
+    from hybridoc.methods import positive_float as parse
+
+    return option_type(parse)(text)
 
 
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1."""
-    return _number(text, int, lambda n: n >= 1, "an integer >= 1")
+    from hybridoc.methods import positive_int as parse
+
+    return option_type(parse)(text)
 
 
 def nonnegative_int(text: str) -> int:
     """argparse type: an integer >= 0."""
-    return _number(text, int, lambda n: n >= 0, "an integer >= 0")
+    from hybridoc.methods import nonnegative_int as parse
+
+    return option_type(parse)(text)
 
 
 def grid_steps(text: str) -> int:
@@ -134,7 +158,13 @@ def grid_steps(text: str) -> int:
     from hybridoc.ocp import MAX_STEPS
 
     what = f"an integer >= 1 and at most {MAX_STEPS}"
-    return _number(text, int, lambda n: 1 <= n <= MAX_STEPS, what)
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= MAX_STEPS:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return n
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -242,6 +272,81 @@ def add_initial_arg(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="start from these controls: .npy, .csv or a saved Solution (.npz/.json)",
     )
+
+
+def _owners_title(owners: Sequence[str]) -> str:
+    names = list(owners)
+    if len(names) == 1:
+        return f"{names[0]} options"
+    return f"{', '.join(names[:-1])} and {names[-1]} options"
+
+
+def method_flags(methods: Mapping[str, Method]) -> dict[str, tuple[OptionSpec, list[str]]]:
+    """Every command-line option of the methods: ``name -> (spec, owners)``, where ``spec``
+    is the first method's :class:`~hybridoc.methods.OptionSpec` of that name and ``owners``
+    every method that takes it, in the registry's order."""
+    flags: dict[str, tuple[OptionSpec, list[str]]] = {}
+    for name, method in methods.items():
+        for spec in method.specs():
+            if spec.cli:
+                flags.setdefault(spec.name, (spec, []))[1].append(name)
+    return flags
+
+
+def add_method_options(
+    parser: argparse.ArgumentParser, methods: Mapping[str, Method], reserved: Sequence[str] = ()
+) -> None:
+    """Add one flag per command-line option of the methods (:func:`method_flags`).
+
+    The flags of the options that the same methods take form one argument group, titled
+    "gd options", "dt and reference options", ...; a flag's help, choices, metavar and
+    parser come from the option (:func:`hybridoc.methods.option`), and its default is
+    ``None``: :func:`method_options_given` passes on only the flags given.
+
+    Raises
+    ------
+    TypeError
+        An option named like one of ``reserved`` (the command's own arguments).
+    """
+    groups: dict[tuple[str, ...], list[OptionSpec]] = {}
+    for spec, owners in method_flags(methods).values():
+        if spec.name in reserved:
+            raise TypeError(f"method {owners[0]!r}: option {spec.name!r} is a reserved name")
+        groups.setdefault(tuple(owners), []).append(spec)
+    for owners, specs in groups.items():
+        group = parser.add_argument_group(_owners_title(owners))
+        for spec in specs:
+            group.add_argument(
+                spec.flag,
+                dest=spec.name,
+                type=option_type(spec.parser, spec.name),
+                choices=spec.choices,
+                metavar=spec.metavar,
+                default=None,
+                help=spec.help,
+            )
+
+
+def method_options_given(
+    args: argparse.Namespace, method: str, methods: Mapping[str, Method]
+) -> dict[str, Any]:
+    """The options given on the command line (:func:`add_method_options`) for ``method``.
+
+    Raises
+    ------
+    hybridoc.errors.HybridocError
+        A flag of an option that ``method`` does not take (one line naming the methods that
+        take it).
+    """
+    flags = method_flags(methods)
+    given = {k: getattr(args, k) for k in flags if getattr(args, k, None) is not None}
+    wrong = [k for k in given if method not in flags[k][1]]
+    if wrong:
+        parts = [
+            f"{flags[k][0].flag} applies to --method {'/'.join(flags[k][1]) or '-'}" for k in wrong
+        ]
+        raise HybridocError(f"{'; '.join(parts)}, not to --method {method}")
+    return given
 
 
 def load_controls_arg(path: Path | None, ocp: Any) -> tuple[np.ndarray, str]:
