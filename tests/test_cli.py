@@ -163,21 +163,22 @@ def test_demo_in_process(tmp_path, capsys):
 
 
 def test_a_registered_method_is_a_solve_choice(capsys):
-    """A new solver is one registration: ``hybridoc solve --method`` reads the registry."""
-    from hybridoc.solvers import registry
+    """A new solver is one registration: ``hybridoc solve --method`` reads the registry
+    (tests/test_methods.py adds one with an option)."""
+    from hybridoc.methods import Method, register_method, unregister_method
 
-    def run_guess(ocp, *, initial=None):
+    def run_guess(ocp, *, initial=None, progress=None):
         ev = hybridoc.evaluate(ocp, initial)
         return Solution.from_evaluation(ev, method="guess", scene=ocp.name)
 
-    registry.register_method(registry.Method("guess", "the initial guess", run_guess))
+    register_method(Method("guess", "the initial guess", run_guess))
     try:
         assert cli.main(["solve", "head-on", "--method", "guess", "--json"]) == 0
         data = json.loads(capsys.readouterr().out)
         assert data["method"] == "guess" and data["status"] == "success"
         assert data["cost"] == hybridoc.evaluate("head-on").cost
     finally:
-        del registry.METHODS["guess"]
+        unregister_method("guess")
 
 
 def test_usage_error_exits_2(capsys):
