@@ -20,7 +20,7 @@ so it plugs into torch optimisers.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -28,6 +28,11 @@ import numpy as np
 from hybridoc.errors import ControlsError, SceneError
 from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.solvers.codegen import Accelerated
+from hybridoc.solvers.contacts import ContactModel, contact_model
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
+    from hybridoc.problem import ProblemLike
 
 __all__ = ["CompiledLoss", "SIMULATIONS"]
 
@@ -48,24 +53,34 @@ class CompiledLoss:
 
     Parameters
     ----------
-    problem
+    problem : ProblemLike
         Any problem (:func:`hybridoc.problem.as_ocp`).
-    contact
-        Contact model of the disc step: any registered model
-        (:func:`hybridoc.solvers.casadi_step.make_step` says which settings and scenes it
-        serves).
-    toi
-        Time-of-impact correction of the disc step (impulse models; ignored by the others).
-    integrator
+    contact : ContactModel, str or None
+        Contact model of the disc step: an instance (``LCP(toi="both")``) or a name of any
+        registered model (``"lcp"``, ``"lcp/both"``), parsed once by
+        :func:`~hybridoc.solvers.contacts.contact_model`; ``None`` is ``"direct"``.
+        :func:`hybridoc.solvers.casadi_step.make_step` says which settings and scenes it
+        serves. The generic step has no contact model and ignores it.
+    integrator : str, optional
         ``"symplectic-euler"`` (the paper's, the default of the disc step) or ``"exact"``;
         the generic step is always ``"exact"`` (the closed-form flow, or RK4 sub-steps).
-    simulation
+    toi : str, optional
+        Time-of-impact correction of an impulse model (``None``: the model's own), folded
+        into the model.
+    simulation : str
         See :data:`SIMULATIONS`.
-    max_events
+    max_events : int
         Events resolved per step by the generic step.
-    path_weight
+    path_weight : float
         Problems with path constraints ``c(s, u) >= 0``: the step cost gains
         ``path_weight * dt * |min(c(s_{n+1}, u_n), 0)|^2`` (a quadratic penalty at the grid).
+
+    Attributes
+    ----------
+    model : ContactModel or None
+        The contact model of the disc step (``None`` for the generic step).
+    settings : dict
+        JSON-ready description of the step.
 
     Notes
     -----
@@ -76,11 +91,11 @@ class CompiledLoss:
 
     def __init__(
         self,
-        problem: Any,
-        contact: str = "direct",
-        toi: str = "both",
+        problem: ProblemLike,
+        contact: ContactModel | str | None = "direct",
         integrator: str | None = None,
         *,
+        toi: str | None = None,
         simulation: str = "auto",
         max_events: int = 2,
         path_weight: float = 1e5,
@@ -97,24 +112,17 @@ class CompiledLoss:
         if simulation == "disc" and not is_disc:
             raise SceneError(f"{ocp.name!r} is not a disc scene: use simulation='generic'")
         use_disc = is_disc and simulation != "generic"
+        model = contact_model("direct" if contact is None else contact, toi=toi)
+        self.model: ContactModel | None = model if use_disc else None
         self.ocp = ocp
         self.steps = N = ocp.steps
         self.nx = nx = ocp.nx
         self.nu = nu = ocp.nu
         self.simulation = "disc" if use_disc else "generic"
-        s = ca.SX.sym("s", nx)
-        u = ca.SX.sym("u", nu)
         if use_disc:
-            from hybridoc.problem import disc_scene
-            from hybridoc.solvers.casadi_step import make_step
-
-            scene = disc_scene(ocp)
             integrator = integrator or "symplectic-euler"
-            step = make_step(scene, contact, toi, integrator)
-            self.settings = {"contact": contact, "toi": toi, "integrator": integrator}
-            step_fn = ca.Function(
-                "step", [s, u], [step(s, u), scene.control_weight * scene.dt * ca.sumsqr(u)]
-            )
+            step_fn = _disc_step(ocp, model, integrator)
+            self.settings = {**model.settings(), "integrator": integrator}
         else:
             if integrator not in (None, "exact"):
                 raise SceneError(
@@ -126,13 +134,7 @@ class CompiledLoss:
             step_fn = toi_step(ocp, ocp.dt, max_events=max_events)
             self.settings = {"simulation": "generic", "integrator": "exact"}
         if ocp.path is not None:
-            # the penalty at each step's end state (with its control): s_1 .. s_N
-            s_next, c_step = step_fn(s, u)
-            viol = ca.sumsqr(ca.fmin(ocp.path(s_next, u), 0))
-            step_fn = ca.Function(
-                "step", [s, u], [s_next, c_step + path_weight * ocp.dt * viol], ["s", "u"],
-                ["s_next", "cost"],
-            )  # fmt: skip
+            step_fn = _with_path_penalty(ocp, step_fn, path_weight)
         self.step = step_fn
         value, value_grad, self._rollout = _rollout_functions(step_fn, ocp.phi, nx, nu, N)
         self._value = Accelerated(value)
@@ -238,6 +240,28 @@ class CompiledLoss:
             for b in range(u.shape[0])
         ]
         return torch.as_tensor(np.stack(xs), dtype=u.dtype, device=u.device)
+
+
+def _disc_step(ocp: DiscOCP, model: ContactModel, integrator: str) -> ca.Function:
+    """``(s, u) -> (s_next, eps |u|^2 dt)``: the disc scene's step under ``model``."""
+    from hybridoc.solvers.casadi_step import make_step
+
+    scene = ocp.scene
+    step = make_step(scene, model, integrator)
+    s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+    return ca.Function("step", [s, u], [step(s, u), scene.control_weight * scene.dt * ca.sumsqr(u)])
+
+
+def _with_path_penalty(ocp: HybridOCP, step_fn: ca.Function, path_weight: float) -> ca.Function:
+    """The step with the path constraints' penalty at its end state (with its control):
+    ``path_weight * dt * |min(c(s_{n+1}, u_n), 0)|^2``."""
+    s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+    s_next, c_step = step_fn(s, u)
+    viol = ca.sumsqr(ca.fmin(ocp.path(s_next, u), 0))
+    return ca.Function(
+        "step", [s, u], [s_next, c_step + path_weight * ocp.dt * viol], ["s", "u"],
+        ["s_next", "cost"],
+    )  # fmt: skip
 
 
 def _rollout_functions(

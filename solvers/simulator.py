@@ -42,7 +42,7 @@ Several contacts in one step
     The impulses ``lambda`` come from the chosen impulse solver on the Delassus matrix
     ``W = J M^-1 J^T`` of the detected contacts: ``direct`` treats each contact on its own,
     ``lambda_c = -(1 + e) w_c / W_cc`` for an approaching contact (the paper's and Taichi's
-    treatment), ``lcp`` and ``convex`` (:mod:`hybridoc.solvers.impulses`) couple them. The
+    treatment), ``lcp`` and ``convex`` (:mod:`hybridoc.solvers.contacts`) couple them. The
     position correction is per contact: ``p_{n+1} = \\hat p + sum_c toi_c M^-1 J_c^T
     \\lambda_c``. With one contact per step this is exactly the paper's method.
 
@@ -68,7 +68,7 @@ Contact models
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -78,6 +78,9 @@ from hybridoc.problem import disc_scene
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts import TOI_MODES, ContactModel, contact_model
 from hybridoc.solvers.threads import torch_threads
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problem import ProblemLike
 
 __all__ = ["Simulator", "TOI_MODES", "INTEGRATORS", "NEWTON_ITERATIONS", "disc_scene"]
 
@@ -93,16 +96,18 @@ class Simulator(torch.nn.Module):
 
     Parameters
     ----------
-    scene
+    scene : Scene, str or DiscOCP
         A disc problem: a :class:`~hybridoc.problems.Scene`, a built-in scene name, a TOML
         path, or the HybridOCP of a scene.
-    contact
-        A contact model name of :data:`hybridoc.solvers.contacts.CONTACT_MODELS`
-        (``"direct"`` by default, ``"lcp"``, ``"convex"``, ``"compliant"``, ``"pbd"``), also
-        as ``"lcp/both"``, or a :class:`~hybridoc.solvers.contacts.ContactModel` instance.
-    toi
-        Time-of-impact correction of the impulse models: ``"none"``, ``"position"``,
-        ``"velocity"`` or ``"both"`` (default, the paper's method); ignored by the others.
+    contact : ContactModel or str
+        The contact model: an instance (``LCP(toi="both")``, ``Compliant(stiffness=2e4)``)
+        or a name of :data:`hybridoc.solvers.contacts.CONTACT_MODELS` (``"direct"`` by
+        default, ``"lcp"``, ``"convex"``, ``"compliant"``, ``"pbd"``), also as
+        ``"lcp/both"``; parsed once by :func:`~hybridoc.solvers.contacts.contact_model`.
+    toi : str, optional
+        Time-of-impact correction of an impulse model: ``"none"``, ``"position"``,
+        ``"velocity"`` or ``"both"``; ``None`` (default) keeps the model's own (``"both"``,
+        the paper's method, for a name). Ignored by the other models.
     integrator
         ``"symplectic-euler"`` (default, the paper's scheme) or ``"exact"``: the exact flow
         of the piecewise-constant force (``p + v dt + a dt^2 / 2``) with the time of impact
@@ -111,8 +116,8 @@ class Simulator(torch.nn.Module):
     dtype, device
         Floating point type (``torch.float64`` by default) and device of all tensors.
     **model_options
-        Options of the contact model (``stiffness``, ``damping`` of ``compliant``;
-        ``iterations`` of ``pbd``).
+        Options of a contact model given by name (``stiffness``, ``damping`` of
+        ``compliant``; ``iterations`` of ``pbd``); not with an instance.
 
     Attributes
     ----------
@@ -136,10 +141,10 @@ class Simulator(torch.nn.Module):
 
     def __init__(
         self,
-        scene: Any,
+        scene: ProblemLike,
         *,
-        contact: str | ContactModel = "direct",
-        toi: str = "both",
+        contact: ContactModel | str = "direct",
+        toi: str | None = None,
         integrator: str = "symplectic-euler",
         dtype: torch.dtype = torch.float64,
         device: str | torch.device = "cpu",
@@ -148,19 +153,12 @@ class Simulator(torch.nn.Module):
         super().__init__()
         torch_threads()
         scene = disc_scene(scene)
-        if isinstance(contact, ContactModel):
-            if model_options:
-                raise SceneError("model options cannot be given with a contact model instance")
-            model = contact
-        else:
-            model = contact_model(contact, toi=toi, **model_options)
+        model = contact_model(contact, toi=toi, **model_options)
         if integrator not in INTEGRATORS:
             raise SceneError(
                 f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
             )
-        if integrator == "exact" and not (
-            model.impulse_based and getattr(model, "toi", None) == "both"
-        ):
+        if integrator == "exact" and not model.exact_ready:
             raise SceneError("integrator 'exact' needs an impulse model with toi='both'")
         if dtype not in (torch.float32, torch.float64):
             raise SceneError(f"dtype must be torch.float32 or torch.float64, got {dtype}")

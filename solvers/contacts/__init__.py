@@ -7,6 +7,13 @@ when first imported, so adding a contact model means adding one file. The simula
 descent, the CLI's ``--contact`` choices, ``compare-contacts``, ``gradcheck`` and the
 documentation all read :data:`CONTACT_MODELS`.
 
+A model is an object that carries its options and its time-of-impact setting
+(``LCP(toi="both")``, ``Compliant(stiffness=2e4)``); :func:`contact_model` turns what a
+caller passes (a name, ``"lcp/both"`` or an instance) into one, once, at the entry point.
+Shared pieces have their own modules: :mod:`~hybridoc.solvers.contacts.impulse` (the impulse
+models' step), :mod:`~hybridoc.solvers.contacts.casadi_parts` (their CasADi step) and
+:mod:`~hybridoc.solvers.contacts.lcp_solver` (the torch solvers' shared pieces).
+
 Built-in models
     ``direct``, ``lcp`` and ``convex`` are impulse models (velocity jumps at contacts) that
     differ in how they solve for the impulses of several contacts in one step; each takes a
@@ -23,11 +30,12 @@ from hybridoc.solvers.contacts.base import (
     CONTACT_MODELS,
     TOI_MODES,
     ContactModel,
-    ImpulseModel,
     contact_model,
     model_names,
     register,
+    unregister,
 )
+from hybridoc.solvers.contacts.impulse import ImpulseModel
 
 __all__ = [
     "CONTACT_MODELS",
@@ -37,8 +45,8 @@ __all__ = [
     "contact_model",
     "model_names",
     "register",
+    "unregister",
 ]
 
 for _info in pkgutil.iter_modules(__path__):
-    if _info.name != "base":
-        importlib.import_module(f"{__name__}.{_info.name}")
+    importlib.import_module(f"{__name__}.{_info.name}")

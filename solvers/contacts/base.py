@@ -1,18 +1,22 @@
-"""The contact-model interface, the impulse models' time-of-impact step, and the registry."""
+"""The contact-model interface, its options, and the registry.
+
+A contact model is an object that carries its options: ``LCP(toi="both")``,
+``Compliant(stiffness=2e4)``. :func:`contact_model` is the one parser of what callers pass
+(a name, ``"lcp/both"`` or an instance); everything below it carries the object.
+"""
 
 from __future__ import annotations
 
+import inspect
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from hybridoc.errors import SceneError
-from hybridoc.problems import physics as ph
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
     from hybridoc.problems import Scene
-    from hybridoc.solvers.casadi_step import ImpulseInputs
     from hybridoc.solvers.simulator import Simulator
 
 __all__ = [
@@ -21,10 +25,10 @@ __all__ = [
     "SIGN_TOLERANCE",
     "TOI_MODES",
     "ContactModel",
-    "ImpulseModel",
     "contact_model",
     "model_names",
     "register",
+    "unregister",
 ]
 
 TOI_MODES: tuple[str, ...] = ("none", "position", "velocity", "both")
@@ -52,44 +56,95 @@ def register(cls: type[ContactModel]) -> type[ContactModel]:
     return cls
 
 
+def unregister(name: str) -> None:
+    """Remove the model called ``name`` from :data:`CONTACT_MODELS` (no error if absent)."""
+    CONTACT_MODELS.pop(name, None)
+
+
 def model_names() -> list[str]:
     """The registered model names, in registration order."""
     return list(CONTACT_MODELS)
 
 
-def contact_model(name: str | ContactModel, **options: Any) -> ContactModel:
-    """An instance of the model called ``name`` (``toi`` and model options as keywords).
+def contact_model(spec: str | ContactModel, **options: Any) -> ContactModel:
+    """The contact model that ``spec`` names: the one parser of every entry point.
 
-    ``"lcp/both"`` is accepted for ``contact_model("lcp", toi="both")``.
+    Parameters
+    ----------
+    spec : str or ContactModel
+        A registered name (``"lcp"``), a name with its time-of-impact setting
+        (``"lcp/both"``), or an instance.
+    **options
+        ``toi`` and the model's options (e.g. ``stiffness`` of ``compliant``). ``toi=None``
+        means the model's default; non-impulse models ignore ``toi``. With an instance only
+        ``toi`` may be given: the instance itself when it is its own setting (or the model
+        has none), else a copy with that setting (:meth:`ContactModel.replace`).
+
+    Returns
+    -------
+    ContactModel
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        An unknown name or option, a ``toi`` that conflicts with ``"name/toi"``, or model
+        options given with an instance.
     """
-    if isinstance(name, ContactModel):
+    toi = options.pop("toi", None)
+    if isinstance(spec, ContactModel):
         if options:
             raise SceneError("options cannot be given with a contact model instance")
-        return name
-    if not isinstance(name, str):
-        raise SceneError(f"contact model must be a name, got {name!r}")
-    base, _, toi = name.partition("/")
-    if toi:
-        if "toi" in options and options["toi"] not in (None, toi):
-            raise SceneError(f"contact model {name!r} conflicts with toi={options['toi']!r}")
-        options["toi"] = toi
+        if toi is None or not spec.impulse_based or toi == getattr(spec, "toi", None):
+            return spec
+        return spec.replace(toi=toi)
+    if not isinstance(spec, str):
+        raise SceneError(f"contact model must be a name, got {spec!r}")
+    base, _, spec_toi = spec.partition("/")
+    if spec_toi:
+        if toi not in (None, spec_toi):
+            raise SceneError(f"contact model {spec!r} conflicts with toi={toi!r}")
+        toi = spec_toi
     cls = CONTACT_MODELS.get(base)
     if cls is None:
         raise SceneError(
             f"unknown contact model {base!r}; choose one of {', '.join(CONTACT_MODELS)}"
         )
+    if toi is not None:
+        options["toi"] = toi
     return cls(**options)
+
+
+def _option_names(cls: type) -> list[str]:
+    """The named ``__init__`` parameters of ``cls`` and of the bases its ``**options`` reach."""
+    names: list[str] = []
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        if klass is ContactModel or klass is object:
+            break
+        params = list(inspect.signature(init).parameters.values())[1:]
+        names += [
+            p.name for p in params
+            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name not in names
+        ]  # fmt: skip
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return names
 
 
 class ContactModel(ABC):
     """A contact model: how one time step of the disc simulator treats contacts.
 
     Subclasses set :attr:`name` and :attr:`summary`, implement :meth:`torch_step`, and are
-    registered with :func:`register`. Model options are keyword arguments of ``__init__``.
-    For the compiled path a model sets :attr:`compiled` and implements
-    :meth:`casadi_next_state`, the expression behind :meth:`casadi_step` (an
-    :class:`ImpulseModel`: :meth:`ImpulseModel.casadi_impulses`), equal to
-    :meth:`torch_step` to rounding, and :meth:`casadi_unsupported` names any limits.
+    registered with :func:`register`. Model options are keyword arguments of ``__init__``
+    stored as attributes of the same name (the scikit-learn convention): :attr:`options`
+    reads them back, so that a model compares, hashes, prints and copies
+    (:meth:`replace`) by its class and options. For the compiled path a model sets
+    :attr:`compiled` and implements :meth:`casadi_next_state`, the expression behind
+    :meth:`casadi_step` (an :class:`~hybridoc.solvers.contacts.impulse.ImpulseModel`:
+    ``casadi_impulses``), equal to :meth:`torch_step` to rounding, and
+    :meth:`casadi_unsupported` names any limits.
     """
 
     name: ClassVar[str] = ""
@@ -106,13 +161,50 @@ class ContactModel(ABC):
             )
 
     @property
+    def options(self) -> dict[str, Any]:
+        """The model's options, ``{name: value}`` in the order of ``__init__``."""
+        return {k: getattr(self, k) for k in _option_names(type(self))}
+
+    def replace(self, **options: Any) -> ContactModel:
+        """A copy with some options changed, e.g. ``LCP().replace(toi="none")``.
+
+        Parameters
+        ----------
+        **options
+            New values of options of this model.
+
+        Returns
+        -------
+        ContactModel
+            A new instance of the same class.
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            An option the model does not take.
+        """
+        return type(self)(**{**self.options, **options})
+
+    @property
     def label(self) -> str:
         """Display name, e.g. ``"direct/both"`` or ``"compliant"``."""
         return self.name
 
     def settings(self) -> dict[str, Any]:
-        """JSON-ready description (name and options)."""
-        return {"contact": self.name}
+        """JSON-ready description: ``{"contact": name, **options}``."""
+        return {"contact": self.name, **self.options}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+        return f"{type(self).__name__}({args})"
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ContactModel):
+            return NotImplemented
+        return type(self) is type(other) and self.options == other.options
+
+    def __hash__(self) -> int:
+        return hash((type(self), tuple(self.options.items())))
 
     @abstractmethod
     def torch_step(
@@ -144,11 +236,14 @@ class ContactModel(ABC):
                 f"contact model {self.name!r} has no CasADi form ({have} have one); use the "
                 "torch Simulator (path='torch')"
             )
-        if integrator == "exact" and not (
-            self.impulse_based and getattr(self, "toi", None) == "both"
-        ):
+        if integrator == "exact" and not self.exact_ready:
             return f"integrator 'exact' needs an impulse model with toi='both', not {self.label}"
         return None
+
+    @property
+    def exact_ready(self) -> bool:
+        """Whether the exact integrator serves this model (impulse models with ``toi="both"``)."""
+        return self.impulse_based and getattr(self, "toi", None) == "both"
 
     def casadi_step(
         self, scene: Scene, s: Any, u: Any, integrator: str = "symplectic-euler"
@@ -185,135 +280,3 @@ class ContactModel(ABC):
         """:meth:`casadi_step` for a setting it serves (checked there): the next state as a
         CasADi expression, what a compiled model implements."""
         raise SceneError(f"contact model {self.name!r} has no CasADi step")
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.label!r})"
-
-
-class ImpulseModel(ContactModel):
-    """Impulse models with the paper's time-of-impact corrections (DESIGN.md section 3).
-
-    A contact is *detected* when the step ends in penetration while approaching: gap
-    ``d^ < 0`` and normal speed ``w^ < 0`` at the predicted state. Its time of impact is the
-    paper's ``toi = d^ / w^`` (:func:`hybridoc.problems.physics.toi_linear`). With ``toi``
-
-    ``none``
-        the impulse is computed at the penetrated state and ``p_{n+1} = p^``;
-    ``position``
-        the same impulse, ``p_{n+1} = p_n + v^ (dt - toi) + v_{n+1} toi``;
-    ``velocity``
-        the impulse at the collision state ``p_bar = p_n + v^ (dt - toi)``,
-        ``v_bar = v_n + a_n (dt - toi)`` with its normal; ``p_{n+1} = p^``;
-    ``both``
-        the impulse of ``velocity`` and the correction of ``position`` (the paper's method).
-
-    A subclass is named after its impulse solver in
-    :func:`hybridoc.solvers.impulses.solve_impulses` (or overrides :meth:`contact_impulses`);
-    its CasADi form (:meth:`casadi_impulses`) plugs into the shared CasADi step
-    :func:`hybridoc.solvers.casadi_step.step_parts`.
-    With the simulator's exact integrator the time of impact is refined by Newton's method on
-    the exact flow and the impulse taken at the exact contact state.
-    """
-
-    impulse_based = True
-    coupled: ClassVar[bool] = False
-    """Whether the impulses of a step are solved together (an LCP): the CasADi form then
-    enumerates active sets, which limits the number of contacts
-    (:func:`hybridoc.solvers.casadi_step.enumeration_unsupported`)."""
-
-    def __init__(self, toi: str = "both", **options: Any) -> None:
-        super().__init__(**options)
-        if toi not in TOI_MODES:
-            raise SceneError(f"unknown toi setting {toi!r}; choose one of {', '.join(TOI_MODES)}")
-        self.toi = toi
-
-    @property
-    def label(self) -> str:
-        return f"{self.name}/{self.toi}"
-
-    def settings(self) -> dict[str, Any]:
-        return {"contact": self.name, "toi": self.toi}
-
-    def contact_impulses(
-        self, sim: Simulator, nrm: torch.Tensor, w: torch.Tensor, active: torch.Tensor
-    ) -> torch.Tensor:
-        """Impulses ``(B, C)`` of the detected contacts with normals ``nrm (B, C, 2)``."""
-        import torch
-
-        from hybridoc.solvers.impulses import solve_impulses
-
-        J = sim.incidence[None, :, :, None] * nrm[:, :, None, :]  # (B, C, n, 2)
-        W = torch.einsum("bcka,k,bdka->bcd", J, 1.0 / sim.masses, J)
-        return solve_impulses(self.name, W, w, active, sim.restitution)
-
-    def casadi_unsupported(self, scene: Scene, integrator: str) -> str | None:
-        from hybridoc.solvers.casadi_step import enumeration_unsupported
-
-        reason = super().casadi_unsupported(scene, integrator)
-        if reason is None and self.coupled:
-            reason = enumeration_unsupported(self.label, scene)
-        return reason
-
-    def casadi_next_state(self, scene: Scene, s: Any, u: Any, integrator: str) -> Any:
-        from hybridoc.solvers.casadi_step import step_parts
-
-        return step_parts(scene, s, u, self.toi, integrator, impulses=self.casadi_impulses).s_next
-
-    def casadi_impulses(self, inputs: ImpulseInputs) -> list[Any]:
-        """The impulses of one step in CasADi, one per contact (the CasADi form of
-        :meth:`contact_impulses`; :class:`~hybridoc.solvers.casadi_step.ImpulseInputs`)."""
-        raise SceneError(f"contact model {self.name!r} has no CasADi impulse solver")
-
-    def impulses(
-        self, W: torch.Tensor, w: torch.Tensor, active: torch.Tensor, restitution: torch.Tensor
-    ) -> torch.Tensor:
-        """Impulses ``(B, C)`` from the Delassus matrix ``W (B, C, C)``, the pre-impact normal
-        speeds ``w (B, C)`` and the detected contacts ``active (B, C)``."""
-        from hybridoc.solvers.impulses import solve_impulses
-
-        return solve_impulses(self.name, W, w, active, restitution)
-
-    def torch_step(
-        self, sim: Simulator, p: torch.Tensor, v: torch.Tensor, acc: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        import torch
-
-        ops = ph.TORCH
-        dt = sim.dt
-        exact = sim.integrator == "exact"
-        v_hat = v + acc * dt
-        p_hat = p + (v + 0.5 * acc * dt) * dt if exact else p + v_hat * dt
-        if sim.n_contacts == 0:
-            return p_hat, v_hat
-        rel_v_hat = sim.relative(v_hat)
-        d_hat, n_hat = sim.gap_normal(sim.relative(p_hat))
-        w_hat = ph.normal_speed(rel_v_hat, n_hat, ops)
-        active = (d_hat < 0) & (w_hat < 0)
-        if not bool(active.any()):
-            return p_hat, v_hat
-        toi = ph.toi_linear(d_hat, w_hat, dt, active, ops)
-        if exact:
-            rel_p, rel_v, rel_a = sim.relative(p), sim.relative(v), sim.relative(acc)
-            tau = sim.impact_time(rel_p, rel_v, rel_a, dt - toi, active)
-            toi = torch.where(active, dt - tau, torch.zeros_like(tau))
-            t_ = tau[..., None]
-            _, nrm = sim.gap_normal(rel_p + (rel_v + 0.5 * rel_a * t_) * t_)
-            w = ph.normal_speed(rel_v + rel_a * t_, nrm, ops)
-        elif self.toi in ("velocity", "both"):
-            tau = (dt - toi)[..., None]
-            rel_p_bar = sim.relative(p) + tau * rel_v_hat
-            rel_v_bar = sim.relative(v) + tau * sim.relative(acc)
-            _, nrm = sim.gap_normal(rel_p_bar)
-            w = ph.normal_speed(rel_v_bar, nrm, ops)
-        else:
-            nrm, w = n_hat, w_hat
-        inv_m = 1.0 / sim.masses
-        lam = self.contact_impulses(sim, nrm, w, active)
-        # velocity change of each contact on each disc: (B, C, n, 2)
-        dv_c = (lam[..., None, None] * sim.incidence[None, :, :, None]) * nrm[:, :, None, :]
-        dv_c = dv_c * inv_m[:, None]
-        v_next = v_hat + dv_c.sum(1)
-        p_next = p_hat
-        if exact or self.toi in ("position", "both"):
-            p_next = p_hat + (toi[..., None, None] * dv_c).sum(1)
-        return p_next, v_next

@@ -207,7 +207,7 @@ def compliant_casadi_step(
     """
     import casadi as ca
 
-    from hybridoc.solvers.casadi_step import disc_kinematics
+    from hybridoc.solvers.contacts.casadi_parts import disc_kinematics
 
     ops = ph.CASADI
     n, dt = scene.n_discs, scene.dt
@@ -265,9 +265,6 @@ class Compliant(ContactModel):
         super().__init__(**options)
         self.stiffness = float(stiffness)
         self.damping = float(damping)
-
-    def settings(self) -> dict[str, Any]:
-        return {"contact": self.name, "stiffness": self.stiffness, "damping": self.damping}
 
     def torch_step(self, sim: Any, p: Tensor, v: Tensor, acc: Tensor) -> tuple[Tensor, Tensor]:
         return compliant_step(

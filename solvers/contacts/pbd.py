@@ -124,7 +124,7 @@ def pbd_casadi_step(scene: Any, s: Any, u: Any, *, iterations: int = DEFAULT_PBD
     """
     import casadi as ca
 
-    from hybridoc.solvers.casadi_step import disc_kinematics
+    from hybridoc.solvers.contacts.casadi_parts import disc_kinematics
 
     if iterations < 1:
         raise EvaluationError(f"PBD needs at least one iteration, got {iterations}")
@@ -252,9 +252,6 @@ class PBD(ContactModel):
         options.pop("toi", None)
         super().__init__(**options)
         self.iterations = int(iterations)
-
-    def settings(self) -> dict[str, Any]:
-        return {"contact": self.name, "iterations": self.iterations}
 
     def torch_step(self, sim: Any, p: Tensor, v: Tensor, acc: Tensor) -> tuple[Tensor, Tensor]:
         return pbd_step(
