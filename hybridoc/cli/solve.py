@@ -106,9 +106,8 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     """Rerun the paper's Table 1 (TOI-Position x TOI-Velocity, both paper problems).
 
     Plain gradient descent with the paper's symplectic Euler, learning rates and iterations
-    (200 x 500 on single-collision, 50 x 1500 on multiple-collision), direct impulses. Prints
-    the final discrete loss beside the paper's and the true continuous cost of the learned
-    controls.
+    ({settings}), direct impulses. Prints the final discrete loss beside the paper's and the
+    true continuous cost of the learned controls.
     """
     from hybridoc.problems.paper import EXACT_OPTIMUM, TOI_LABELS
     from hybridoc.workflows.ablation import run_ablation
@@ -182,10 +181,17 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "ablation",
         help="the paper's Table 1: TOI settings x paper problems (plain gd)",
-        description=cmd_ablation.__doc__,
     )
+    p.defer(_ablation_description)  # the paper's settings, read on first use
     add_json_out(p, out_help="write learning-curve and learned-control figures and Solutions")
     p.set_defaults(func=cmd_ablation)
+
+
+def _ablation_description(p: argparse.ArgumentParser) -> None:
+    from hybridoc.problems.paper import PAPER_SETTINGS
+
+    settings = ", ".join(f"{lr:g} x {n} on {name}" for name, (lr, n) in PAPER_SETTINGS.items())
+    p.description = (cmd_ablation.__doc__ or "").format(settings=settings)
 
 
 def _solve_arguments(p: argparse.ArgumentParser) -> None:
