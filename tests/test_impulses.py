@@ -1,4 +1,5 @@
-"""Tests of the frictionless impulse solvers (hybridoc.solvers.impulses)."""
+"""Tests of the impulse models' torch impulse solves (``ImpulseModel.impulses`` of ``direct``,
+``lcp`` and ``convex``, each in its own module of hybridoc.solvers.contacts)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,23 @@ import pytest
 import torch
 
 from hybridoc.errors import EvaluationError, HybridocError
-from hybridoc.solvers.impulses import IMPULSE_METHODS, solve_impulses
+from hybridoc.solvers.contacts import CONTACT_MODELS, contact_model
+from hybridoc.solvers.contacts.convex import solve_convex
+from hybridoc.solvers.contacts.lcp_solver import prepare_impulses
 
 F64 = torch.float64
+
+IMPULSE_METHODS = ("direct", "lcp", "convex")
+"""The built-in impulse models."""
+
+
+def solve_impulses(method, W, w, active, restitution):
+    """The impulses of the model called ``method`` (its ``impulses`` method)."""
+    return contact_model(method).impulses(W, w, active, restitution)
+
+
+def test_the_impulse_models_are_registered():
+    assert all(CONTACT_MODELS[name].impulse_based for name in IMPULSE_METHODS)
 
 
 def contact_system(positions, velocities, masses, pairs):
@@ -155,7 +170,7 @@ def test_lcp_matches_enumeration_and_convex():
     W, w, active = random_problems(60, 4, seed=3)
     e = 0.5
     lam = solve_impulses("lcp", W, w, active, e)
-    lam_c = solve_impulses("convex", W, w, active, e, regularization=1e-12)
+    lam_c = solve_convex(W, w, active, prepare_impulses(W, w, active, e), regularization=1e-12)
     for b in range(W.shape[0]):
         sols = brute_force_lcp(W[b].numpy(), (1 + e) * w[b].numpy(), active[b].numpy())
         assert len(sols) == 1  # P-matrix: unique solution
@@ -232,7 +247,7 @@ def test_redundant_contacts_stay_finite():
 
 def test_errors():
     W, w, active = random_problems(2, 2, seed=1)
-    with pytest.raises(HybridocError, match="unknown impulse method"):
+    with pytest.raises(HybridocError, match="unknown contact model"):
         solve_impulses("magic", W, w, active, 1.0)
     bad = w.clone()
     bad[0, 0] = float("nan")
