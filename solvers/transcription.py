@@ -29,18 +29,18 @@ reference to round-off.
 from __future__ import annotations
 
 import math
+import sys
 import time
 import weakref
 from collections.abc import Callable, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass
 from math import comb
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
-from hybridoc._progress import Stages
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
@@ -50,19 +50,22 @@ from hybridoc.errors import (
 )
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
+from hybridoc.methods import Method, option, positive_float, settings_lines
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.problems.disc_ocp import DiscOCP
-
-if TYPE_CHECKING:
-    from hybridoc.solution import Solution
+from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
+from hybridoc.solution import Solution, Status
 
 __all__ = [
     "MAX_DEGREE",
     "MAX_MESH",
     "MAX_NLP_SIZE",
+    "METHOD",
+    "DTOptions",
     "DTResult",
     "control_function",
+    "nlp_size",
     "resample_controls",
     "solve_dt",
     "solve_dt_sequence",
@@ -135,6 +138,27 @@ class _Radau:
 # the NLP for one sequence
 
 
+class _Constraints:
+    """The constraints ``g`` of an NLP as they are added, with their bounds and, per name,
+    the slices of ``g`` they occupy (to read their multipliers)."""
+
+    def __init__(self) -> None:
+        self.exprs: list[Any] = []
+        self.lbg: list[np.ndarray] = []
+        self.ubg: list[np.ndarray] = []
+        self.index: dict[str, Any] = {}
+        self.n = 0
+
+    def add(self, name: str, expr: Any, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+        expr = ca.vec(expr)
+        m = expr.size1()
+        self.exprs.append(expr)
+        self.lbg.append(np.broadcast_to(np.asarray(lo, dtype=float), (m,)).copy())
+        self.ubg.append(np.broadcast_to(np.asarray(hi, dtype=float), (m,)).copy())
+        self.index.setdefault(name, []).append(slice(self.n, self.n + m))
+        self.n += m
+
+
 class _PhaseNLP:
     """The transcribed NLP of one event sequence (built once, reused for warm starts)."""
 
@@ -146,17 +170,8 @@ class _PhaseNLP:
         self.rad = _Radau.make(degree)
         nx, nu, d = ocp.nx, ocp.nu, degree
         P = len(self.guards) + 1
-        T = ocp.horizon
         self.P = P
-
-        # SX symbols (a much faster NLP) unless a problem function is an MX graph
-        # (e.g. it calls an integrator), which cannot be evaluated on SX
-        funcs = (
-            [ocp.f, ocp.L, ocp.phi] + [g.psi for g in ocp.guards] + [g.reset for g in ocp.guards]
-        )
-        if ocp.path is not None:
-            funcs.append(ocp.path)
-        sym = ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
+        sym = self._symbol_type(ocp)
         self.sym = sym
 
         h = sym.sym("h", P)
@@ -167,96 +182,109 @@ class _PhaseNLP:
         w_all = ca.vertcat(h, *[ca.vec(X) for X in Xs], *[ca.vec(U) for U in Us])
         self.n_w = w_all.size1()
 
-        g_list: list[Any] = []
-        lbg: list[np.ndarray] = []
-        ubg: list[np.ndarray] = []
-        self.g_index: dict[str, Any] = {}
-        n_g = 0
+        cons = _Constraints()
+        cons.add("sum_h", ca.sum1(h), ocp.horizon, ocp.horizon)
+        cons.add("x0", Xs[0][:, 0] - ca.DM(ocp.x0), 0.0, 0.0)
+        cost = 0
+        for k in range(P):
+            cost = self._add_phase(cons, cost, k, h[k], Xs[k], Us[k])
+            if k < P - 1:
+                self._add_event(cons, k, Xs[k], Us[k], Xs[k + 1])
+        cost = cost + ocp.phi(Xs[-1][:, -1])
 
-        def add(name: str, expr: Any, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
-            nonlocal n_g
-            expr = ca.vec(expr)
-            m = expr.size1()
-            g_list.append(expr)
-            lbg.append(np.broadcast_to(np.asarray(lo, dtype=float), (m,)).copy())
-            ubg.append(np.broadcast_to(np.asarray(hi, dtype=float), (m,)).copy())
-            self.g_index.setdefault(name, []).append(slice(n_g, n_g + m))
-            n_g += m
+        self.cost_fn = ca.Function("J", [w_all], [cost])
+        self._nlp = {"x": w_all, "f": cost, "g": ca.vertcat(*cons.exprs)}
+        self.g_index = cons.index
+        self.lbg = np.concatenate(cons.lbg)
+        self.ubg = np.concatenate(cons.ubg)
+        self.n_g = cons.n
+        # unpacking helpers
+        sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes)])
+        self.lbx, self.ubx = self._variable_bounds()
+        self._solvers: dict[bool, Any] = {}
+        self.callback: _IterationCallback | None = None
 
-        f, L, phi, con = ocp.f, ocp.L, ocp.phi, ocp.path
+    @staticmethod
+    def _symbol_type(ocp: HybridOCP) -> Any:
+        """SX symbols (a much faster NLP) unless a problem function is an MX graph (e.g. it
+        calls an integrator), which cannot be evaluated on SX."""
+        funcs = (
+            [ocp.f, ocp.L, ocp.phi] + [g.psi for g in ocp.guards] + [g.reset for g in ocp.guards]
+        )
+        if ocp.path is not None:
+            funcs.append(ocp.path)
+        return ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
+
+    def _add_phase(self, cons: _Constraints, cost: Any, k: int, hk: Any, X: Any, U: Any) -> Any:
+        """Phase ``k``'s collocation defects, control-polynomial bounds, path constraints and
+        free-space guards; returns ``cost`` plus the phase's running cost."""
+        ocp, d, M = self.ocp, self.d, self.mesh[k]
+        f, L, con = ocp.f, ocp.L, ocp.path
         u_lo, u_hi = np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float)
         bounded = np.flatnonzero(np.isfinite(u_lo) | np.isfinite(u_hi))
         lo_b, hi_b = np.tile(u_lo[bounded], d - 1), np.tile(u_hi[bounded], d - 1)
         D = ca.DM(self.rad.D)
-        psis = [g.psi for g in ocp.guards]
-        cost = 0
-        add("sum_h", ca.sum1(h), T, T)
-        add("x0", Xs[0][:, 0] - ca.DM(ocp.x0), 0.0, 0.0)
-        for k in range(P):
-            X, U, M = Xs[k], Us[k], self.mesh[k]
-            he = h[k] / M
-            for e in range(M):
-                Xe = X[:, e * d : e * d + d + 1]
-                Ue = U[:, e * d : e * d + d]
-                Fe = f.map(d)(Xe[:, 1:], Ue)
-                add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0)
-                Le = L.map(d)(Xe[:, 1:], Ue)
-                cost = cost + he * ca.mtimes(Le, ca.DM(self.rad.w))
-                if bounded.size and d > 1:
-                    # the control polynomial stays within the bounds between the Radau
-                    # points too: its Bernstein coefficients do (the last one is the value
-                    # at the element end, a Radau point, bounded by lbx/ubx)
-                    bern = ca.mtimes(Ue[bounded.tolist(), :], ca.DM(self.rad.bernstein[:-1].T))
-                    add(f"ubern{k}", bern, lo_b, hi_b)
-                if con is not None:
-                    # path constraints at the Radau points (and the phase start, with the
-                    # first control of the phase)
-                    if e == 0:
-                        add(f"con{k}", con(X[:, 0], U[:, 0]), 0.0, np.inf)
-                    add(f"con{k}", con.map(d)(Xe[:, 1:], Ue), 0.0, np.inf)
-            # every guard stays in free space at the nodes, except the ones that are zero by
-            # construction at this phase's boundaries (their equality constraint covers them)
-            prev = self.guards[k - 1] if k > 0 else None
-            nxt = self.guards[k] if k < P - 1 else None
-            for gi, psi in enumerate(psis):
-                cols = list(range(M * d + 1))
-                if gi == prev:
-                    cols = cols[1:]
-                if gi == nxt:
-                    cols = cols[:-1]
-                if cols:
-                    add(f"path{k}", psi.map(len(cols))(X[:, cols]), 0.0, np.inf)
-            if k < P - 1:
-                gd = ocp.guards[self.guards[k]]
-                s_minus = X[:, -1]
-                add(f"guard{k}", gd.psi(s_minus), 0.0, 0.0)
-                s_ = sym.sym("s", nx)
-                dpsi = ca.Function("dpsi", [s_], [ca.jacobian(gd.psi(s_), s_)])
-                add(f"approach{k}", ca.mtimes(dpsi(s_minus), f(s_minus, U[:, -1])), -np.inf, 0.0)
-                add(f"link{k}", Xs[k + 1][:, 0] - gd.reset(s_minus), 0.0, 0.0)
-        cost = cost + phi(Xs[-1][:, -1])
+        he = hk / M
+        for e in range(M):
+            Xe = X[:, e * d : e * d + d + 1]
+            Ue = U[:, e * d : e * d + d]
+            Fe = f.map(d)(Xe[:, 1:], Ue)
+            cons.add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0)
+            Le = L.map(d)(Xe[:, 1:], Ue)
+            cost = cost + he * ca.mtimes(Le, ca.DM(self.rad.w))
+            if bounded.size and d > 1:
+                # the control polynomial stays within the bounds between the Radau points
+                # too: its Bernstein coefficients do (the last one is the value at the
+                # element end, a Radau point, bounded by lbx/ubx)
+                bern = ca.mtimes(Ue[bounded.tolist(), :], ca.DM(self.rad.bernstein[:-1].T))
+                cons.add(f"ubern{k}", bern, lo_b, hi_b)
+            if con is not None:
+                # path constraints at the Radau points (and the phase start, with the first
+                # control of the phase)
+                if e == 0:
+                    cons.add(f"con{k}", con(X[:, 0], U[:, 0]), 0.0, np.inf)
+                cons.add(f"con{k}", con.map(d)(Xe[:, 1:], Ue), 0.0, np.inf)
+        # every guard stays in free space at the nodes, except the ones that are zero by
+        # construction at this phase's boundaries (their equality constraint covers them)
+        prev = self.guards[k - 1] if k > 0 else None
+        nxt = self.guards[k] if k < self.P - 1 else None
+        for gi, g in enumerate(ocp.guards):
+            cols = list(range(M * d + 1))
+            if gi == prev:
+                cols = cols[1:]
+            if gi == nxt:
+                cols = cols[:-1]
+            if cols:
+                cons.add(f"path{k}", g.psi.map(len(cols))(X[:, cols]), 0.0, np.inf)
+        return cost
 
-        self.cost_fn = ca.Function("J", [w_all], [cost])
-        nlp = {"x": w_all, "f": cost, "g": ca.vertcat(*g_list)}
-        self._nlp = nlp
-        self.lbg = np.concatenate(lbg)
-        self.ubg = np.concatenate(ubg)
-        self.n_g = n_g
-        # unpacking helpers
-        sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
-        self._offsets = np.concatenate([[0], np.cumsum(sizes)])
+    def _add_event(self, cons: _Constraints, k: int, X: Any, U: Any, X_next: Any) -> None:
+        """The ``k``-th event at the end of phase ``k``: its guard, the approach condition
+        and the reset linking phase ``k + 1``."""
+        ocp = self.ocp
+        gd = ocp.guards[self.guards[k]]
+        s_minus = X[:, -1]
+        cons.add(f"guard{k}", gd.psi(s_minus), 0.0, 0.0)
+        s_ = self.sym.sym("s", ocp.nx)
+        dpsi = ca.Function("dpsi", [s_], [ca.jacobian(gd.psi(s_), s_)])
+        cons.add(f"approach{k}", ca.mtimes(dpsi(s_minus), ocp.f(s_minus, U[:, -1])), -np.inf, 0.0)
+        cons.add(f"link{k}", X_next[:, 0] - gd.reset(s_minus), 0.0, 0.0)
 
-        self.lbx = np.full(self.n_w, -np.inf)
-        self.ubx = np.full(self.n_w, np.inf)
-        self.lbx[:P] = 1e-6 * T
-        self.ubx[:P] = T
-        # control bounds on every Radau-point control (U is stored column by column)
+    def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``lbx``, ``ubx``: phase durations in ``[1e-6 T, T]``, every Radau-point control in
+        the control bounds, the states free."""
+        ocp, P, T = self.ocp, self.P, self.ocp.horizon
+        lbx = np.full(self.n_w, -np.inf)
+        ubx = np.full(self.n_w, np.inf)
+        lbx[:P] = 1e-6 * T
+        ubx[:P] = T
+        # U is stored column by column
         o = self._offsets
         n_u = int(o[-1] - o[1 + P])
-        self.lbx[o[1 + P] :] = np.resize(np.asarray(ocp.u_min, dtype=float), n_u)
-        self.ubx[o[1 + P] :] = np.resize(np.asarray(ocp.u_max, dtype=float), n_u)
-        self._solvers: dict[bool, Any] = {}
-        self.callback: _IterationCallback | None = None
+        lbx[o[1 + P] :] = np.resize(np.asarray(ocp.u_min, dtype=float), n_u)
+        ubx[o[1 + P] :] = np.resize(np.asarray(ocp.u_max, dtype=float), n_u)
+        return lbx, ubx
 
     def solver(self, verbose: bool) -> Any:
         if verbose not in self._solvers:
@@ -315,12 +343,13 @@ class _PhaseNLP:
 
 
 class _Monitor:
-    """Progress lines and the time limit of one :func:`solve_dt` run."""
+    """Progress and the time limit of one :func:`solve_dt` run."""
 
-    def __init__(self, stages: Stages, time_limit: float | None) -> None:
-        self.stages = stages
+    def __init__(self, progress: Progress, time_limit: float | None) -> None:
+        self.progress = progress
+        self.reporting = not isinstance(progress, NullProgress)
         self.time_limit = time_limit
-        self.deadline = None if time_limit is None else stages.t0 + time_limit
+        self.deadline = None if time_limit is None else time.perf_counter() + time_limit
 
     def expired(self) -> bool:
         return self.deadline is not None and time.perf_counter() > self.deadline
@@ -376,11 +405,11 @@ class _IterationCallback(ca.Callback):
         mon = self.monitor
         if mon is None:
             return [0]
-        if mon.stages.enabled:
+        if mon.reporting:
             g = np.asarray(arg[ca.nlpsol_out().index("g")], dtype=float).ravel()
             viol = float(np.max(np.maximum(self.lbg - g, g - self.ubg), initial=0.0))
             f = float(arg[ca.nlpsol_out().index("f")])
-            mon.stages.detail(
+            mon.progress.detail(
                 f"IPOPT iteration {self.iteration} of at most {_MAX_ITER}, objective {f:.6g}, "
                 f"constraint violation {viol:.1e}"
             )
@@ -903,15 +932,82 @@ class _Judged:
         return self.ev.bound_violation <= _BOUND_TOL and self.ev.path_violation <= _PATH_TOL
 
 
+# ----------------------------------------------------------------------------------------
+# the options
+
+
+def _checked_time_limit(time_limit: Any) -> None:
+    """A :class:`SceneError` unless ``time_limit`` is ``None`` or a positive finite number."""
+    if time_limit is not None and not (
+        isinstance(time_limit, int | float)
+        and not isinstance(time_limit, bool)
+        and math.isfinite(time_limit)
+        and time_limit > 0
+    ):
+        raise SceneError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+
+
+def _parse_bounded_int(text: str, what: str, most: int) -> int:
+    """Command-line text as an integer from 1 to ``most`` (a ``ValueError`` naming ``what``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= most:
+        raise ValueError(f"{what} must be an integer from 1 to {most}, got {text!r}")
+    return value
+
+
+def _parse_mesh(text: str) -> int:
+    return _parse_bounded_int(text, "mesh (collocation elements per phase)", MAX_MESH)
+
+
+def _parse_degree(text: str) -> int:
+    return _parse_bounded_int(text, "degree", MAX_DEGREE)
+
+
+@dataclass(frozen=True)
+class DTOptions:
+    """The options of :func:`solve_dt` (``method="dt"``); ``hybridoc solve`` offers those
+    with ``cli`` metadata as flags (``--sequence``, ``--mesh``, ``--degree``,
+    ``--time-limit``)."""
+
+    sequence: str | tuple[str, ...] | None = option(
+        None,
+        "comma-separated guard names in event order ('' for none)",
+        metavar="EVENTS",
+    )
+    mesh: int | tuple[int, ...] | None = option(
+        None,
+        f"collocation elements per phase, at most {MAX_MESH} (default {_DEFAULT_MESH})",
+        parse=_parse_mesh,
+    )
+    degree: int = option(
+        3, f"collocation degree, 1 to {MAX_DEGREE} (default 3)", parse=_parse_degree
+    )
+    time_limit: float | None = option(
+        None,
+        "stop IPOPT and exit 2 after this much wall time (default: no limit; at most "
+        f"{_MAX_ITER} IPOPT iterations per candidate sequence)",
+        parse=positive_float,
+        metavar="SECONDS",
+    )
+    verbose: bool = option(False, "print IPOPT's log and the candidates to stderr", cli=False)
+
+
+# ----------------------------------------------------------------------------------------
+# the public solver
+
+
 def solve_dt(
     problem: ProblemLike,
     *,
-    sequence: Sequence[str] | None = None,
+    sequence: Sequence[str] | str | None = None,
     initial: ControlsLike | None = None,
     degree: int = 3,
     mesh: int | Sequence[int] | None = None,
     verbose: bool = False,
-    progress: bool = False,
+    progress: ProgressLike = None,
     time_limit: float | None = None,
 ) -> Solution:
     """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
@@ -945,8 +1041,10 @@ def solve_dt(
     verbose
         Print IPOPT's log and the candidates to stderr.
     progress
-        Stage lines on stderr once the run has lasted a few seconds
-        (:mod:`hybridoc._progress`): the candidate, its NLP's size and IPOPT's iteration.
+        ``True``: stage lines on stderr once the run has lasted a few seconds (a
+        :class:`~hybridoc.progress.ProgressMeter`): the candidate, its NLP's size and
+        IPOPT's iteration; ``False``/``None``: silent; or a caller's
+        :class:`~hybridoc.progress.Progress`.
     time_limit
         Seconds of wall time: past them IPOPT is stopped and a
         :class:`~hybridoc.errors.HybridocError` names the limit (``None``: no limit; the
@@ -994,20 +1092,38 @@ def solve_dt(
         sequence = ocp.check_sequence(sequence)
     degree = _checked_degree(degree)  # before any work
     _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
-    if time_limit is not None and not (
-        isinstance(time_limit, int | float)
-        and not isinstance(time_limit, bool)
-        and math.isfinite(time_limit)
-        and time_limit > 0
-    ):
-        raise SceneError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
-    with Stages("dt", enabled=progress) as stages:
-        monitor = _Monitor(stages, time_limit)
+    _checked_time_limit(time_limit)
+    with progress_scope(progress, "dt") as meter:
+        monitor = _Monitor(meter, time_limit)
         token = _MONITOR.set(monitor)
         try:
             return _solve_dt(ocp, sequence, initial, degree, mesh, verbose, monitor, t_start)
         finally:
             _MONITOR.reset(token)
+
+
+def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
+    """What ``hybridoc solve`` prints about a dt solution besides status, cost and events."""
+    lines = []
+    if "iterations" in sol.info:
+        lines.append(("iterations", str(sol.info["iterations"])))
+    if "nlp_cost" in sol.info:
+        x = sol.info["nlp_cost"]
+        text = "-" if x is None or math.isnan(float(x)) else f"{float(x):.12g}"
+        lines.append(("nlp cost", f"{text} (the transcription's)"))
+    return lines + settings_lines(sol)
+
+
+METHOD = Method(
+    "dt",
+    "multi-phase direct transcription (Radau collocation, IPOPT)",
+    run=solve_dt,
+    options=DTOptions,
+    tolerance=1e-6,
+    summary_lines=_summary_lines,
+)
+"""The ``"dt"`` method (:data:`hybridoc.methods.METHODS`): the transcription is exact for
+polynomial optima, so crossval expects it within ``1e-6`` of the reference."""
 
 
 def _solve_dt(
@@ -1020,13 +1136,9 @@ def _solve_dt(
     monitor: _Monitor,
     t_start: float,
 ) -> Solution:
-    """:func:`solve_dt` after its arguments are checked."""
-    import sys
-
-    from hybridoc.solution import Solution, Status
-
-    stages = monitor.stages
-    stages.stage("simulating the initial guess")
+    """:func:`solve_dt` after its arguments are checked: candidate sequences from the guess,
+    their NLPs solved, the results judged, the best one assembled into a Solution."""
+    monitor.progress.stage("simulating the initial guess")
     u0, seq_from_initial = _initial_controls(ocp, initial)
     guess, u0, perturbation = _evaluate_guess(ocp, u0)
     if sequence is not None:
@@ -1034,6 +1146,26 @@ def _solve_dt(
     else:
         observed = seq_from_initial or [ocp.guards[e.guard].name for e in guess.events]
         cands = _candidates(observed)
+    results, tried = _solve_candidates(ocp, cands, guess, u0, degree, mesh, verbose, monitor)
+    matched, differ = _judge_candidates(ocp, results, tried, mesh, verbose, monitor.progress)
+    best_j, status, message = _choose(ocp, matched, differ, tried)
+    solve_time = time.perf_counter() - t_start
+    sol = _assemble(ocp, best_j, degree, mesh, sequence, tried, perturbation, solve_time)
+    return sol.set_status(status, message)
+
+
+def _solve_candidates(
+    ocp: HybridOCP,
+    cands: list[list[str]],
+    guess: Evaluation,
+    u0: np.ndarray,
+    degree: int,
+    mesh: Any,
+    verbose: bool,
+    monitor: _Monitor,
+) -> tuple[list[DTResult], list[dict[str, Any]]]:
+    """The NLP of each candidate sequence solved from the guess: the converged results, and
+    a record of every candidate tried."""
     results: list[DTResult] = []
     tried: list[dict[str, Any]] = []
     names = [g.name for g in ocp.guards]
@@ -1043,7 +1175,7 @@ def _solve_dt(
         guards = [names.index(c) for c in cand]
         mesh_list = _checked_mesh(mesh, len(cand) + 1)
         n_w, n_g = nlp_size(ocp, guards, degree, mesh_list)
-        stages.stage(
+        monitor.progress.stage(
             f"candidate {i + 1} of {len(cands)}: a {len(cand)}-event sequence, NLP of {n_w} "
             f"variables and {n_g} constraints"
         )
@@ -1062,48 +1194,76 @@ def _solve_dt(
             f"{[t['sequence'] for t in tried]}); give an explicit sequence or another "
             "initial guess"
         )
+    return results, tried
 
-    def judge(r: DTResult) -> _Judged:
-        try:
-            return _Judged(r, _resimulate(ocp, r))
-        except EvaluationError as exc:
-            return _Judged(r, None, str(exc))
 
-    def record(j: _Judged, ok: bool, refined: bool) -> None:
-        for t in tried:
-            if t["sequence"] == j.result.sequence:
-                t["resimulated"] = ok
-                t["refined"] = refined
-                if refined:
-                    t["nlp_cost"] = j.result.nlp_cost
-                    t["status"] = j.result.status
-                if j.ev is None:
-                    t["resimulation_error"] = j.error
-                else:
-                    t["resimulated_sequence"] = _resimulated_names(ocp, j.ev)
-                    t["judged_cost"] = float(j.ev.cost)
+def _judge(ocp: HybridOCP, r: DTResult) -> _Judged:
+    """``r`` with the judge's re-simulation of its control (or the reason it failed)."""
+    try:
+        return _Judged(r, _resimulate(ocp, r))
+    except EvaluationError as exc:
+        return _Judged(r, None, str(exc))
 
-    matched: list[_Judged] = []  # reproduce their events, in order of NLP cost
-    differ: list[_Judged] = []  # converged, but re-simulate to other events (or not at all)
+
+def _judge_or_refine(
+    ocp: HybridOCP, r: DTResult, mesh: Any, verbose: bool, progress: Progress
+) -> tuple[_Judged, bool, bool]:
+    """The judged candidate, whether it reproduces its events, and whether it was refined:
+    at the default mesh, a near miss (the same events at times off by a little) is solved
+    once more with twice the elements, since a finer mesh may fix it."""
+    j = _judge(ocp, r)
+    ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
+    if ok or mesh is not None or j.ev is None:
+        return j, ok, False
+    gap = _event_time_gap(ocp, r, j.ev)
+    if gap is None or not gap <= _NEAR_MISS * ocp.horizon:
+        return j, ok, False
+    progress.stage(f"refining the {len(r.sequence)}-event candidate (twice the mesh)")
+    try:
+        rf = _refined(ocp, r, verbose)
+    except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
+        return j, ok, False
+    jf = _judge(ocp, rf)
+    if jf.ev is None:
+        return j, ok, False
+    return jf, _sequence_matches(ocp, jf.result, jf.ev), True
+
+
+def _record(
+    ocp: HybridOCP, tried: list[dict[str, Any]], j: _Judged, ok: bool, refined: bool
+) -> None:
+    """Add the judge's verdict on ``j`` to its entry in ``tried``."""
+    for t in tried:
+        if t["sequence"] == j.result.sequence:
+            t["resimulated"] = ok
+            t["refined"] = refined
+            if refined:
+                t["nlp_cost"] = j.result.nlp_cost
+                t["status"] = j.result.status
+            if j.ev is None:
+                t["resimulation_error"] = j.error
+            else:
+                t["resimulated_sequence"] = _resimulated_names(ocp, j.ev)
+                t["judged_cost"] = float(j.ev.cost)
+
+
+def _judge_candidates(
+    ocp: HybridOCP,
+    results: list[DTResult],
+    tried: list[dict[str, Any]],
+    mesh: Any,
+    verbose: bool,
+    progress: Progress,
+) -> tuple[list[_Judged], list[_Judged]]:
+    """Re-simulate the converged candidates, in order of NLP cost, until one reproduces its
+    events and is feasible. Returns those that reproduce their events and those that
+    re-simulate to other events (or not at all)."""
+    matched: list[_Judged] = []
+    differ: list[_Judged] = []
     for r in sorted(results, key=lambda r: r.nlp_cost):
-        stages.stage(f"re-simulating the {len(r.sequence)}-event candidate with the judge")
-        j = judge(r)
-        ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
-        refined = False
-        if not ok and mesh is None and j.ev is not None:
-            gap = _event_time_gap(ocp, r, j.ev)
-            if gap is not None and gap <= _NEAR_MISS * ocp.horizon:
-                # a near miss: same events, times off by a little; a finer mesh may fix it
-                stages.stage(f"refining the {len(r.sequence)}-event candidate (twice the mesh)")
-                try:
-                    rf = _refined(ocp, r, verbose)
-                except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
-                    rf = None
-                jf = None if rf is None else judge(rf)
-                if jf is not None and jf.ev is not None:
-                    j, refined = jf, True
-                    ok = _sequence_matches(ocp, jf.result, jf.ev)
-        record(j, ok, refined)
+        progress.stage(f"re-simulating the {len(r.sequence)}-event candidate with the judge")
+        j, ok, refined = _judge_or_refine(ocp, r, mesh, verbose, progress)
+        _record(ocp, tried, j, ok, refined)
         if verbose:
             print(
                 f"dt: {j.result.sequence} cost {j.result.nlp_cost:.12g} valid {ok}"
@@ -1116,16 +1276,21 @@ def _solve_dt(
                 break
         else:
             differ.append(j)
+    return matched, differ
 
-    status, message = Status.SUCCESS, ""
+
+def _choose(
+    ocp: HybridOCP, matched: list[_Judged], differ: list[_Judged], tried: list[dict[str, Any]]
+) -> tuple[_Judged, Status, str]:
+    """The candidate to return, its status and message: the first feasible one that
+    reproduces its events, else the first that reproduces them, else the one of lowest
+    judged cost."""
     feasible = [j for j in matched if j.feasible]
     if feasible:
-        best_j = feasible[0]
-    elif matched:
-        best_j = matched[0]
-        ev = best_j.ev
+        return feasible[0], Status.SUCCESS, ""
+    if matched:
+        ev = matched[0].ev
         assert ev is not None
-        status = Status.INFEASIBLE
         parts = []
         if ev.bound_violation > _BOUND_TOL:
             parts.append(
@@ -1137,28 +1302,39 @@ def _solve_dt(
                 "they hold at the collocation points only: a finer mesh may help)"
             )
         message = "the re-simulated control violates " + " and ".join(parts)
-    else:
-        judged = [j for j in differ if j.ev is not None]
-        if not judged:
-            errors = "; ".join(f"{j.result.sequence}: {j.error}" for j in differ)
-            raise EvaluationError(
-                "the judge cannot re-simulate the control of any converged event sequence "
-                f"({errors})"
-            )
-        best_j = min(judged, key=lambda j: j.ev.cost)  # type: ignore[union-attr]
-        ev = best_j.ev
-        assert ev is not None
-        status = Status.EVENTS_DIFFER
-        message = (
-            f"modelled events {best_j.result.sequence} at t = "
-            f"{[round(float(t), 9) for t in best_j.result.event_times]} but the re-simulated "
-            f"control gives {_resimulated_names(ocp, ev)} at t = "
-            f"{[round(float(e.time), 9) for e in ev.events]}; no candidate sequence "
-            f"reproduced its events (tried {[t['sequence'] for t in tried]})"
+        return matched[0], Status.INFEASIBLE, message
+    judged = [j for j in differ if j.ev is not None]
+    if not judged:
+        errors = "; ".join(f"{j.result.sequence}: {j.error}" for j in differ)
+        raise EvaluationError(
+            f"the judge cannot re-simulate the control of any converged event sequence ({errors})"
         )
+    best_j = min(judged, key=lambda j: j.ev.cost)  # type: ignore[union-attr]
+    ev = best_j.ev
+    assert ev is not None
+    message = (
+        f"modelled events {best_j.result.sequence} at t = "
+        f"{[round(float(t), 9) for t in best_j.result.event_times]} but the re-simulated "
+        f"control gives {_resimulated_names(ocp, ev)} at t = "
+        f"{[round(float(e.time), 9) for e in ev.events]}; no candidate sequence "
+        f"reproduced its events (tried {[t['sequence'] for t in tried]})"
+    )
+    return best_j, Status.EVENTS_DIFFER, message
+
+
+def _assemble(
+    ocp: HybridOCP,
+    best_j: _Judged,
+    degree: int,
+    mesh: Any,
+    sequence: list[str] | None,
+    tried: list[dict[str, Any]],
+    perturbation: float,
+    solve_time: float,
+) -> Solution:
+    """The Solution of the chosen candidate (its status not yet set)."""
     best, best_ev = best_j.result, best_j.ev
     assert best_ev is not None
-    solve_time = time.perf_counter() - t_start
     grid = ocp.time_grid()
     controls = best.cell_averages(grid)
     scene_name = ocp.scene.name if isinstance(ocp, DiscOCP) else ocp.name
@@ -1188,7 +1364,7 @@ def _solve_dt(
     if ocp.has_bounds:  # u(t) is clipped into them (also after saving and loading)
         arrays["u_min"] = np.array(ocp.u_min, dtype=float)
         arrays["u_max"] = np.array(ocp.u_max, dtype=float)
-    sol = Solution(
+    return Solution(
         method="dt",
         scene=scene_name,
         controls=controls,
@@ -1210,7 +1386,6 @@ def _solve_dt(
         info=info,
         arrays=arrays,
     )
-    return sol.set_status(status, message)
 
 
 class _PiecewisePolynomial:

@@ -9,6 +9,7 @@ stderr once a run has lasted a few seconds. Every case here takes a few seconds 
 from __future__ import annotations
 
 import dataclasses
+import io
 import time
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 import hybridoc
-from hybridoc import _progress
+from hybridoc import progress as hprogress
 from hybridoc.cli import main
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.ocp import HybridOCP
@@ -47,8 +48,8 @@ def _many_discs(n: int = 13) -> hybridoc.Scene:
 def loud(monkeypatch: pytest.MonkeyPatch) -> None:
     """Stage lines from the start, periodic lines every 0.2 s (stderr is not a terminal
     under pytest: the log values apply)."""
-    monkeypatch.setattr(_progress, "QUIET_LOG_S", 0.0)
-    monkeypatch.setattr(_progress, "EVERY_LOG_S", 0.2)
+    monkeypatch.setattr(hprogress, "QUIET_LOG_S", 0.0)
+    monkeypatch.setattr(hprogress, "EVERY_LOG_S", 0.2)
 
 
 # ================================================================================ reference
@@ -91,7 +92,8 @@ def test_reference_prints_stage_lines(loud, capsys) -> None:
 
 def test_reference_quiet_when_quick(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     # quick runs stay silent: stage lines start after QUIET_S seconds on a terminal
-    monkeypatch.setattr(_progress, "_isatty", lambda: True)
+    monkeypatch.setattr(hprogress, "_isatty", lambda stream=None: True)
+    monkeypatch.setattr(hprogress, "QUIET_S", 3.0)
     rc = main(["reference", "single-collision", "--sequence", "ball1|ball2"])
     assert rc == 0 and capsys.readouterr().err == ""
 
@@ -184,21 +186,60 @@ def test_time_limit_argument_is_checked() -> None:
             solve_dt("single-collision", time_limit=bad)  # type: ignore[arg-type]
 
 
+# ============================================================================ the meter
 @pytest.mark.parametrize("tty", [True, False])
-def test_stages_silent_then_periodic(monkeypatch: pytest.MonkeyPatch, capsys, tty) -> None:
+def test_meter_silent_then_periodic(monkeypatch: pytest.MonkeyPatch, capsys, tty) -> None:
     # a terminal and a log have their own times: the other pair would print nothing
-    monkeypatch.setattr(_progress, "_isatty", lambda: tty)
-    monkeypatch.setattr(_progress, "QUIET_S" if tty else "QUIET_LOG_S", 0.3)
-    monkeypatch.setattr(_progress, "EVERY_S" if tty else "EVERY_LOG_S", 0.2)
-    with _progress.Stages("x") as st:
+    monkeypatch.setattr(hprogress, "_isatty", lambda stream=None: tty)
+    monkeypatch.setattr(hprogress, "QUIET_S" if tty else "QUIET_LOG_S", 0.3)
+    monkeypatch.setattr(hprogress, "EVERY_S" if tty else "EVERY_LOG_S", 0.2)
+    with hprogress.ProgressMeter("x") as st:
+        assert st.tty is tty
         st.stage("one")
         assert capsys.readouterr().err == ""  # inside the quiet time
         st.detail("d1")
-        time.sleep(0.8)
+        time.sleep(1.0)
     lines = capsys.readouterr().err.splitlines()
     assert lines[0].startswith("x: one [") and "x: one; d1 [" in lines[1], lines
-    with _progress.Stages("x", enabled=False) as st:
-        st.stage("never")
-        time.sleep(0.4)
-    assert capsys.readouterr().err == ""
     assert np.isfinite(st.elapsed())
+
+
+def test_disabled_meter_prints_nothing(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    monkeypatch.setattr(hprogress, "_isatty", lambda stream=None: True)
+    monkeypatch.setattr(hprogress, "QUIET_S", 0.0)
+    monkeypatch.setattr(hprogress, "EVERY_S", 0.1)
+    for off in (None, False):
+        with hprogress.progress_scope(off, "x") as meter:
+            assert isinstance(meter, hprogress.NullProgress)
+            meter.stage("never")
+            meter.detail("d")
+            meter.count(1, 2, "half")
+            time.sleep(0.3)
+    assert capsys.readouterr().err == ""
+
+
+def test_meter_bar_draws_in_place_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(hprogress, "QUIET_S", 0.0)
+    monkeypatch.setattr(hprogress, "REDRAW_S", 0.0)
+    out = io.StringIO()
+    with hprogress.ProgressMeter("x", stream=out, tty=True) as meter:
+        for i in range(1, 4):
+            meter.count(i, 3, "loss 1")
+    text = out.getvalue()
+    # each draw returns to the line start; only the final one ends the line
+    assert text.count("\r") == 3 and text.count("\n") == 1 and text.endswith("\n"), text
+    assert text.startswith("\rx [") and "] 3/3 loss 1" in text
+
+
+def test_meter_bar_writes_plain_lines_in_a_log(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(hprogress, "QUIET_LOG_S", 0.0)
+    monkeypatch.setattr(hprogress, "EVERY_LOG_S", 0.0)
+    out = io.StringIO()
+    with hprogress.ProgressMeter("x", stream=out, tty=False) as meter:
+        for i in range(1, 4):
+            meter.count(i, 3, "loss 1")
+    text = out.getvalue()
+    lines = text.splitlines()
+    assert "\r" not in text and len(lines) == 3, text
+    assert all(line.startswith("x [") for line in lines)
+    assert [line.split("] ")[1].split()[0] for line in lines] == ["1/3", "2/3", "3/3"]

@@ -187,3 +187,40 @@ def test_cli_solve_dt_json():
     assert data["status"] == "success" and data["timings"]["solve_time_s"] > 0
     assert data["cost"] == pytest.approx(0.311416870358, rel=1e-10)
     assert data["events"][0]["bodies"] == ["ball1", "ball2"]
+
+
+def test_dt_options_and_method_are_consistent(solved):
+    import inspect
+
+    from hybridoc.methods import METHODS
+    from hybridoc.solvers.transcription import MAX_DEGREE, MAX_MESH, METHOD, DTOptions
+
+    assert METHODS["dt"] is METHOD and METHOD.options is DTOptions
+    METHOD.check_signature()  # solve_dt takes initial, progress and exactly the options
+    assert METHOD.tolerance == 1e-6
+    params = inspect.signature(solve_dt).parameters
+    for f in dataclasses.fields(DTOptions):  # the options' defaults are solve_dt's
+        assert params[f.name].default == f.default, f.name
+    specs = {s.name: s for s in METHOD.specs()}
+    assert [s.flag for s in specs.values() if s.cli] == [
+        "--sequence", "--mesh", "--degree", "--time-limit"
+    ]  # fmt: skip
+    assert not specs["verbose"].cli
+    assert specs["mesh"].parser("8") == 8 and specs["degree"].parser("4") == 4
+    assert specs["time_limit"].parser("2.5") == 2.5
+    with pytest.raises(ValueError, match=rf"^mesh .*from 1 to {MAX_MESH}, got '100000000'$"):
+        specs["mesh"].parser("100000000")
+    for bad in ("0", "x", "1.5"):
+        with pytest.raises(ValueError, match="mesh"):
+            specs["mesh"].parser(bad)
+    with pytest.raises(ValueError, match=f"degree must be an integer from 1 to {MAX_DEGREE}"):
+        specs["degree"].parser("99")
+    for bad in ("0", "-1", "nan", "inf"):
+        with pytest.raises(ValueError, match="finite number > 0"):
+            specs["time_limit"].parser(bad)
+    # what hybridoc solve prints for dt besides status, cost and events
+    dt, _ = solved["single-collision"]
+    lines = METHOD.summary_lines(dt)
+    assert [label for label, _ in lines] == ["iterations", "nlp cost", "settings"]
+    assert lines[1][1] == f"{dt.info['nlp_cost']:.12g} (the transcription's)"
+    assert lines[2][1] == "degree 3, mesh 4"
