@@ -2,19 +2,85 @@
 
 See :func:`solve_reference`. The HMP system of one event sequence is in
 :mod:`hybridoc.reference.shooting`, the solve of one sequence and its verification in
-:mod:`hybridoc.reference.sequence`, where candidate sequences come from in
-:mod:`hybridoc.reference.candidates`, and the result type in
-:mod:`hybridoc.reference.result`.
+:mod:`hybridoc.reference.sequence`, the reference's own candidate sequences in
+:mod:`hybridoc.reference.candidates`, the protocol of the candidate sources it is given (or
+that are registered: the solvers') in :mod:`hybridoc.reference.sources`, and the result type
+in :mod:`hybridoc.reference.result`. The reference imports no solver.
+
+The public names are imported on first use (PEP 562), so that the solvers can register
+their candidate sources (:mod:`hybridoc.reference.sources`) without importing CasADi.
 """
 
-from hybridoc.reference.result import ReferenceResult, reference_control
-from hybridoc.reference.sequence import verify_reference
-from hybridoc.reference.solve import reference_supports, solve_reference
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.reference.result import ReferenceResult, reference_control
+    from hybridoc.reference.sequence import verify_reference
+    from hybridoc.reference.solve import (
+        METHOD,
+        ReferenceOptions,
+        reference_supports,
+        solve_reference,
+    )
+    from hybridoc.reference.sources import (
+        CandidateSource,
+        PhaseCostates,
+        Proposal,
+        SequenceStarter,
+        SourceContext,
+        register_source,
+        registered_sources,
+        unregister_source,
+    )
 
 __all__ = [
+    "METHOD",
+    "CandidateSource",
+    "PhaseCostates",
+    "Proposal",
+    "ReferenceOptions",
     "ReferenceResult",
+    "SequenceStarter",
+    "SourceContext",
     "reference_control",
     "reference_supports",
+    "register_source",
+    "registered_sources",
     "solve_reference",
+    "unregister_source",
     "verify_reference",
 ]
+
+_EXPORTS = {
+    "METHOD": "hybridoc.reference.solve",
+    "CandidateSource": "hybridoc.reference.sources",
+    "PhaseCostates": "hybridoc.reference.sources",
+    "Proposal": "hybridoc.reference.sources",
+    "ReferenceOptions": "hybridoc.reference.solve",
+    "ReferenceResult": "hybridoc.reference.result",
+    "SequenceStarter": "hybridoc.reference.sources",
+    "SourceContext": "hybridoc.reference.sources",
+    "reference_control": "hybridoc.reference.result",
+    "reference_supports": "hybridoc.reference.solve",
+    "register_source": "hybridoc.reference.sources",
+    "registered_sources": "hybridoc.reference.sources",
+    "solve_reference": "hybridoc.reference.solve",
+    "unregister_source": "hybridoc.reference.sources",
+    "verify_reference": "hybridoc.reference.sequence",
+}
+
+
+def __getattr__(name: str) -> Any:
+    where = _EXPORTS.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(where), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

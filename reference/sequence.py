@@ -3,8 +3,9 @@
 :func:`solve_sequence` tries, in order, until Newton converges (and keeps the cheapest point
 found): the adjoint costate of a given control (its linear-in-time fit per phase for disc
 scenes, the judge's adjoint otherwise), the disc scenes' NLP in event times and linear
-phase controls, and the direct transcription with the sequence fixed, whose multipliers give
-the costates. :func:`verify_reference` re-simulates the extremal's control with the judge.
+phase controls, and the warm starts of the :class:`~hybridoc.reference.sources.SequenceStarter`
+sources (the direct transcription with the sequence fixed, whose multipliers give the
+costates). :func:`verify_reference` re-simulates the extremal's control with the judge.
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ from hybridoc.evaluation import Evaluation
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.result import ReferenceResult, make_result, reference_control
 from hybridoc.reference.shooting import ShootingSystem, newton, shooting_system
+from hybridoc.reference.sources import PhaseCostates, SequenceStarter
 
-__all__ = ["COST_RTOL", "solve_sequence", "verify_reference", "z_from_transcription"]
+__all__ = ["COST_RTOL", "solve_sequence", "verify_reference", "z_from_costates"]
 
 COST_RTOL = 1e-9
 #: Constraint violation above which the search drops a sequence whose NLP failed.
@@ -71,23 +73,14 @@ def z_from_gradient(S: ShootingSystem, grad: Any, gamma: np.ndarray) -> np.ndarr
     return S.pack(np.asarray(grad.d_initial_state), gamma, pis, lps)
 
 
-def z_from_transcription(S: ShootingSystem, r: Any) -> np.ndarray:
-    """Newton start from a direct transcription of the same sequence (its multipliers)."""
-    nlp = r._nlp
-    _, X, _ = nlp.unpack(r._w)
-    cs = r.costates
-    # the costates come in one block per phase: its start (the link multiplier), then the
-    # M d Radau points, the last of which is the phase's end
-    lam_start, lam_end = [], []
-    i = 0
-    for k in range(nlp.P):
-        lam_start.append(cs[i])
-        i += nlp.mesh[k] * nlp.d
-        lam_end.append(cs[i])
-        i += 1
-    gam = r.event_times
-    pis = [_pi_from_jump(S, k, X[k][:, -1], lam_end[k], lam_start[k + 1]) for k in range(S.K)]
-    return S.pack(lam_start[0], gam, pis, lam_start[1:])
+def z_from_costates(S: ShootingSystem, w: PhaseCostates) -> np.ndarray:
+    """Newton start from costates per phase (a transcription's multipliers): the costate
+    jumps follow from the costates on both sides of each event."""
+    pis = [
+        _pi_from_jump(S, k, np.asarray(w.state_end[k]), w.costate_end[k], w.costate_start[k + 1])
+        for k in range(S.K)
+    ]
+    return S.pack(w.costate_start[0], np.asarray(w.event_times), pis, list(w.costate_start[1:]))
 
 
 def solve_sequence(
@@ -99,10 +92,11 @@ def solve_sequence(
     estimate: bool = False,
     grad: Any = None,
     guess_ev: Evaluation | None = None,
-    transcription: bool = True,
+    starters: Sequence[SequenceStarter] = (),
     tol: float = 1e-10,
     verbose: bool = False,
     screen: bool = False,
+    warm_start: PhaseCostates | None = None,
 ) -> tuple[ReferenceResult | None, str]:
     """Solve the HMP system of one sequence; ``(result, "")`` or ``(None, reasons)``.
 
@@ -119,13 +113,16 @@ def solve_sequence(
         The judge's adjoint of ``u_guess`` (generic problems' costate estimate).
     guess_ev
         A simulated trajectory to initialise the transcription's phases.
-    transcription
-        Fall back on the direct transcription with the sequence fixed.
+    starters
+        Fall back on their warm starts, in order, until Newton converges (the direct
+        transcription with the sequence fixed); they need ``guess_ev``.
     screen
         For the search over many sequences (disc scenes): where IPOPT stops at a point that
         violates the sequence's guard conditions (by more than 1e-3), give the sequence up
         without Newton, and give Newton fewer, shorter tries; most enumerated sequences are
         not realisable, and an extremal's Newton from the NLP takes two or three steps.
+    warm_start
+        Costates per phase (a source's proposal) to start Newton from, after the estimate.
     """
     S = shooting_system(ocp, list(sequence))
     gamma0 = np.asarray(gamma0, dtype=float)
@@ -155,6 +152,8 @@ def solve_sequence(
             else z_from_gradient(S, grad, gamma0)
         )
         attempt(z0, "costate-estimate")
+    if warm_start is not None and len(warm_start.event_times) == S.K:
+        attempt(z_from_costates(S, warm_start), "warm start")
     if S.disc:
         # also after a converged estimate: from a poor guess Newton can land on a worse
         # stationary point of the same sequence, while the NLP minimises over it
@@ -166,15 +165,16 @@ def solve_sequence(
             )
         else:
             attempt(z0, "nlp")
-    if not found and transcription and guess_ev is not None:
-        from hybridoc.solvers.transcription import solve_dt_sequence
-
+    for starter in starters if guess_ev is not None else ():
+        if found:
+            break
         try:
-            r = solve_dt_sequence(ocp, list(sequence), guess=guess_ev, guess_controls=u_guess)
+            proposal = starter.start(ocp, list(sequence), guess_ev, u_guess)
         except (ConvergenceError, EvaluationError, ValueError) as exc:
-            reasons.append(f"transcription: {exc}")
-        else:
-            attempt(z_from_transcription(S, r), "transcription")
+            reasons.append(f"{starter.name}: {exc}")
+            continue
+        if proposal is not None and proposal.warm_start is not None:
+            attempt(z_from_costates(S, proposal.warm_start), starter.name)
     if found:
         best = min(found, key=lambda r: r.cost)
         return best, ""

@@ -5,23 +5,27 @@ exact optimal control ``u(t)`` of the continuous problem for the event sequence 
 
 What it tries
     Without ``sequence``: the events of the initial guess (and that sequence with one event
-    dropped, or with one near-touch added, and no event at all); the event sequence of the
-    direct transcription started from the same guess; those of a cheap batched multi-start
-    of the differentiable simulator on a coarse grid; every sequence of one event (a guess
-    that never nears a guard proposes none); and with ``search=K`` every feasible
-    sequence of up to K events (:mod:`hybridoc.reference.candidates`). Each sequence is
-    solved by :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate
-    estimate, the disc NLP, or the transcription with the sequence fixed).
+    dropped, or with one near-touch added, and no event at all); the proposals of the
+    candidate sources (:mod:`hybridoc.reference.sources`; by default the registered ones:
+    the event sequence of the direct transcription started from the same guess, and those
+    of a cheap batched multi-start of the differentiable simulator on a coarse grid); every
+    sequence of one event (a guess that never nears a guard proposes none); and with
+    ``search=K`` every feasible sequence of up to K events
+    (:mod:`hybridoc.reference.candidates`). Each sequence is solved by
+    :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate estimate, the
+    disc NLP, or the warm start of a source such as the transcription with the sequence
+    fixed). ``info["sources"]`` lists the sources used.
 
 What it checks before it answers
     1. The HMP residual (transversality, guards, costate jumps, Hamiltonian continuity) is
        below ``tol`` after Newton with exact Jacobians.
     2. ``u(t)`` re-simulated by the judge produces exactly the modelled events, no extra and
        none missing, and the same cost.
-    3. No control it has met is cheaper: not the initial guess, not the transcription, not
-       the multi-start's. Where one is, its event sequence is solved again from that
-       control; if the extremal is still more expensive, the result is reported with
-       status ``not-optimal`` and the cheaper cost named, never as the optimum.
+    3. No control it has met is cheaper: not the initial guess, not those the sources
+       proposed (the transcription's, the multi-start's). Where one is, its event sequence
+       is solved again from that control; if the extremal is still more expensive, the
+       result is reported with status ``not-optimal`` and the cheaper cost named, never as
+       the optimum.
 
     With ``sequence`` given, only that sequence is solved, and the answer is its extremal
     (status ``extremal``), not a claim of optimality: ``not-optimal`` when a known control
@@ -36,15 +40,16 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from hybridoc._progress import Stages
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
@@ -54,20 +59,39 @@ from hybridoc.errors import (
 )
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate, gradient
+from hybridoc.methods import Method, option
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
+from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
 from hybridoc.reference.candidates import (
     enumerate_sequences,
     guess_candidates,
     guess_times,
     lower_bound,
 )
-from hybridoc.reference.result import ReferenceResult
+from hybridoc.reference.result import ReferenceResult, make_result
 from hybridoc.reference.sequence import solve_sequence, verify_reference
-from hybridoc.reference.shooting import hamiltonian_check, is_disc_scene
+from hybridoc.reference.shooting import hamiltonian_check, is_disc_scene, newton, shooting_system
+from hybridoc.reference.sources import (
+    CandidateSource,
+    PhaseCostates,
+    Proposal,
+    SequenceStarter,
+    SourceContext,
+    registered_sources,
+)
 from hybridoc.solution import Solution, Status
 
-__all__ = ["MAX_EVENTS", "MAX_SEARCH", "reference_supports", "solve_reference"]
+__all__ = [
+    "MAX_EVENTS",
+    "MAX_SEARCH",
+    "METHOD",
+    "MULTISTART",
+    "ReferenceOptions",
+    "parse_search",
+    "reference_supports",
+    "solve_reference",
+]
 
 _OPT_RTOL = 1e-9  # a known control cheaper by more than this makes the extremal not optimal
 MAX_SEARCH = 8
@@ -84,12 +108,9 @@ the transcription (39 events: 63 s in all). Longer sequences are not attempted (
 is refused); ``hybridoc evaluate``, ``solve --method gd`` or ``--method dt`` handle long
 horizons."""
 MULTISTART = 8
-"""Starts of the batched multi-start that proposes sequences (0 to skip it)."""
-# the multi-start's coarse grid: at 40 steps two impacts 0.1 T apart fell into one or two
-# cells and its descent never separated them (the two-impact optimum of the juggling paddle
-# with mass ratio 0.5 was missed, 74% cheaper than the one-impact extremal returned)
-_MULTISTART_STEPS = 80
-_MULTISTART_ITERS = 20
+"""Starts of the batched multi-start source that proposes sequences (0 to skip it)."""
+MAX_WORKERS = 8
+"""Worker processes of the search over sequences, at most (one per usable core)."""
 
 
 def reference_supports(ocp: HybridOCP) -> str | None:
@@ -97,6 +118,76 @@ def reference_supports(ocp: HybridOCP) -> str | None:
     if ocp.path is not None:
         return "the HMP reference does not handle path (state) constraints; use method 'dt'"
     return hamiltonian_check(ocp)
+
+
+def parse_search(text: str) -> int:
+    """The ``--search K`` value: an integer from 0 to :data:`MAX_SEARCH`.
+
+    Raises
+    ------
+    ValueError
+        With a one-line reason.
+    """
+    try:
+        k = int(text)
+    except ValueError:
+        raise ValueError(f"search must be an integer >= 0, got {text!r}") from None
+    if k < 0:
+        raise ValueError(f"search must be an integer >= 0, got {text!r}")
+    if k > MAX_SEARCH:
+        raise ValueError(
+            f"search must be at most {MAX_SEARCH} events (the number of sequences grows "
+            f"about sevenfold per event), got {k}"
+        )
+    return k
+
+
+@dataclass(frozen=True)
+class ReferenceOptions:
+    """The options of :func:`solve_reference` (method ``"reference"``)."""
+
+    sequence: str | tuple[str, ...] | None = option(
+        None,
+        "comma-separated guard names in event order, e.g. 'ball1|ball2,ball2|wall' (an "
+        "empty string: no event); default: search for the optimum",
+        metavar="EVENTS",
+    )
+    search: int | None = option(
+        None,
+        "also enumerate every feasible event sequence of up to K events and report the "
+        f"landscape of extremals (K at most {MAX_SEARCH})",
+        parse=parse_search,
+        metavar="K",
+    )
+    verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
+    tol: float = option(1e-10, "max-norm of the HMP residual required", cli=False)
+    verify: bool = option(
+        True, "re-simulate the result with the judge (only a given sequence may skip it)",
+        cli=False,
+    )  # fmt: skip
+    transcription: bool = option(
+        True, "use the candidate source 'transcription' (proposals and warm starts)", cli=False
+    )
+    multistart: int = option(
+        MULTISTART, "starts of the candidate source 'multi-start' (0 to skip it)", cli=False
+    )
+    sources: tuple[Any, ...] | None = option(
+        None,
+        "candidate sources (hybridoc.reference.sources); default: the registered ones",
+        cli=False,
+    )
+
+
+def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
+    """What ``hybridoc solve`` prints about a reference solution: the HMP residual and the
+    settings."""
+    lines = []
+    if "residual" in sol.info:
+        lines.append(("residual", f"{sol.info['residual']:.2e} (HMP, max norm)"))
+    settings = ", ".join(f"{k} {v}" for k, v in sol.settings.items() if v is not None)
+    if settings:
+        lines.append(("settings", settings))
+    return lines
 
 
 @dataclass
@@ -117,7 +208,7 @@ class _Book:
     ocp: HybridOCP
     tol: float
     verbose: bool
-    transcription: bool
+    starters: tuple[Any, ...] = ()
     results: dict[tuple[str, ...], ReferenceResult] = field(default_factory=dict)
     reasons: dict[tuple[str, ...], str] = field(default_factory=dict)
     verdicts: dict[tuple[str, ...], tuple[bool, str]] = field(default_factory=dict)
@@ -126,7 +217,8 @@ class _Book:
     known: list[_Known] = field(default_factory=list)
     resimulated: dict[tuple[str, ...], Evaluation] = field(default_factory=dict)
     verify_time: float = 0.0
-    stages: Stages = field(default_factory=lambda: Stages("reference", enabled=False))
+    progress: Progress = field(default_factory=NullProgress)
+    sources: list[dict[str, Any]] = field(default_factory=list)
 
     def say(self, text: str) -> None:
         if self.verbose:
@@ -154,6 +246,7 @@ class _Book:
         grad: Any = None,
         guess_ev: Evaluation | None = None,
         retry: bool = False,
+        warm_start: PhaseCostates | None = None,
     ) -> ReferenceResult | None:
         """Solve one sequence (once; again with ``retry`` when it failed before or a better
         start is at hand) and keep the cheaper result."""
@@ -162,13 +255,13 @@ class _Book:
             return self.results[key]
         if self.skip_long(key, origin) or (key in self.reasons and not retry):
             return None
-        self.stages.stage(f"shooting on a {len(key)}-event sequence ({origin})")
+        self.progress.stage(f"shooting on a {len(key)}-event sequence ({origin})")
         t0 = time.perf_counter()
         try:
             res, why = solve_sequence(
                 self.ocp, list(key), gamma0, u_guess, estimate=estimate, grad=grad,
-                guess_ev=guess_ev, transcription=self.transcription, tol=self.tol,
-                verbose=self.verbose,
+                guess_ev=guess_ev, starters=self.starters, tol=self.tol, verbose=self.verbose,
+                warm_start=warm_start,
             )  # fmt: skip
         except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
             res, why = None, str(exc)
@@ -186,7 +279,7 @@ class _Book:
 
     def verify(self, key: tuple[str, ...]) -> bool:
         if key not in self.verdicts:
-            self.stages.stage(f"re-simulating the {len(key)}-event extremal with the judge")
+            self.progress.stage(f"re-simulating the {len(key)}-event extremal with the judge")
             t0 = time.perf_counter()
             ok, sim, msg = verify_reference(self.results[key])
             self.verify_time += time.perf_counter() - t0
@@ -281,6 +374,13 @@ def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
     return ocp.check_controls(controls, what="initial"), True
 
 
+def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
+    if initial is None:
+        return np.asarray(ocp.u_guess, dtype=float), False
+    controls = getattr(initial, "controls", initial)
+    return ocp.check_controls(controls, what="initial"), True
+
+
 def solve_reference(
     problem: ProblemLike,
     *,
@@ -292,7 +392,8 @@ def solve_reference(
     verify: bool = True,
     transcription: bool = True,
     multistart: int = MULTISTART,
-    progress: bool = False,
+    sources: Sequence[Any] | None = None,
+    progress: ProgressLike = False,
 ) -> Solution:
     """The optimal control by shooting on the hybrid minimum principle.
 
@@ -320,14 +421,20 @@ def solve_reference(
         Re-simulate the result with the judge. Only an explicit ``sequence`` may skip it
         (for timing).
     transcription
-        Run the direct transcription from the same guess as a competitor and as the
-        fallback start of Newton.
+        Use the candidate source called ``"transcription"`` (the direct transcription from
+        the same guess, a competitor and the fallback start of Newton).
     multistart
-        Starts of the batched multi-start (0 to skip).
+        Starts of the candidate source called ``"multi-start"`` (0 to skip it).
+    sources
+        The candidate sources (:class:`~hybridoc.reference.sources.CandidateSource`,
+        :class:`~hybridoc.reference.sources.SequenceStarter`), in order; ``None``: the
+        registered ones (:func:`~hybridoc.reference.sources.register_source`; importing
+        :mod:`hybridoc.solvers` registers the transcription and the multi-start, and a
+        warning says when none is registered).
     progress
-        Stage lines on stderr once the run has lasted a few seconds
-        (:mod:`hybridoc._progress`): which sequence is being solved, the transcription,
-        the multi-start, the search, the verification.
+        ``True``, ``False``/``None`` or a :class:`~hybridoc.progress.Progress`: stage lines
+        (which sequence is being solved, the sources, the verification) and the count of
+        the search over sequences.
 
     Returns
     -------
@@ -339,12 +446,15 @@ def solve_reference(
         control is known: named in ``message`` and ``info["cheaper"]``) or ``infeasible``
         (the extremal violates the control bounds); ``info`` holds ``residual``, ``sequence``,
         ``newton_iterations``, ``grazing``, ``event_times``, ``candidates`` (every sequence
-        tried and its outcome) and with ``search`` the ``landscape``.
+        tried and its outcome), ``sources`` (each source used: ``name``, ``kind``
+        ``"reference"``, ``"registered"`` or ``"given"``, ``proposals``, ``time_s``, and
+        ``failed`` where it raised), ``warm_starts`` (the sources that may start Newton on
+        a sequence) and with ``search`` the ``landscape``.
 
     Raises
     ------
     SceneError
-        A bad ``sequence``, ``tol`` or ``search``, a ``sequence`` of more than
+        A bad ``sequence``, ``tol``, ``search`` or source, a ``sequence`` of more than
         :data:`MAX_EVENTS` events, or a problem the reference cannot handle. Without
         ``sequence``, candidates longer than :data:`MAX_EVENTS` are not attempted (listed in
         ``info["candidates"]`` with the reason).
@@ -353,6 +463,48 @@ def solve_reference(
     """
     t_start = time.perf_counter()
     ocp = as_ocp(problem)
+    seq = _check_arguments(ocp, sequence, tol, search)
+    proposers, starters, kind = _active_sources(sources, transcription, multistart)
+    run = _Run(
+        seq=seq, initial=initial, search=search, verbose=verbose, tol=tol, verify=verify,
+        transcription=transcription, multistart=multistart, sources=sources,
+        proposers=proposers, starters=starters, kind=kind, t_start=t_start,
+    )  # fmt: skip
+    with progress_scope(progress, "reference") as meter:
+        return _solve(ocp, run, meter)
+
+
+@dataclass(frozen=True)
+class _Run:
+    """The checked arguments of one :func:`solve_reference` call."""
+
+    seq: list[str] | None
+    initial: Any
+    search: int | None
+    verbose: bool
+    tol: float
+    verify: bool
+    transcription: bool
+    multistart: int
+    sources: Sequence[Any] | None
+    proposers: tuple[Any, ...]
+    starters: tuple[Any, ...]
+    kind: str
+    t_start: float
+
+    def options(self) -> dict[str, Any]:
+        """The options of a second run of the same problem (the search without a given
+        sequence)."""
+        return dict(
+            initial=self.initial, verbose=self.verbose, tol=self.tol,
+            transcription=self.transcription, multistart=self.multistart, sources=self.sources,
+        )  # fmt: skip
+
+
+def _check_arguments(
+    ocp: HybridOCP, sequence: Sequence[str] | str | None, tol: Any, search: Any
+) -> list[str] | None:
+    """The checked sequence (or ``None``); a :class:`SceneError` for a bad argument."""
     reason = reference_supports(ocp)
     if reason:
         raise SceneError(f"{ocp.name!r}: {reason}")
@@ -370,11 +522,41 @@ def solve_reference(
         )
     if seq is not None and len(seq) > MAX_EVENTS:
         raise SceneError(_too_long(len(seq)))
-    with Stages("reference", enabled=progress) as stages:
-        return _solve(
-            ocp, seq, initial, search, verbose, tol, verify, transcription, multistart,
-            stages, t_start,
-        )  # fmt: skip
+    return seq
+
+
+def _active_sources(
+    sources: Sequence[Any] | None, transcription: bool, multistart: int
+) -> tuple[tuple[Any, ...], tuple[Any, ...], str]:
+    """``(proposers, starters, kind)``: the given or registered sources that propose and
+    those that start Newton on a sequence, less those switched off by ``transcription`` and
+    ``multistart``; ``kind`` is ``"given"`` or ``"registered"``."""
+    if sources is None:
+        chosen, kind = registered_sources(), "registered"
+        if not chosen:
+            warnings.warn(
+                "no candidate sources are registered (import hybridoc.solvers, or call "
+                "hybridoc.solve(problem, 'reference') or hybridoc.solve_reference): the "
+                "reference proposes sequences from the initial guess and the one-event "
+                "sequences only",
+                stacklevel=3,
+            )
+    else:
+        if isinstance(sources, str) or not isinstance(sources, Sequence):
+            raise SceneError(f"sources must be a list of candidate sources, got {sources!r}")
+        chosen, kind = tuple(sources), "given"
+    for s in chosen:
+        if not isinstance(s, CandidateSource | SequenceStarter):
+            raise SceneError(
+                "a candidate source needs a name and a propose(ocp, context) or "
+                f"start(ocp, sequence, guess, controls) method, got {type(s).__name__}"
+            )
+    off = {"transcription"} if not transcription else set()
+    off |= {"multi-start"} if not multistart else set()
+    kept = [s for s in chosen if s.name not in off]
+    proposers = tuple(s for s in kept if isinstance(s, CandidateSource))
+    starters = tuple(s for s in kept if isinstance(s, SequenceStarter))
+    return proposers, starters, kind
 
 
 def _too_long(k: int) -> str:
@@ -388,80 +570,165 @@ def _too_long(k: int) -> str:
     )
 
 
-def _solve(
-    ocp: HybridOCP,
-    seq: list[str] | None,
-    initial: Any,
-    search: int | None,
-    verbose: bool,
-    tol: float,
-    verify: bool,
-    transcription: bool,
-    multistart: int,
-    stages: Stages,
-    t_start: float,
-) -> Solution:
-    """:func:`solve_reference` after its arguments are checked."""
-    stages.stage("simulating the initial guess")
-    u0, given = _initial_controls(ocp, initial)
-    disc = is_disc_scene(ocp)
-    ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not disc)
-    book = _Book(ocp, tol, verbose, transcription, stages=stages)
-    book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
-    estimate = given or grad is not None
+@dataclass
+class _Guess:
+    """The initial guess as the reference uses it."""
 
-    if seq is not None:
-        book.attempt(
-            seq, guess_times(ocp, seq, ev), u_used, "given", estimate=estimate, grad=grad,
-            guess_ev=ev,
-        )  # fmt: skip
-        best = book.results.get(tuple(seq))
-        if best is None:
-            raise ConvergenceError(
-                f"no HMP extremal with the sequence {seq}: {book.reasons.get(tuple(seq))}. "
-                "hint: start from a control with these events (--initial) or check that the "
-                "sequence is feasible"
-            )
-        if verify and not book.verify(tuple(seq)):
-            raise ConvergenceError(
-                f"the extremal of {seq} does not re-simulate to its own events: "
-                f"{book.verdicts[tuple(seq)][1]}"
-            )
-        # the only optimality claim of a given sequence is within it: a cheaper control with
-        # the same events means Newton stopped at a worse stationary point
-        same = [k for k in book.known if k.sequence == seq]
+    controls: np.ndarray
+    evaluation: Evaluation
+    grad: Any
+    estimate: bool  # start Newton from its costate
+
+
+def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
+    """:func:`solve_reference` after its arguments are checked."""
+    progress.stage("simulating the initial guess")
+    u0, given = _initial_controls(ocp, run.initial)
+    ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
+    guess = _Guess(u_used, ev, grad, given or grad is not None)
+    book = _Book(ocp, run.tol, run.verbose, run.starters, progress=progress)
+    book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
+    if run.seq is not None:
+        best = _solve_given(ocp, run, book, guess)
+        same = [k for k in book.known if k.sequence == run.seq]
+        cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
     else:
-        if len(ev.events) > MAX_EVENTS + 1:
-            # all its neighbours are too long as well: only the empty sequence is left, and
-            # building them would cost O(K^2) for nothing
-            book.skip_long(tuple(ev.sequence), "initial guess")
-            cands = [[]]
-        else:
-            cands = guess_candidates(ocp, ev)
-        stages.stage(
-            f"discovering sequences: {len(cands)} from the initial guess ({len(ev.events)} events)"
+        _discover(ocp, run, book, guess)
+        best = _best_of(book)
+        best, cheaper = _revisit_cheaper(ocp, book, best)
+    status, message, cheapest, landscape = _verdict(ocp, run, book, best, cheaper)
+    return _finish(ocp, run, book, best, status, message, cheapest, landscape)
+
+
+def _solve_given(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> ReferenceResult:
+    """The extremal of the given sequence, verified unless ``verify=False``."""
+    seq = run.seq
+    assert seq is not None
+    ev = guess.evaluation
+    book.attempt(
+        seq, guess_times(ocp, seq, ev), guess.controls, "given", estimate=guess.estimate,
+        grad=guess.grad, guess_ev=ev,
+    )  # fmt: skip
+    best = book.results.get(tuple(seq))
+    if best is None:
+        raise ConvergenceError(
+            f"no HMP extremal with the sequence {seq}: {book.reasons.get(tuple(seq))}. "
+            "hint: start from a control with these events (--initial) or check that the "
+            "sequence is feasible"
         )
-        for cand in cands:
-            key = [n for n, _ in cand]
-            book.attempt(
-                key, np.array([t for _, t in cand]), u_used, "initial guess",
-                estimate=estimate and key == ev.sequence, grad=grad, guess_ev=ev,
-            )  # fmt: skip
-        if transcription and book.skip_long(tuple(ev.sequence), "initial guess"):
-            book.say("transcription from the guess: not run, its events are too many")
-        elif transcription:
-            stages.stage(f"direct transcription from the initial guess ({len(ev.events)} events)")
-            _transcription_candidate(ocp, book, u_used, ev)
-        if multistart:
-            stages.stage(f"multi-start of the simulator ({multistart} starts)")
-            _multistart_candidates(ocp, book, multistart)
-        # every one-event sequence too: a guess that never comes near a guard (a cart at rest
-        # before a wall) proposes no event at all, and neither may a multi-start
-        _search(ocp, book, max(search or 0, DEFAULT_DEPTH), u_used, ev)
-        book.best_verified()
-        book.follow_resimulations()
-        same = []
-    best = book.best_verified() if seq is None else book.results[tuple(seq)]
+    if run.verify and not book.verify(tuple(seq)):
+        raise ConvergenceError(
+            f"the extremal of {seq} does not re-simulate to its own events: "
+            f"{book.verdicts[tuple(seq)][1]}"
+        )
+    # the only optimality claim of a given sequence is within it: a cheaper control with the
+    # same events means Newton stopped at a worse stationary point
+    _check_simultaneous(book, best)
+    return best
+
+
+def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
+    """The discovery: the guess's candidates, the sources' proposals, the one-event
+    sequences (or the ``search``), and the sequences of re-simulations."""
+    ev = guess.evaluation
+    t0 = time.perf_counter()
+    if len(ev.events) > MAX_EVENTS + 1:
+        # all its neighbours are too long as well: only the empty sequence is left, and
+        # building them would cost O(K^2) for nothing
+        book.skip_long(tuple(ev.sequence), "initial guess")
+        cands = [[]]
+    else:
+        cands = guess_candidates(ocp, ev)
+    book.progress.stage(
+        f"discovering sequences: {len(cands)} from the initial guess ({len(ev.events)} events)"
+    )
+    for cand in cands:
+        key = [n for n, _ in cand]
+        book.attempt(
+            key, np.array([t for _, t in cand]), guess.controls, "initial guess",
+            estimate=guess.estimate and key == ev.sequence, grad=guess.grad, guess_ev=ev,
+        )  # fmt: skip
+    _note_source(book, "initial guess", "reference", len(cands), t0)
+    for source in run.proposers:
+        _run_source(ocp, run, book, guess, source)
+    # every one-event sequence too: a guess that never comes near a guard (a cart at rest
+    # before a wall) proposes no event at all, and neither may a multi-start
+    _search(ocp, book, max(run.search or 0, DEFAULT_DEPTH), guess.controls, ev)
+    book.best_verified()
+    book.follow_resimulations()
+
+
+def _note_source(
+    book: _Book, name: str, kind: str, proposals: int, t0: float, failed: str = ""
+) -> None:
+    """Record a source used in ``info["sources"]``."""
+    row: dict[str, Any] = {
+        "name": name,
+        "kind": kind,
+        "proposals": int(proposals),
+        "time_s": time.perf_counter() - t0,
+    }
+    if failed:
+        row["failed"] = failed
+    book.sources.append(row)
+
+
+def _run_source(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess, source: Any) -> None:
+    """Ask one candidate source for proposals and take them, in order."""
+    t0 = time.perf_counter()
+    context = SourceContext(
+        controls=guess.controls, evaluation=guess.evaluation, progress=book.progress,
+        multistart=int(run.multistart), max_events=MAX_EVENTS,
+        best_cost=min((k.cost for k in book.known), default=math.inf), say=book.say,
+    )  # fmt: skip
+    try:
+        proposals = list(source.propose(ocp, context))
+    except HybridocError as exc:
+        book.say(f"source {source.name!r} failed: {exc}")
+        _note_source(book, source.name, run.kind, 0, t0, failed=str(exc))
+        return
+    for p in proposals:
+        _take(ocp, book, guess, p)
+    _note_source(book, source.name, run.kind, len(proposals), t0)
+
+
+def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
+    """One proposal: a known control (with its cost) and/or a sequence to solve."""
+    if not isinstance(p, Proposal):
+        raise SceneError(f"a candidate source returned {type(p).__name__}, not a Proposal")
+    seq = None
+    if p.sequence is not None:
+        seq = ocp.check_sequence(list(p.sequence))
+    elif p.evaluation is not None:
+        seq = list(p.evaluation.sequence)
+    cost = p.known_cost()
+    if p.known and p.controls is not None and cost is not None and seq is not None:
+        label = p.label or f"the source {p.source!r}"
+        controls = np.asarray(p.controls, dtype=float)
+        book.known.append(_Known(label, cost, seq, controls, p.evaluation))
+    if not p.solve or seq is None:
+        return
+    key = tuple(seq)
+    own = p.controls is not None  # the proposal's own control starts Newton
+    ev = p.evaluation if p.evaluation is not None else guess.evaluation
+    times = (
+        np.asarray(p.event_times, dtype=float)
+        if p.event_times is not None
+        else guess_times(ocp, seq, ev)
+    )
+    retry = p.retry and key in book.reasons
+    if (key in book.results and not retry) or (key in book.reasons and not retry):
+        return  # solved or failed before: nothing new to try
+    book.attempt(
+        seq, times, np.asarray(p.controls, dtype=float) if own else guess.controls, p.source,
+        estimate=own, grad=_adjoint(ocp, p.controls) if own else None, guess_ev=ev,
+        retry=retry, warm_start=p.warm_start,
+    )  # fmt: skip
+
+
+def _best_of(book: _Book) -> ReferenceResult:
+    """The cheapest verified extremal; an error when there is none."""
+    best = book.best_verified()
     _check_simultaneous(book, best)
     if best is None:
         lines = [f"{list(k)}: {v}" for k, v in book.reasons.items()]
@@ -472,44 +739,46 @@ def _solve(
             + ". hint: start from another initial guess (e.g. a solver's solution) or give "
             "an explicit --sequence"
         )
-    # trust: no known control may be cheaper; try the sequences of cheaper ones again
-    if seq is None:
-        for k in sorted(book.known, key=lambda k: k.cost):
-            if k.cost >= best.cost * (1 - _OPT_RTOL) - 1e-15:
-                break
-            if k.evaluation is None:
-                continue
-            book.attempt(
-                k.sequence, guess_times(ocp, k.sequence, k.evaluation), k.controls,
-                f"cheaper {k.source}", estimate=True, grad=_adjoint(ocp, k, disc),
-                guess_ev=k.evaluation, retry=True,
-            )  # fmt: skip
-            best = book.best_verified() or best
-        cheaper = [k for k in book.known if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
-    else:
-        cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
+    return best
+
+
+def _revisit_cheaper(
+    ocp: HybridOCP, book: _Book, best: ReferenceResult
+) -> tuple[ReferenceResult, list[_Known]]:
+    """Trust: no known control may be cheaper. The sequences of cheaper ones are solved
+    again from them; returns the best extremal and the known controls still cheaper."""
+    for k in sorted(book.known, key=lambda k: k.cost):
+        if k.cost >= best.cost * (1 - _OPT_RTOL) - 1e-15:
+            break
+        if k.evaluation is None:
+            continue
+        book.attempt(
+            k.sequence, guess_times(ocp, k.sequence, k.evaluation), k.controls,
+            f"cheaper {k.source}", estimate=True, grad=_adjoint(ocp, k.controls),
+            guess_ev=k.evaluation, retry=True,
+        )  # fmt: skip
+        best = book.best_verified() or best
+    cheaper = [k for k in book.known if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
+    return best, cheaper
+
+
+def _verdict(
+    ocp: HybridOCP, run: _Run, book: _Book, best: ReferenceResult, cheaper: list[_Known]
+) -> tuple[Status, str, dict[str, Any] | None, list[dict[str, Any]] | None]:
+    """``(status, message, cheaper, landscape)`` of the best extremal (module notes)."""
+    seq = run.seq
     # a given sequence's extremal claims nothing beyond its sequence: only the discovery (or
     # the search, below) can make it the optimum
     status, message = (
         (Status.SUCCESS, "")
         if seq is None
-        else (Status.EXTREMAL, _extremal_message(seq, verify, search))
+        else (Status.EXTREMAL, _extremal_message(seq, run.verify, run.search))
     )
     cheapest: dict[str, Any] | None = None
-    landscape = book.landscape() if search is not None else None
+    landscape = book.landscape() if run.search is not None else None
     if cheaper:
         c = min(cheaper, key=lambda k: k.cost)
-        pair = _coalescing(ocp, c)
-        if pair is not None:
-            a, b, gap = pair
-            raise ConvergenceError(
-                f"no optimal control exists within the impulsive model: the cheapest control "
-                f"found ({c.source}, cost {c.cost:.10g}) has the impacts {a!r} and {b!r} only "
-                f"{gap:.2g} apart, and no extremal with them in order exists: the optimum lies "
-                "at a simultaneous impact whose jumps do not commute, which the model does not "
-                "define. Perturb the scene slightly so that the contacts happen one after the "
-                f"other (the best well-defined extremal found costs {best.cost:.10g})"
-            )
+        _check_coalescing(ocp, c, best)
         status = Status.NOT_OPTIMAL
         message = (
             f"the extremal found costs {best.cost:.10g}, but {c.source} costs {c.cost:.10g} "
@@ -519,12 +788,8 @@ def _solve(
         cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
     elif seq is not None:
         status, message, cheapest, found = _judge_given_sequence(
-            ocp, seq, best, book, status, message,
-            search=search, options=dict(
-                initial=initial, verbose=verbose, tol=tol, transcription=transcription,
-                multistart=multistart,
-            ),
-        )  # fmt: skip
+            ocp, seq, best, book, status, message, search=run.search, options=run.options()
+        )
         if found is not None:
             landscape = found
     skipped = [k for k in book.reasons if len(k) > MAX_EVENTS]
@@ -542,25 +807,60 @@ def _solve(
             f"the HMP extremal violates the control bounds by {bounds_violation:.3g}: the "
             "reference handles inactive bounds only; use method 'dt' for active ones"
         )
+    return status, message, cheapest, landscape
+
+
+def _check_coalescing(ocp: HybridOCP, c: _Known, best: ReferenceResult) -> None:
+    """A cheaper known control whose impacts nearly coincide without commuting: the
+    optimum lies at a simultaneous impact, an error."""
+    pair = _coalescing(ocp, c)
+    if pair is None:
+        return
+    a, b, gap = pair
+    raise ConvergenceError(
+        f"no optimal control exists within the impulsive model: the cheapest control "
+        f"found ({c.source}, cost {c.cost:.10g}) has the impacts {a!r} and {b!r} only "
+        f"{gap:.2g} apart, and no extremal with them in order exists: the optimum lies "
+        "at a simultaneous impact whose jumps do not commute, which the model does not "
+        "define. Perturb the scene slightly so that the contacts happen one after the "
+        f"other (the best well-defined extremal found costs {best.cost:.10g})"
+    )
+
+
+def _finish(
+    ocp: HybridOCP,
+    run: _Run,
+    book: _Book,
+    best: ReferenceResult,
+    status: Status,
+    message: str,
+    cheapest: dict[str, Any] | None,
+    landscape: list[dict[str, Any]] | None,
+) -> Solution:
+    """The Solution: the best extremal with what was tried, known and used."""
     candidates = [
         {"sequence": row["sequence"], "result": row["verdict"] if row["cost"] is None else
          f"cost {row['cost']:.12g} ({row['verdict']})", "origin": row["origin"]}
         for row in book.landscape()
     ]  # fmt: skip
     info: dict[str, Any] = {
-        "verified": bool(verify or seq is None),
+        "verified": bool(run.verify or run.seq is None),
         "candidates": candidates,
         "known_controls": [
             {"source": k.source, "cost": k.cost, "sequence": k.sequence} for k in book.known
         ],
+        "sources": list(book.sources),
+        "warm_starts": [s.name for s in run.starters],
     }
     if cheapest is not None:
         info["cheaper"] = cheapest
     if landscape is not None:
         info["landscape"] = landscape
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
-    sol.settings = {"tol": tol, "sequence": seq, "search": search, "multistart": multistart}
-    sol.timings = {"solve_time_s": time.perf_counter() - t_start, **sol.timings}
+    sol.settings = {
+        "tol": run.tol, "sequence": run.seq, "search": run.search, "multistart": run.multistart
+    }  # fmt: skip
+    sol.timings = {"solve_time_s": time.perf_counter() - run.t_start, **sol.timings}
     return sol.set_status(status, message)
 
 
@@ -614,7 +914,7 @@ def _judge_given_sequence(
             None,
         )
     book.say(f"search: the discovery and the search of up to {search} events, for {seq}")
-    book.stages.stage(f"the discovery and search of up to {search} events, without the sequence")
+    book.progress.stage(f"the discovery and search of up to {search} events, without the sequence")
     try:
         full = solve_reference(ocp, search=search, **options)
     except HybridocError as exc:
@@ -695,83 +995,14 @@ def _check_simultaneous(book: _Book, best: ReferenceResult | None) -> None:
         )
 
 
-def _adjoint(ocp: HybridOCP, k: _Known, disc: bool) -> Any:
-    if disc:
+def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
+    """The judge's adjoint of a control (generic problems' costate estimate), else None."""
+    if is_disc_scene(ocp):
         return None
     try:
-        return gradient(ocp, k.controls)
+        return gradient(ocp, np.asarray(controls, dtype=float))
     except HybridocError:
         return None
-
-
-def _transcription_candidate(ocp: HybridOCP, book: _Book, u0: np.ndarray, ev: Evaluation) -> None:
-    """The direct transcription from the same guess: a competitor, and a start for Newton."""
-    from hybridoc.solvers.transcription import solve_dt
-
-    t0 = time.perf_counter()
-    try:
-        dt = solve_dt(ocp, initial=u0)
-    except HybridocError as exc:
-        book.say(f"transcription from the guess failed: {exc}")
-        return
-    took = time.perf_counter() - t0
-    book.say(f"transcription: cost {dt.cost:.12g}, events {dt.sequence} ({took:.2f} s)")
-    try:
-        dt_ev = evaluate(ocp, dt.controls)
-    except HybridocError:
-        dt_ev = None
-    if dt.success:
-        # the transcription's control itself (continuous u(t)): its judged cost
-        book.known.append(
-            _Known("the direct transcription", dt.cost, dt.sequence, dt.controls, dt_ev)
-        )
-    if dt_ev is not None:
-        book.known.append(
-            _Known(
-                "the transcription's grid control", dt_ev.cost, dt_ev.sequence, dt.controls, dt_ev
-            )
-        )
-        key = dt.sequence
-        book.attempt(
-            key, np.asarray(dt.info.get("event_times", guess_times(ocp, key, dt_ev))), dt.controls,
-            "transcription", estimate=True, grad=_adjoint(ocp, book.known[-1], is_disc_scene(ocp)),
-            guess_ev=dt_ev, retry=tuple(key) in book.reasons,
-        )  # fmt: skip
-
-
-def _multistart_candidates(ocp: HybridOCP, book: _Book, count: int) -> None:
-    """Event sequences of a batched multi-start of the simulator on a coarse grid."""
-    from hybridoc.solvers.multistart import explore
-
-    t0 = time.perf_counter()
-    try:
-        found = explore(
-            ocp, count, steps=min(ocp.steps, _MULTISTART_STEPS), iters=_MULTISTART_ITERS, judge=4
-        )
-    except HybridocError as exc:
-        book.say(f"multi-start failed: {exc}")
-        return
-    book.say(f"multi-start: {len(found)} results in {time.perf_counter() - t0:.2f} s")
-    seen: set[tuple[str, ...]] = set()
-    for r in found:
-        key = tuple(r["sequence"])
-        book.known.append(
-            _Known(
-                "a multi-start of the simulator",
-                r["cost"],
-                list(key),
-                r["controls"],
-                r["evaluation"],
-            )
-        )
-        if key in seen:
-            continue
-        seen.add(key)
-        book.attempt(
-            list(key), guess_times(ocp, list(key), r["evaluation"]), r["controls"], "multi-start",
-            estimate=True, grad=_adjoint(ocp, book.known[-1], is_disc_scene(ocp)),
-            guess_ev=r["evaluation"],
-        )  # fmt: skip
 
 
 _SEARCH_STATE: dict[str, Any] = {}
@@ -782,30 +1013,31 @@ DEFAULT_DEPTH = 1
 
 def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, float]:
     """A worker: Newton from the disc NLP (or the transcription) for one sequence."""
-    from hybridoc.reference.sequence import solve_sequence as _solve
-
-    ocp, u0, ev, tol = (_SEARCH_STATE[k] for k in ("ocp", "u0", "ev", "tol"))
+    ocp, u0, ev, tol, starters = (_SEARCH_STATE[k] for k in ("ocp", "u0", "ev", "tol", "starters"))
     t0 = time.perf_counter()
     try:
-        res, why = _solve(
+        res, why = solve_sequence(
             ocp, seq, guess_times(ocp, seq, ev), u0, estimate=False,
-            guess_ev=None if is_disc_scene(ocp) else ev, tol=tol, screen=True,
+            guess_ev=None if is_disc_scene(ocp) else ev, starters=starters, tol=tol, screen=True,
         )  # fmt: skip
     except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
         res, why = None, str(exc)
     return seq, (None if res is None else res.z), why, time.perf_counter() - t0
 
 
+def _usable_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluation) -> None:
     """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning, in
-    worker processes (one per core) where the platform can fork."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from hybridoc.reference.result import make_result
-    from hybridoc.reference.shooting import newton, shooting_system
-    from hybridoc.solvers.threads import usable_cores
-
+    worker processes (one per core, at most :data:`MAX_WORKERS`) where the platform can
+    fork."""
+    t0 = time.perf_counter()
     verified = [r.cost for k, r in book.results.items() if book.verdicts.get(k, (False,))[0]]
     best = min(verified, default=math.inf)
     todo = []
@@ -820,18 +1052,8 @@ def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluat
             book.times[key] = 0.0
             continue
         todo.append(seq)
-    book.stages.stage(f"search: {len(todo)} sequences of up to {depth} events")
-    _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol)
-    workers = min(usable_cores(), 8)
-    try:
-        if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
-                outcomes = list(pool.map(_search_one, todo, chunksize=4))
-        else:
-            outcomes = [_search_one(seq) for seq in todo]
-    finally:
-        _SEARCH_STATE.clear()
-    for seq, z, why, took in outcomes:
+    book.progress.stage(f"search: {len(todo)} sequences of up to {depth} events")
+    for seq, z, why, took in _search_outcomes(ocp, book, todo, u0, ev):
         key = tuple(seq)
         book.origins[key] = "search"
         book.times[key] = took
@@ -846,5 +1068,44 @@ def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluat
             continue
         book.results[key] = make_result(S, nr, "search")
         book.say(f"{seq} (search): cost {book.results[key].cost:.12g}")
+    name = "one-event sequences" if depth == DEFAULT_DEPTH else f"search of up to {depth} events"
+    _note_source(book, name, "reference", len(todo), t0)
     for key in list(book.results):
         book.verify(key)
+
+
+def _search_outcomes(
+    ocp: HybridOCP, book: _Book, todo: list[list[str]], u0: np.ndarray, ev: Evaluation
+) -> list[tuple[list[str], np.ndarray | None, str, float]]:
+    """:func:`_search_one` on every sequence of ``todo``, counted on ``book.progress``."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol, starters=book.starters)
+    workers = min(_usable_cores(), MAX_WORKERS)
+    outcomes = []
+    try:
+        if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+                for out in pool.map(_search_one, todo, chunksize=4):
+                    outcomes.append(out)
+                    book.progress.count(len(outcomes), len(todo), "sequences")
+        else:
+            for seq in todo:
+                outcomes.append(_search_one(seq))
+                book.progress.count(len(outcomes), len(todo), "sequences")
+    finally:
+        _SEARCH_STATE.clear()
+    return outcomes
+
+
+METHOD = Method(
+    "reference",
+    "optimal control by shooting on the hybrid minimum principle (the ground truth)",
+    run=solve_reference,
+    options=ReferenceOptions,
+    tolerance=1e-9,
+    supports=reference_supports,
+    summary_lines=_summary_lines,
+)
+"""The method ``"reference"`` (:mod:`hybridoc.methods`)."""

@@ -19,4 +19,10 @@ Modules (imported on demand, so that ``import hybridoc`` does not load torch):
   direct transcription of the continuous problem and of the simulator's discrete one.
 - :mod:`hybridoc.solvers.validation`, :mod:`hybridoc.solvers.gradcheck`: cross-validation and
   gradient checks.
+- :mod:`hybridoc.solvers.candidates`: the candidate sources the reference takes sequences
+  from (the transcription, the multi-start); importing this package registers them.
 """
+
+from hybridoc.solvers.candidates import register_builtin_sources
+
+register_builtin_sources()
