@@ -1,9 +1,10 @@
 """Timings of reference datasets and closed-loop policy validation over a distribution.
 
 The single-collision scene with ball 2's start drawn uniformly within +-0.3 in each
-coordinate (the issue's distribution): ``hybridoc.dataset.make_dataset`` for ``--samples``
-draws (nominal solve included), then ``hybridoc.policies.validate_policy`` of a simple
-Python feedback policy on the same draws (rollouts only; the references are reused).
+coordinate (the issue's distribution): ``hybridoc.workflows.datasets.make_dataset`` for
+``--samples`` draws (nominal solve included), then
+``hybridoc.workflows.policies.validate_policy`` of a simple Python feedback policy on the
+same draws (rollouts only; the references are reused).
 Targets on 2 cores: 1000 references in under 60 s, 1000 rollouts in under 10 s.
 
 Run it by path::
@@ -24,10 +25,10 @@ from pathlib import Path
 import numpy as np
 from _timing import machine_line
 
-from hybridoc.dataset import make_dataset, usable_cores
-from hybridoc.policies import validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Spread
+from hybridoc.workflows.datasets import make_dataset, usable_cores
+from hybridoc.workflows.policies import validate_policy
 
 POLICY = """
 import numpy as np

@@ -3,7 +3,7 @@
 The experiment of issue 11 ("Validate learned controllers against the reference"): on
 ``single-collision`` the passive disc ``ball2`` starts at its nominal position plus an
 offset drawn uniformly in ``[-0.3, 0.3]^2``. Two MLP feedback policies
-(:func:`hybridoc.solvers.policy_training.mlp_policy`, same initial weights) are trained on
+(:func:`hybridoc.workflows.training.mlp_policy`, same initial weights) are trained on
 the same training draws through the closed-loop differentiable simulator (symplectic Euler,
 ``direct`` impulses, zero-order hold; full-batch Adam, keeping the best iterate), one with
 the paper's time-of-impact corrections (``toi="both"``) and one without (``toi="none"``).
@@ -38,8 +38,8 @@ from hybridoc.cli._util import format_table
 from hybridoc.errors import HybridocError
 from hybridoc.problems import Scene
 from hybridoc.reference import solve_reference
-from hybridoc.solvers.policy_training import mlp_policy, train_policy
 from hybridoc.solvers.simulator import Simulator
+from hybridoc.workflows.training import mlp_policy, train_policy
 
 PASSIVE = "ball2"
 HALF_WIDTH = 0.3

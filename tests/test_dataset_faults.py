@@ -20,10 +20,10 @@ import pytest
 from test_datasets import SCENE_TOML as DATASET_SCENE_TOML
 
 import hybridoc
-import hybridoc.dataset as dsmod
+import hybridoc.workflows.datasets as dsmod
 from hybridoc.cli import main
-from hybridoc.dataset import load_dataset, make_dataset
 from hybridoc.errors import HybridocError
+from hybridoc.workflows.datasets import load_dataset, make_dataset
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="uses /proc, fork and SIGKILL"
@@ -42,7 +42,7 @@ RUNNER = f"""
 import os, sys, time
 from pathlib import Path
 
-import hybridoc.dataset as d
+import hybridoc.workflows.datasets as d
 
 d.CHUNK = {CHUNK}
 gate = os.environ.get("HYBRIDOC_TEST_GATE")
@@ -65,7 +65,7 @@ sys.exit(main(sys.argv[1:]))
 SLEEPERS = """
 import sys, time
 
-import hybridoc.dataset as d
+import hybridoc.workflows.datasets as d
 
 if sys.argv[1] == "watch":
     d._die_with_parent = lambda: False

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 import hybridoc
-import hybridoc.dataset as dsmod
+import hybridoc.workflows.datasets as dsmod
 from hybridoc.cli import main
-from hybridoc.dataset import load_dataset, make_dataset
 from hybridoc.errors import ControlsError, HybridocError, SceneError
-from hybridoc.policies import PolicyError, load_policy, validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Scene, Spread
+from hybridoc.workflows.datasets import load_dataset, make_dataset
+from hybridoc.workflows.policies import PolicyError, load_policy, validate_policy
 
 M = 6  # draws of the shared dataset (each ~0.1 s warm)
 
@@ -348,7 +348,7 @@ def test_dataset_bad_inputs(files: Path, tmp_path: Path) -> None:
         make_dataset(files / "scene.toml", 2, tmp_path / "y", dask="nonsense", progress=False)
     with pytest.raises(HybridocError, match="cannot connect to the Dask scheduler"):
         make_dataset(files / "scene.toml", 2, tmp_path / "z", dask="tcp://127.0.0.1:9",
-                     verbose=False, progress=False)  # fmt: skip
+                     progress=False)  # fmt: skip
     with pytest.raises(HybridocError, match="not a dataset directory"):
         load_dataset(tmp_path)
 

@@ -8,13 +8,13 @@ import torch
 
 import hybridoc
 from hybridoc.errors import ControlsError, SceneError
-from hybridoc.solvers.policy_training import (
+from hybridoc.solvers.simulator import Simulator
+from hybridoc.workflows.training import (
     closed_loop_cost,
     closed_loop_gradient,
     mlp_policy,
     train_policy,
 )
-from hybridoc.solvers.simulator import Simulator
 
 STEPS = 48
 

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 import hybridoc
-from hybridoc.solvers.validation import (
-    _orders,
+from hybridoc.workflows.validation import (
     control_errors,
     convergence,
     event_comparison,
     method_entry,
+    observed_orders,
     validate_controls,
 )
 
@@ -57,7 +57,7 @@ def test_event_comparison():
 
 
 def test_orders():
-    o = _orders([10, 20, 40], [1.0, 0.25, 0.0625])
+    o = observed_orders([10, 20, 40], [1.0, 0.25, 0.0625])
     assert o[0] is None and o[1] == pytest.approx(2.0) and o[2] == pytest.approx(2.0)
 
 
@@ -155,7 +155,7 @@ def test_crossval_multiple_collision_local_and_global_gaps():
     """gd (exact flow, lbfgs) from the paper's guess alone lands in the two-event basin:
     within 0.25% of that sequence's HMP extremal, and about 4.9% above the three-event
     reference; cross-validation reports that as a disagreement, with the reason."""
-    from hybridoc.solvers.validation import crossval
+    from hybridoc.workflows.validation import crossval
 
     report, _ = crossval("multiple-collision", options={"gd": {"starts": 1}})
     ref, dt, gd = report["reference"], report["dt"], report["gd"]
@@ -176,7 +176,7 @@ def test_crossval_multiple_collision_local_and_global_gaps():
 def test_crossval_multiple_collision_multistart_agrees():
     """The default cross-validation runs gd as a batched multi-start: it reaches the
     three-event optimum, and the three methods agree."""
-    from hybridoc.solvers.validation import crossval
+    from hybridoc.workflows.validation import crossval
 
     report, _ = crossval("multiple-collision")
     assert report["agree"] is True, report["reasons"]
@@ -186,7 +186,7 @@ def test_crossval_multiple_collision_multistart_agrees():
 
 def test_convergence_figure_with_gd(tmp_path):
     """The convergence figure draws both methods (it once failed whenever gd was included)."""
-    from hybridoc.solvers.validation import convergence, convergence_figure
+    from hybridoc.workflows.validation import convergence, convergence_figure
 
     report = convergence("head-on", steps=(30, 60), gd_options={"iters": 5})
     assert set(report) >= {"dt", "gd"} and len(report["gd"]["cost"]) == 2

@@ -24,7 +24,7 @@ In this tutorial we
 # their reset maps :math:`g_k`. Every entry point also takes a built-in name.
 import hybridoc
 from hybridoc.plotting import plot_scene
-from hybridoc.solvers.validation import crossval_figures
+from hybridoc.workflows.validation import crossval_figures
 
 ocp = hybridoc.as_ocp("single-collision")
 print(ocp.name, "| horizon", ocp.horizon, "| grid of", ocp.steps, "control intervals")

@@ -42,7 +42,7 @@ import casadi as ca
 import hybridoc
 from hybridoc import Guard, HybridOCP
 from hybridoc.problems.library import bouncing_ball, juggling_paddle
-from hybridoc.solvers.validation import crossval_figures
+from hybridoc.workflows.validation import crossval_figures
 
 g, e, eps, h0 = 9.81, 0.8, 0.01, 1.0
 t1 = math.sqrt(2 * h0 / g)  # the first bounce of the free drop

@@ -35,12 +35,12 @@ import torch
 from matplotlib.figure import Figure
 
 import hybridoc
-from hybridoc.dataset import make_dataset
-from hybridoc.policies import policy_figures, validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Spread
-from hybridoc.solvers.policy_training import mlp_policy, train_policy
 from hybridoc.solvers.simulator import Simulator
+from hybridoc.workflows.datasets import make_dataset
+from hybridoc.workflows.policies import policy_figures, validate_policy
+from hybridoc.workflows.training import mlp_policy, train_policy
 
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
 STEPS = 60  # control intervals, fewer than the paper's

@@ -32,10 +32,10 @@ import numpy as np
 from distributed import Client, LocalCluster
 
 import hybridoc
-from hybridoc.dataset import make_dataset
-from hybridoc.policies import policy_figures, validate_policy
 from hybridoc.problems import load_scene
 from hybridoc.problems.scene import DiscSpread, Distribution, Spread
+from hybridoc.workflows.datasets import make_dataset
+from hybridoc.workflows.policies import policy_figures, validate_policy
 
 # the test suite runs a smaller version: 26 draws, still two chunks (of 25 and 1)
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"

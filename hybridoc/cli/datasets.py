@@ -1,12 +1,12 @@
 """``hybridoc dataset`` and ``validate-policy``: references over a scene's distribution
-(library: :mod:`hybridoc.dataset`, :mod:`hybridoc.policies`)."""
+(library: :mod:`hybridoc.workflows.datasets`, :mod:`hybridoc.workflows.policies`)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
     add_json_out,
@@ -24,6 +24,10 @@ from hybridoc.cli._util import (
     warn,
 )
 from hybridoc.errors import HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems import Scene
+    from hybridoc.workflows.policies import PolicyReport
 
 __all__ = ["register"]
 
@@ -49,10 +53,10 @@ def _add_engine(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
-def _scene_arg(text: str) -> Any:
-    from hybridoc.dataset import _scene_of
+def _scene_arg(text: str) -> Scene:
+    from hybridoc.workflows.datasets import distribution_scene
 
-    return _scene_of(text)
+    return distribution_scene(text)
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
@@ -64,7 +68,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     complete there is checked against its SHA-256. Draws whose reference failed are kept
     with status 'failed' (exit code 1, with a warning line).
     """
-    from hybridoc.dataset import DATA_FILE, MANIFEST_FILE, make_dataset
+    from hybridoc.workflows.datasets import DATA_FILE, MANIFEST_FILE, make_dataset
 
     scene = _scene_arg(args.problem)
     ensure_dir(args.out)
@@ -115,9 +119,7 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     Exit code 1 when some draw's policy beats its reference (a reference that is not
     optimal) or no draw could be compared.
     """
-    import numpy as np
-
-    from hybridoc.policies import report_figures, validate_policy
+    from hybridoc.workflows.policies import validate_policy
 
     scene = _scene_arg(args.problem)
     out = None if args.out is None else ensure_dir(args.out)
@@ -128,56 +130,11 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     )  # fmt: skip
     s = report.summary
     payload = {"problem": scene.name, **report.to_json()}
-    written: list[Path] = []
-    if out is not None:
-        stem = output_stem(out, scene.name, "validate-policy")
-        try:
-            p = Path(f"{stem}.json")
-            p.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
-            written.append(p)
-            cols: dict[str, Any] = {k: np.asarray(v) for k, v in report.columns.items()}
-            np.savez(f"{stem}.npz", **cols)
-            written.append(Path(f"{stem}.npz"))
-        except OSError as exc:
-            raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
-        ocp = scene.to_ocp()
-        try:
-            written += report_figures(report, list(ocp.state_labels), stem, title=scene.name)
-        except OSError as exc:
-            raise HybridocError(f"cannot write figures: {exc.strerror or exc}") from None
+    written = [] if out is None else _write_policy_report(out, scene, report, payload)
     if args.json:
         emit_json(payload)
     else:
-        say(args, f"problem    {scene.name} ({s['samples']} draws, hold {args.hold})")
-        say(args, f"policy     {args.policy}")
-        say(args, f"compared   {s['compared']} (reference failed {s['reference_failed']}, "
-                  f"rollout failed {s['rollout_failed']})")  # fmt: skip
-        rows = [
-            ["absolute", fmt(s["gap_mean"], 6), fmt(s["gap_median"], 6), fmt(s["gap_p95"], 6),
-             fmt(s["gap_max"], 6)],
-            ["relative", fmt(s["rel_gap_mean"], 6), fmt(s["rel_gap_median"], 6),
-             fmt(s["rel_gap_p95"], 6), fmt(s["rel_gap_max"], 6)],
-        ]  # fmt: skip
-        say(args, "gap to the reference (policy - optimum)")
-        for line in format_table(["gap", "mean", "median", "p95", "max"], rows).splitlines():
-            say(args, "  " + line)
-        rate = s["sequence_mismatch_rate"]
-        pct = fmt(float("nan") if rate is None else 100 * rate, 4)
-        say(args, f"events differ from the optimum in {pct}% of the draws")
-        say(args, f"rollouts   {s['rollout_time_s']:.3g} s")
-        if report.worst:
-            say(args, "worst cases")
-            rows = [
-                [w["index"], fmt(w["gap"], 6), fmt(w["rel_gap"], 4),
-                 "(" + ", ".join(f"{x:.4g}" for x in w["x0"]) + ")",
-                 w["policy_sequence"] or "-", w["reference_sequence"] or "-"]
-                for w in report.worst
-            ]  # fmt: skip
-            table = format_table(
-                ["draw", "gap", "rel", "x0", "policy events", "optimal events"], rows
-            )
-            for line in table.splitlines():
-                say(args, "  " + line)
+        _print_policy_report(args, scene, report)
         for p in written:
             say(args, f"wrote {p}")
     if s["reference_failed"]:
@@ -192,6 +149,66 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
              "are not optimal")  # fmt: skip
         return 1
     return 0
+
+
+def _write_policy_report(
+    out: Path, scene: Scene, report: PolicyReport, payload: dict[str, Any]
+) -> list[Path]:
+    """``<problem>_validate-policy.json``/``.npz`` and the figures in ``out``."""
+    import numpy as np
+
+    from hybridoc.workflows.policies import report_figures
+
+    written: list[Path] = []
+    stem = output_stem(out, scene.name, "validate-policy")
+    try:
+        p = Path(f"{stem}.json")
+        p.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
+        written.append(p)
+        cols: dict[str, Any] = {k: np.asarray(v) for k, v in report.columns.items()}
+        np.savez(f"{stem}.npz", **cols)
+        written.append(Path(f"{stem}.npz"))
+    except OSError as exc:
+        raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
+    ocp = scene.to_ocp()
+    try:
+        written += report_figures(report, list(ocp.state_labels), stem, title=scene.name)
+    except OSError as exc:
+        raise HybridocError(f"cannot write figures: {exc.strerror or exc}") from None
+    return written
+
+
+def _print_policy_report(args: argparse.Namespace, scene: Scene, report: PolicyReport) -> None:
+    """The summary, the gap table and the worst cases, on stdout."""
+    s = report.summary
+    say(args, f"problem    {scene.name} ({s['samples']} draws, hold {args.hold})")
+    say(args, f"policy     {args.policy}")
+    say(args, f"compared   {s['compared']} (reference failed {s['reference_failed']}, "
+              f"rollout failed {s['rollout_failed']})")  # fmt: skip
+    rows = [
+        ["absolute", fmt(s["gap_mean"], 6), fmt(s["gap_median"], 6), fmt(s["gap_p95"], 6),
+         fmt(s["gap_max"], 6)],
+        ["relative", fmt(s["rel_gap_mean"], 6), fmt(s["rel_gap_median"], 6),
+         fmt(s["rel_gap_p95"], 6), fmt(s["rel_gap_max"], 6)],
+    ]  # fmt: skip
+    say(args, "gap to the reference (policy - optimum)")
+    for line in format_table(["gap", "mean", "median", "p95", "max"], rows).splitlines():
+        say(args, "  " + line)
+    rate = s["sequence_mismatch_rate"]
+    pct = fmt(float("nan") if rate is None else 100 * rate, 4)
+    say(args, f"events differ from the optimum in {pct}% of the draws")
+    say(args, f"rollouts   {s['rollout_time_s']:.3g} s")
+    if report.worst:
+        say(args, "worst cases")
+        rows = [
+            [w["index"], fmt(w["gap"], 6), fmt(w["rel_gap"], 4),
+             "(" + ", ".join(f"{x:.4g}" for x in w["x0"]) + ")",
+             w["policy_sequence"] or "-", w["reference_sequence"] or "-"]
+            for w in report.worst
+        ]  # fmt: skip
+        table = format_table(["draw", "gap", "rel", "x0", "policy events", "optimal events"], rows)
+        for line in table.splitlines():
+            say(args, "  " + line)
 
 
 def register(sub: Any) -> None:

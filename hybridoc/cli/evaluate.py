@@ -27,6 +27,8 @@ from hybridoc.errors import EvaluationError, HybridocError
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
 
+    from hybridoc.ocp import HybridOCP
+
 __all__ = ["register", "save", "write_figures"]
 
 #: The scenes evaluated by ``hybridoc demo``: the paper's two problems.
@@ -76,6 +78,20 @@ def _timed(fn: Any, *args: Any, repeat: int = 1) -> tuple[Any, float]:
     return out, best
 
 
+def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[Any, Any, str]:
+    """``(policy, controls, source)`` of ``evaluate``'s ``--policy`` or ``--controls``."""
+    if args.policy is not None:
+        from hybridoc.workflows.policies import load_policy
+
+        if args.controls is not None:
+            raise HybridocError("give --controls or --policy, not both")
+        return load_policy(args.policy), None, f"policy {args.policy} (hold {args.hold})"
+    if args.hold != "zoh":
+        raise HybridocError("--hold applies to --policy only")
+    controls, source = load_controls_arg(args.controls, ocp)
+    return None, controls, source
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate controls (or a feedback policy, --policy) with the event-exact judge: true cost
     and events."""
@@ -83,18 +99,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hybridoc.solution import Solution
 
     ocp = load_problem_arg(args.problem)
-    if args.policy is not None:
-        from hybridoc.policies import load_policy
-
-        if args.controls is not None:
-            raise HybridocError("give --controls or --policy, not both")
-        policy = load_policy(args.policy)
-        controls, source = None, f"policy {args.policy} (hold {args.hold})"
-    else:
-        if args.hold != "zoh":
-            raise HybridocError("--hold applies to --policy only")
-        policy = None
-        controls, source = load_controls_arg(args.controls, ocp)
+    policy, controls, source = _evaluated_arg(args, ocp)
     out = None if args.out is None else ensure_dir(args.out)
     try:
         ev, seconds = _timed(
@@ -108,7 +113,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if policy is None:
             raise
         from hybridoc._pyfile import exit_message
-        from hybridoc.policies import PolicyError
+        from hybridoc.workflows.policies import PolicyError
 
         raise PolicyError(exit_message(f"policy {args.policy!r}", exc, "in the rollout")) from None
     events = ev.event_dicts()

@@ -1,5 +1,5 @@
 """``hybridoc crossval``, ``validate`` and ``convergence``: methods measured against the
-reference (library: :mod:`hybridoc.solvers.validation`)."""
+reference (library: :mod:`hybridoc.workflows.validation`)."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     ``reasons``).
     """
     from hybridoc.cli.evaluate import save
-    from hybridoc.solvers.validation import crossval, crossval_figures
+    from hybridoc.workflows.validation import crossval, crossval_figures
 
     ocp = load_problem_arg(args.problem)
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
@@ -61,7 +61,7 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     gd_options: dict[str, Any] = {}
     if args.gd_integrator is not None:
         gd_options["integrator"] = args.gd_integrator
-    report, sols = crossval(ocp, methods=methods, options={"gd": gd_options})
+    report, sols = crossval(ocp, methods=methods, options={"gd": gd_options}, progress=True)
     written: list[Path] = []
     if out is not None:
         stem = output_stem(out, ocp.name, "crossval")
@@ -124,8 +124,8 @@ def cmd_crossval(args: argparse.Namespace) -> int:
 def cmd_validate(args: argparse.Namespace) -> int:
     """Judge a control file (.npy, .csv or a saved Solution) against the reference optimum."""
     from hybridoc.cli.evaluate import save
-    from hybridoc.solvers.registry import solve
-    from hybridoc.solvers.validation import validate_controls, validation_figures
+    from hybridoc.methods import solve
+    from hybridoc.workflows.validation import validate_controls, validation_figures
 
     ocp = load_problem_arg(args.problem)
     u, source = load_controls_arg(args.controls, ocp)
@@ -163,7 +163,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 def cmd_convergence(args: argparse.Namespace) -> int:
     """Costs of the transcription and gradient descent for N in 60 ... 960."""
     from hybridoc.cli.evaluate import save
-    from hybridoc.solvers.validation import DEFAULT_STEPS, convergence, convergence_figure
+    from hybridoc.workflows.validation import DEFAULT_STEPS, convergence, convergence_figure
 
     ocp = load_problem_arg(args.problem)
     steps = tuple(args.steps) if args.steps else DEFAULT_STEPS
@@ -214,19 +214,7 @@ def register(sub: Any) -> None:
         help="reference vs direct transcription vs gradient descent on one problem",
         description=cmd_crossval.__doc__,
     )
-    problem_arg(p)
-    p.add_argument(
-        "--methods", default="reference,dt,gd", metavar="M,M",
-        help="registered methods to compare with the reference (default reference,dt,gd)",
-    )  # fmt: skip
-    p.add_argument(
-        "--gd-integrator",
-        choices=("exact", "symplectic-euler"),
-        default=None,
-        help="gradient descent's time stepping on disc scenes: exact (default) or the paper's "
-        "symplectic Euler",
-    )
-    add_json_out(p, out_help="write the figures and DIR/<problem>_crossval.json")
+    p.defer(_crossval_arguments)  # --gd-integrator's choices are gd's: read on first use
     p.set_defaults(func=cmd_crossval)
 
     p = sub.add_parser(
@@ -258,3 +246,22 @@ def register(sub: Any) -> None:
     p.add_argument("--no-gd", action="store_true", help="skip gradient descent (fast)")
     add_json_out(p, out_help="write the log-log figure and DIR/<problem>_convergence.json")
     p.set_defaults(func=cmd_convergence)
+
+
+def _crossval_arguments(p: argparse.ArgumentParser) -> None:
+    from hybridoc.methods import METHODS
+
+    (integrator,) = (s for s in METHODS["gd"].specs() if s.name == "integrator")
+    problem_arg(p)
+    p.add_argument(
+        "--methods", default="reference,dt,gd", metavar="M,M",
+        help="registered methods to compare with the reference (default reference,dt,gd)",
+    )  # fmt: skip
+    p.add_argument(
+        "--gd-integrator",
+        choices=integrator.choices,
+        default=None,
+        help="gradient descent's time stepping on disc scenes: exact (default) or the paper's "
+        "symplectic Euler",
+    )
+    add_json_out(p, out_help="write the figures and DIR/<problem>_crossval.json")

@@ -95,12 +95,17 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import HybridocError, SceneError
+from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solvers.threads import usable_cores
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems import DiscOCP, Scene
+    from hybridoc.reference import ReferenceResult
 
 try:
     import fcntl
@@ -108,10 +113,19 @@ except ImportError:  # pragma: no cover - not POSIX: runs are not locked
     fcntl = None  # type: ignore[assignment]
 
 __all__ = [
+    "CHUNK",
     "COLUMNS",
     "DATA_FILE",
     "MANIFEST_FILE",
     "Dataset",
+    "DrawContext",
+    "check_count",
+    "check_dask",
+    "distribution_scene",
+    "draw_context",
+    "draw_ocp",
+    "draw_problem",
+    "iter_chunks",
     "load_dataset",
     "make_dataset",
     "run_chunks",
@@ -165,10 +179,27 @@ _STRINGS = ("status", "method", "message", "sequence")
 # ---------------------------------------------------------------------------- the scene
 
 
-def _scene_of(problem: Any) -> Any:
-    """The :class:`Scene` with a distribution named by ``problem``."""
-    from hybridoc.problems import load_problem
-    from hybridoc.problems.scene import Scene
+def distribution_scene(problem: Any) -> Scene:
+    """The disc scene with a ``[distribution]`` table that ``problem`` names.
+
+    Parameters
+    ----------
+    problem
+        A built-in name, a ``.toml`` path, ``file.py:function`` or a
+        :class:`~hybridoc.problems.Scene`.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    HybridocError
+        ``problem`` is a generic :class:`~hybridoc.HybridOCP`, not a disc scene.
+    SceneError
+        The scene has no ``[distribution]`` table (or cannot be loaded).
+    """
+    from hybridoc.problems import Scene, load_problem
 
     obj = load_problem(problem)
     if not isinstance(obj, Scene):
@@ -184,7 +215,14 @@ def _scene_of(problem: Any) -> Any:
     return obj
 
 
-def _check_count(value: Any, what: str, low: int) -> int:
+def check_count(value: Any, what: str, low: int) -> int:
+    """``value`` as an ``int`` when it is an integer (not a bool) of at least ``low``.
+
+    Raises
+    ------
+    HybridocError
+        Otherwise: ``"<what> must be an integer >= <low>, got <value>"``.
+    """
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
         raise HybridocError(f"{what} must be an integer >= {low}, got {value!r}")
     return int(value)
@@ -194,11 +232,30 @@ def _check_count(value: Any, what: str, low: int) -> int:
 
 
 @dataclass
-class _Context:
-    """What a worker needs for every draw of one dataset (built once per process)."""
+class DrawContext:
+    """What a worker needs for every draw of one dataset (built once per process,
+    :func:`draw_context`).
 
-    scene: Any
-    ocp: Any
+    Attributes
+    ----------
+    scene
+        The scene with its distribution.
+    ocp
+        The nominal scene's compiled problem (draws that change only the initial state reuse
+        it, :func:`draw_ocp`).
+    seed
+        The seed of the draws.
+    sequence, z
+        The nominal reference's event sequence and shooting unknowns (the warm start), or
+        ``None``.
+    tol
+        HMP residual required of every extremal.
+    full
+        Every draw with the full discovery (no warm start).
+    """
+
+    scene: Scene
+    ocp: DiscOCP
     seed: int
     sequence: list[str] | None
     z: np.ndarray | None
@@ -206,20 +263,28 @@ class _Context:
     full: bool
 
 
-_CONTEXTS: dict[str, _Context] = {}
+_CONTEXTS: dict[str, DrawContext] = {}
 
 
-def _context(spec: dict[str, Any]) -> _Context:
+def draw_context(spec: dict[str, Any]) -> DrawContext:
+    """The :class:`DrawContext` of a worker's task specification, built once per process.
+
+    Parameters
+    ----------
+    spec
+        ``{"scene": TOML text, "seed", "tol", "full", "nominal": None or {"sequence",
+        "z"}}``.
+    """
     key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         import tomllib
 
-        from hybridoc.problems.scene import Scene
+        from hybridoc.problems import Scene
 
         scene = Scene.from_dict(tomllib.loads(spec["scene"]), default_name="scene")
         nominal = spec.get("nominal")
-        ctx = _Context(
+        ctx = DrawContext(
             scene=scene,
             ocp=scene.to_ocp(),
             seed=int(spec["seed"]),
@@ -233,7 +298,7 @@ def _context(spec: dict[str, Any]) -> _Context:
     return ctx
 
 
-def draw_ocp(ctx_scene: Any, ocp: Any, scene_i: Any) -> Any:
+def draw_ocp(ctx_scene: Scene, ocp: DiscOCP, scene_i: Scene) -> DiscOCP:
     """The problem of one draw: the nominal's compiled structure with another ``x0`` when
     only positions and velocities changed, a fresh compile when a target did."""
     same = all(a.target == b.target for a, b in zip(ctx_scene.discs, scene_i.discs, strict=True))
@@ -242,7 +307,15 @@ def draw_ocp(ctx_scene: Any, ocp: Any, scene_i: Any) -> Any:
     return scene_i.to_ocp()
 
 
-def _record_of(res: Any, status: str, method: str, message: str) -> dict[str, Any]:
+def draw_problem(ctx: DrawContext, index: int) -> tuple[Scene, DiscOCP]:
+    """Draw ``index`` of the context's distribution: its scene (named ``<scene>#<index>``)
+    and its problem (:func:`draw_ocp`)."""
+    scene_i = ctx.scene.distribution.draw(ctx.scene, index, ctx.seed)
+    scene_i = dataclasses.replace(scene_i, name=f"{ctx.scene.name}#{index}")
+    return scene_i, draw_ocp(ctx.scene, ctx.ocp, scene_i)
+
+
+def _record_of(res: ReferenceResult, status: str, method: str, message: str) -> dict[str, Any]:
     C = res.control_coefficients()
     nu = res.system.nu
     return {
@@ -273,7 +346,7 @@ def _record_of(res: Any, status: str, method: str, message: str) -> dict[str, An
     }
 
 
-def _failed_record(ocp: Any, message: str) -> dict[str, Any]:
+def _failed_record(ocp: DiscOCP, message: str) -> dict[str, Any]:
     nx, nu, N = ocp.nx, ocp.nu, ocp.steps
     nan = float("nan")
     return {
@@ -302,7 +375,7 @@ def _failed_record(ocp: Any, message: str) -> dict[str, Any]:
     }
 
 
-def _warm(ctx: _Context, ocp: Any) -> tuple[Any, str]:
+def _warm(ctx: DrawContext, ocp: DiscOCP) -> tuple[ReferenceResult | None, str]:
     """The nominal sequence's extremal from the nominal point, verified; or why not."""
     from hybridoc.evaluator import evaluate
     from hybridoc.reference import verify_reference
@@ -348,13 +421,11 @@ def _warm(ctx: _Context, ocp: Any) -> tuple[Any, str]:
     return res, ""
 
 
-def _solve_draw(ctx: _Context, index: int) -> dict[str, Any]:
+def _solve_draw(ctx: DrawContext, index: int) -> dict[str, Any]:
     """The record of draw ``index``: warm start, then the full discovery."""
     from hybridoc.reference import solve_reference
 
-    scene_i = ctx.scene.distribution.draw(ctx.scene, index, ctx.seed)
-    scene_i = dataclasses.replace(scene_i, name=f"{ctx.scene.name}#{index}")
-    ocp = draw_ocp(ctx.scene, ctx.ocp, scene_i)
+    scene_i, ocp = draw_problem(ctx, index)
     head = {"index": index, "x0": scene_i.initial_state(), "targets": scene_i.targets()}
     why = "full discovery requested"
     if not ctx.full and ctx.sequence is not None:
@@ -375,7 +446,7 @@ def _solve_draw(ctx: _Context, index: int) -> dict[str, Any]:
 
 def _solve_chunk(spec: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
     """A worker's task: the stacked records of ``indices``."""
-    ctx = _context(spec)
+    ctx = draw_context(spec)
     return _stack([_solve_draw(ctx, i) for i in indices])
 
 
@@ -698,39 +769,6 @@ def _read_shard(
 # ---------------------------------------------------------------------------- engines
 
 
-class Progress:
-    """A one-line progress bar on stderr: samples done, failures and rate."""
-
-    def __init__(self, label: str, total: int, done: int = 0, *, enabled: bool = True) -> None:
-        self.label, self.total, self.done, self.failed = label, total, done, 0
-        self.enabled = enabled
-        self.start_done = done
-        self.t0 = time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self.last = 0.0
-
-    def update(self, n: int, failed: int) -> None:
-        """Count ``n`` more samples, ``failed`` of them not successful."""
-        self.done += n
-        self.failed += failed
-        now = time.perf_counter()
-        if not self.enabled or (not self.tty and now - self.last < 5 and self.done < self.total):
-            return
-        self.last = now
-        rate = (self.done - self.start_done) / max(now - self.t0, 1e-9)
-        left = (self.total - self.done) / rate if rate > 0 else math.inf
-        eta = f", {left:.0f} s left" if math.isfinite(left) and self.done < self.total else ""
-        width = 24
-        fill = int(width * self.done / max(self.total, 1))
-        bar = "#" * fill + "." * (width - fill)
-        line = (
-            f"{self.label} [{bar}] {self.done}/{self.total} samples, {self.failed} failed, "
-            f"{rate:.1f}/s{eta}"
-        )
-        end = "" if self.tty and self.done < self.total else "\n"
-        print(("\r" if self.tty else "") + line, end=end, file=sys.stderr, flush=True)
-
-
 def _dask_client(dask: Any, workers: int) -> tuple[Any, Callable[[], None]]:
     """A ``distributed.Client`` for ``dask`` and a function that closes what was opened."""
     try:
@@ -899,11 +937,11 @@ class Dataset:
         return self.columns[key]
 
     @property
-    def scene(self) -> Any:
+    def scene(self) -> Scene:
         """The scene (with its distribution) the dataset was drawn from."""
         import tomllib
 
-        from hybridoc.problems.scene import Scene
+        from hybridoc.problems import Scene
 
         return Scene.from_dict(tomllib.loads(self.manifest["settings"]["scene"]))
 
@@ -913,7 +951,7 @@ class Dataset:
         return self.columns["status"] == "success"
 
 
-def _settings(scene: Any, samples: int, seed: int, tol: float, full: bool) -> dict[str, Any]:
+def _settings(scene: Scene, samples: int, seed: int, tol: float, full: bool) -> dict[str, Any]:
     from hybridoc import __version__
 
     return {
@@ -928,17 +966,24 @@ def _settings(scene: Any, samples: int, seed: int, tol: float, full: bool) -> di
     }
 
 
-def _nominal(scene: Any, tol: float, say: Callable[[str], None]) -> dict[str, Any] | None:
+def _notice(text: str) -> None:
+    """A line on stderr about the nominal solve or what the run found in its folder (shards
+    computed again, files kept): said whatever the progress display, as a log line."""
+    print(f"dataset: {text}", file=sys.stderr, flush=True)
+
+
+def _nominal(scene: Scene, tol: float, progress: Progress) -> dict[str, Any] | None:
     from hybridoc.reference import solve_reference
 
+    progress.stage("nominal scene")
     t0 = time.perf_counter()
     try:
         sol = solve_reference(dataclasses.replace(scene, distribution=None), tol=tol)
     except HybridocError as exc:
-        say(f"nominal scene: no reference ({exc}); every draw gets the full discovery")
+        _notice(f"nominal scene: no reference ({exc}); every draw gets the full discovery")
         return None
     res = sol.reference
-    say(
+    _notice(
         f"nominal scene: {sol.status.value}, cost {sol.cost:.12g}, events {sol.sequence} "
         f"({time.perf_counter() - t0:.2f} s)"
     )
@@ -962,8 +1007,7 @@ def make_dataset(
     dask: Any = None,
     tol: float = 1e-10,
     full: bool = False,
-    progress: bool = True,
-    verbose: bool = True,
+    progress: ProgressLike = True,
 ) -> Dataset:
     """Solve the reference for ``samples`` draws of a scene's distribution; write and return
     the dataset (module notes).
@@ -991,8 +1035,12 @@ def make_dataset(
         HMP residual required of every extremal.
     full
         Solve every draw with the full discovery (no warm start).
-    progress, verbose
-        The progress bar and the nominal solve's line on stderr.
+    progress
+        ``True`` (a progress bar on stderr, the default), ``False``/``None`` or a
+        :class:`~hybridoc.progress.Progress` (:func:`hybridoc.progress.as_progress`): the
+        stages and the draws done, with the failures. The nominal solve's line and what the
+        run finds in ``out`` (a resumed run, shards computed again, files kept) are said on
+        stderr in any case.
 
     Returns
     -------
@@ -1006,20 +1054,15 @@ def make_dataset(
         make; a complete dataset there whose data file fails its SHA-256 (left as it is);
         an unreachable Dask scheduler.
     """
-    samples = _check_count(samples, "samples", 1)
-    scene = _scene_of(problem)
-    seed = scene.distribution.seed if seed is None else _check_count(seed, "seed", 0)
-    workers = usable_cores() if workers is None else _check_count(workers, "workers", 1)
+    samples = check_count(samples, "samples", 1)
+    scene = distribution_scene(problem)
+    seed = scene.distribution.seed if seed is None else check_count(seed, "seed", 0)
+    workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
     check_dask(dask)
     if not (isinstance(tol, int | float) and math.isfinite(tol) and tol > 0):
         raise HybridocError(f"tol must be a positive number, got {tol!r}")
     # the first draw fails here, in this process, if the distribution cannot be drawn
     scene.distribution.draw(scene, 0, seed)
-
-    def say(text: str) -> None:
-        if verbose:
-            print(f"dataset: {text}", file=sys.stderr, flush=True)
-
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -1028,58 +1071,91 @@ def make_dataset(
             f"cannot create output directory {str(out)!r}: {exc.strerror}"
         ) from None
     settings = _settings(scene, samples, seed, float(tol), bool(full))
-    with _locked(out):
-        return _make(out, scene, settings, workers, dask, progress, say)
+    with _locked(out), progress_scope(progress, "dataset") as p:
+        return _make(out, scene, settings, workers, dask, p)
+
+
+def _existing(out: Path, settings: dict[str, Any]) -> dict[str, Any] | Dataset | None:
+    """What ``out`` holds of a run with ``settings``: ``None`` (nothing), the manifest of an
+    unfinished run, or the complete :class:`Dataset` (its SHA-256 checked).
+
+    Raises
+    ------
+    HybridocError
+        A manifest that cannot be read or has other settings; a data file that fails its
+        SHA-256.
+    """
+    mpath = out / MANIFEST_FILE
+    if not mpath.exists():
+        return None
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (OSError, ValueError) as exc:
+        raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("settings") != settings:
+        raise HybridocError(
+            f"{str(out)!r} holds a dataset with other settings (scene, samples, seed, tol "
+            "or version); choose another --out or remove it"
+        )
+    if manifest.get("complete"):
+        if (out / DATA_FILE).exists():
+            # its SHA-256 is checked: a damaged or edited file is an error, kept as it is
+            ds = load_dataset(out)
+            if (out / SHARD_DIR).is_dir() and _is_ours(out / SHARD_DIR):
+                _remove_shards(out / SHARD_DIR, _notice)  # a run killed as it cleaned up
+            _notice(f"{out / DATA_FILE} is complete already")
+            return ds
+        _notice(f"{out / DATA_FILE} is missing: computing it again")
+        manifest["complete"] = False
+        _write_json(mpath, manifest)
+    return manifest
+
+
+def _good_shards(
+    chunks: list[tuple[int, list[int]]], shard: dict[int, Path], spec_hash: str
+) -> tuple[dict[int, dict[str, np.ndarray]], list[tuple[int, list[int]]]]:
+    """The columns of the usable finished chunks, and the chunks still to compute (each bad
+    shard said)."""
+    parts: dict[int, dict[str, np.ndarray]] = {}
+    todo = []
+    for cid, idx in chunks:
+        cols, why = _read_shard(shard[cid], idx, spec_hash)
+        if cols is None:
+            if why:
+                _notice(f"shard {shard[cid].name} {why}: computing it again")
+            todo.append((cid, idx))
+        else:
+            parts[cid] = cols
+    return parts, todo
 
 
 def _make(
     out: Path,
-    scene: Any,
+    scene: Scene,
     settings: dict[str, Any],
     workers: int,
     dask: Any,
-    progress: bool,
-    say: Callable[[str], None],
+    progress: Progress,
 ) -> Dataset:
     """:func:`make_dataset` in ``out``, with its lock held."""
     _sweep(out, lambda n: n in (DATA_FILE, MANIFEST_FILE), lambda n: n == SHARD_DIR)
-    mpath = out / MANIFEST_FILE
-    manifest: dict[str, Any] | None = None
-    if mpath.exists():
-        try:
-            manifest = json.loads(mpath.read_text())
-        except (OSError, ValueError) as exc:
-            raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
-        if not isinstance(manifest, dict) or manifest.get("settings") != settings:
-            raise HybridocError(
-                f"{str(out)!r} holds a dataset with other settings (scene, samples, seed, tol "
-                "or version); choose another --out or remove it"
-            )
-        if manifest.get("complete"):
-            if (out / DATA_FILE).exists():
-                # its SHA-256 is checked: a damaged or edited file is an error, kept as it is
-                ds = load_dataset(out)
-                if (out / SHARD_DIR).is_dir() and _is_ours(out / SHARD_DIR):
-                    _remove_shards(out / SHARD_DIR, say)  # a run killed as it cleaned up
-                say(f"{out / DATA_FILE} is complete already")
-                return ds
-            say(f"{out / DATA_FILE} is missing: computing it again")
-            manifest["complete"] = False
-            _write_json(mpath, manifest)
+    manifest = _existing(out, settings)
+    if isinstance(manifest, Dataset):
+        return manifest
     # before the nominal solve, so that a folder that is not ours fails at once
     sdir = _shard_dir(out, resuming=manifest is not None)
     _sweep(sdir, lambda n: bool(_CHUNK_NAME.fullmatch(n)), lambda n: False)
     t0 = time.perf_counter()
     samples, seed, tol, full = (settings[k] for k in ("samples", "seed", "tol", "full"))
     if manifest is None:
-        nominal = None if full else _nominal(scene, tol, say)
+        nominal = None if full else _nominal(scene, tol, progress)
         manifest = {
             "format": FORMAT,
             "complete": False,
             "settings": settings,
             "nominal": nominal,
         }
-        _write_json(mpath, manifest)
+        _write_json(out / MANIFEST_FILE, manifest)
     nominal = manifest.get("nominal")
     spec = {"scene": settings["scene"], "seed": seed, "tol": tol, "full": full, "nominal": nominal}
     spec_hash = hashlib.sha256(
@@ -1087,29 +1163,35 @@ def _make(
     ).hexdigest()
     chunks = list(iter_chunks(samples, CHUNK))
     shard = {cid: sdir / f"chunk-{cid:06d}.npz" for cid, _ in chunks}
-    parts: dict[int, dict[str, np.ndarray]] = {}
-    todo = []
-    for cid, idx in chunks:
-        cols, why = _read_shard(shard[cid], idx, spec_hash)
-        if cols is None:
-            if why:
-                say(f"shard {shard[cid].name} {why}: computing it again")
-            todo.append((cid, idx))
-        else:
-            parts[cid] = cols
+    parts, todo = _good_shards(chunks, shard, spec_hash)
     done = samples - sum(len(idx) for _, idx in todo)
     if done:
-        say(f"resuming: {done} of {samples} samples already done")
-    bar = Progress("dataset", samples, done, enabled=progress)
+        _notice(f"resuming: {done} of {samples} samples already done")
+    progress.stage("draws")
+    tally = {"done": done, "failed": 0}
 
     def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
         _write_npz(shard[cid], {**cols, _SPEC_KEY: np.array([spec_hash])})
         parts[cid] = cols
-        bar.update(len(cols["index"]), int(np.sum(cols["status"] != "success")))
+        tally["done"] += len(cols["index"])
+        tally["failed"] += int(np.sum(cols["status"] != "success"))
+        progress.count(tally["done"], samples, f"{tally['failed']} failed")
 
     engine = "dask" if dask is not None else ("serial" if workers == 1 else "process-pool")
     run_chunks(_solve_chunk, spec, todo, workers=workers, dask=dask, on_result=on_result)
-    data = _concat([parts[cid] for cid, _ in chunks])
+    run = {"engine": engine, "workers": workers, "t0": t0}
+    return _finish(out, manifest, [parts[cid] for cid, _ in chunks], sdir, run)
+
+
+def _finish(
+    out: Path,
+    manifest: dict[str, Any],
+    parts: list[dict[str, np.ndarray]],
+    sdir: Path,
+    run: dict[str, Any],
+) -> Dataset:
+    """Write the data file and the complete manifest, and remove the shards."""
+    data = _concat(parts)
     digest = _write_npz(out / DATA_FILE, data)
     status, counts = data["status"], {}
     for s in sorted(set(status.tolist())):
@@ -1126,10 +1208,14 @@ def _make(
         methods=methods,
         sha256=digest,
         columns={k: list(v.shape) for k, v in sorted(data.items())},
-        last_run={"engine": engine, "workers": workers, "wall_time_s": time.perf_counter() - t0},
+        last_run={
+            "engine": run["engine"],
+            "workers": run["workers"],
+            "wall_time_s": time.perf_counter() - run["t0"],
+        },
     )
-    _write_json(mpath, manifest)
-    _remove_shards(sdir, say)
+    _write_json(out / MANIFEST_FILE, manifest)
+    _remove_shards(sdir, _notice)
     return Dataset(out, data, manifest)
 
 

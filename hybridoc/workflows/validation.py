@@ -5,8 +5,9 @@ Three reports, each a JSON-ready dict plus figures:
 - :func:`validate_controls`: the true continuous cost of a user's piecewise-constant control
   (the judge), its relative gap to the reference optimum, control errors on the grid, and
   whether its events are the reference's.
-- :func:`crossval`: every registered method (:mod:`hybridoc.solvers.registry`) on one
-  problem, each measured against the reference; disagreements are findings (``agree`` false
+- :func:`crossval`: registered methods (:data:`hybridoc.methods.METHODS`) on one problem,
+  each measured against the reference within the tolerance the method declares
+  (:attr:`~hybridoc.methods.Method.tolerance`); disagreements are findings (``agree`` false
   with the reasons), not table rows.
 - :func:`convergence`: costs of the transcription's control sampled on grids of N cells and
   of gradient descent at each N, errors against the reference and observed orders.
@@ -22,54 +23,37 @@ import math
 import numbers
 import time
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.evaluator import evaluate
+from hybridoc.methods import METHODS, solve
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
-from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
 
 __all__ = [
     "DEFAULT_STEPS",
-    "DISCRETE_TOLERANCE",
-    "GD_HOPS",
-    "GD_STARTS",
-    "TOLERANCES",
     "control_errors",
     "convergence",
     "convergence_figure",
     "crossval",
     "crossval_figures",
-    "discrete_gap",
     "event_comparison",
+    "local_gap",
     "method_entry",
+    "observed_orders",
     "validate_controls",
     "validation_figures",
 ]
 
 #: Grid sizes of the convergence study.
 DEFAULT_STEPS: tuple[int, ...] = (60, 120, 240, 480, 960)
-
-TOLERANCES: dict[str, float] = {"reference": 1e-9, "dt": 1e-6, "gd": 5e-3}
-"""Relative cost gap to the reference within which a method agrees with it: the reference
-itself to its shooting accuracy, the transcription (exact for polynomial optima) to 1e-6,
-gradient descent (a discretised control) to 0.5%. Any other method: :data:`DEFAULT_TOLERANCE`."""
-DEFAULT_TOLERANCE = 5e-3
-
-GD_HOPS = 8
-"""Hops (batched restarts, :func:`~hybridoc.solvers.gd.solve_gd`) of gradient descent on the
-paper's symplectic Euler objective, whose kinks stall a plain descent."""
-DISCRETE_TOLERANCE = 1e-6
-"""Relative gap of gd's discrete loss to the optimum of its own discrete objective within
-which the two agree (:func:`discrete_gap`)."""
-
-GD_STARTS = {"disc": 32, "generic": 16}
-"""Cross-validation runs gradient descent as a multi-start (``starts``), since a local method
-from one guess can land in another basin (multiple-collision's two-event extremal); disc
-scenes have aimed starts, hence more of them."""
 
 
 def control_errors(controls: np.ndarray, reference: np.ndarray, dt: float) -> dict[str, float]:
@@ -158,8 +142,6 @@ def validate_controls(
         ``events``, ``reference_events``, ``sequence_matches``, ``event_time_errors``,
         ``reference_status``, ``feasible``.
     """
-    from hybridoc.solvers.registry import solve
-
     ocp = as_ocp(problem)
     u = ocp.check_controls(getattr(controls, "controls", controls))
     if reference is None:
@@ -217,6 +199,7 @@ def crossval(
     methods: Sequence[str] = ("reference", "dt", "gd"),
     options: Mapping[str, Mapping[str, Any]] | None = None,
     tolerances: Mapping[str, float] | None = None,
+    progress: ProgressLike = None,
 ) -> tuple[dict[str, Any], dict[str, Solution]]:
     """Run several methods on one problem and measure each against the reference.
 
@@ -225,138 +208,145 @@ def crossval(
     problem
         Any problem.
     methods
-        Registered method names; ``"reference"`` is always run (first).
+        Registered method names (:data:`hybridoc.methods.METHODS`); ``"reference"`` is
+        always run (first).
     options
-        ``{method: {option: value}}`` passed to :func:`hybridoc.solve` (gradient descent
-        defaults to a multi-start, :data:`GD_STARTS`).
+        ``{method: {option: value}}`` passed to :func:`hybridoc.solve`, completed by the
+        method's :attr:`~hybridoc.methods.Method.crossval_defaults` where it declares them
+        (gradient descent: a multi-start).
     tolerances
-        ``{method: relative cost gap}`` overriding :data:`TOLERANCES`.
+        ``{method: relative cost gap}`` overriding the methods' own
+        :attr:`~hybridoc.methods.Method.tolerance`.
+    progress
+        ``None``/``False`` (silent, the default), ``True`` (a meter on stderr) or a
+        :class:`~hybridoc.progress.Progress`: a stage per method, and the same object is
+        passed to each method's run.
 
     Returns
     -------
     report, solutions
         ``report``: ``{"problem", "agree", "reasons", <method>: entry}``; ``agree`` is false
         when the reference is beaten by another method's true cost, when a method's cost is
-        outside its tolerance of the reference's, when a method failed, or when a method's
-        own status is not a success; ``reasons`` says which. Each entry is
+        outside its tolerance of the reference's, when a method failed, when a method's own
+        check (:attr:`~hybridoc.methods.Method.crossval_check`) finds a disagreement, or
+        when a method's own status is not a success; ``reasons`` says which. Each entry is
         :func:`method_entry` plus the gap to the reference extremal of the method's own
         event sequence (:func:`local_gap`). ``solutions``: the Solutions.
     """
-    from hybridoc.solvers.registry import METHODS, solve
-
     ocp = as_ocp(problem)
     names = ["reference"] + [m for m in methods if m != "reference"]
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
-    opts = {k: dict(v) for k, v in (options or {}).items()}
-    gd_opts = opts.setdefault("gd", {})
-    gd_opts.setdefault("starts", GD_STARTS["disc" if isinstance(ocp, DiscOCP) else "generic"])
-    if gd_opts.get("integrator") == "symplectic-euler":
-        # the paper's objective kinks where a contact changes step: restarts get past them
-        gd_opts.setdefault("hops", GD_HOPS)
-    tol = {**TOLERANCES, **dict(tolerances or {})}
-    sols: dict[str, Solution] = {}
-    walls: dict[str, float] = {}
-    errors: dict[str, str] = {}
-    for name in names:
-        t0 = time.perf_counter()
-        try:
-            sols[name] = solve(ocp, name, **opts.get(name, {}))
-        except HybridocError as exc:
-            if name == "reference":
-                raise
-            errors[name] = str(exc)
-        walls[name] = time.perf_counter() - t0
-    ref = sols["reference"]
-    report: dict[str, Any] = {"problem": ocp.name}
-    reasons: list[str] = []
-    if not ref.success:
-        reasons.append(f"the reference reports {ref.status.value}: {ref.message}")
-    for name in names:
-        if name in errors:
-            report[name] = {"error": errors[name], "wall_time_s": walls[name]}
-            reasons.append(f"{name} failed: {errors[name]}")
-            continue
-        sol = sols[name]
-        entry = method_entry(sol, ref, wall_time_s=walls[name])
-        entry.update(local_gap(ocp, sol, ref))
-        entry["tolerance"] = tol.get(name, DEFAULT_TOLERANCE)
-        report[name] = entry
-        if name == "reference":
-            continue
-        gap = entry["cost_gap_relative"]
-        if sol.cost < ref.cost - max(1e-9 * abs(ref.cost), 1e-15):
-            reasons.append(
-                f"{name} beats the reference: cost {sol.cost:.10g} < {ref.cost:.10g} "
-                f"({gap:+.3e}); the reference is not the optimum"
-            )
-        elif gap > entry["tolerance"]:
-            local = entry.get("cost_gap_local_relative")
-            why = (
-                f" (it is within {local:+.2e} of the extremal of its own event sequence "
-                f"{entry['local_reference_sequence']}: another local optimum)"
-                if local is not None and abs(local) <= entry["tolerance"]
-                else ""
-            )
-            reasons.append(
-                f"{name} is {gap:+.3e} above the reference, beyond its tolerance "
-                f"{entry['tolerance']:.0e}{why}"
-            )
-        if name == "gd" and sol.settings.get("integrator") == "symplectic-euler":
-            entry.update(discrete_gap(ocp, sol))
-            dgap = entry.get("discrete_gap_relative")
-            if dgap is not None and dgap > DISCRETE_TOLERANCE:
-                reasons.append(
-                    f"gd's discrete loss is {dgap:+.3e} above the optimum of its own discrete "
-                    f"objective (the N-step transcription from its control), beyond "
-                    f"{DISCRETE_TOLERANCE:.0e}"
-                )
-        if not sol.success:
-            reasons.append(f"{name} reports {sol.status.value}: {sol.message}")
+    opts = _run_options(ocp, names, options)
+    tol = {name: METHODS[name].tolerance for name in names} | dict(tolerances or {})
+    with progress_scope(progress, "crossval") as p:
+        sols, walls, errors = _run_methods(ocp, names, opts, p)
+        ref = sols["reference"]
+        report: dict[str, Any] = {"problem": ocp.name}
+        reasons: list[str] = []
+        if not ref.success:
+            reasons.append(f"the reference reports {ref.status.value}: {ref.message}")
+        for name in names:
+            if name in errors:
+                report[name] = {"error": errors[name], "wall_time_s": walls[name]}
+                reasons.append(f"{name} failed: {errors[name]}")
+                continue
+            p.stage(f"{name} against the reference")
+            report[name], why = _judge_method(ocp, name, sols[name], ref, walls[name], tol[name], p)
+            reasons += why
     report["agree"] = not reasons
     report["reasons"] = reasons
     return report, sols
 
 
-def discrete_gap(problem: ProblemLike, sol: Solution) -> dict[str, Any]:
-    """Gradient descent on the paper's discrete objective against that objective's optimum.
-
-    The symplectic Euler loss that gd minimises is not the continuous cost; its own optimum
-    comes from :func:`~hybridoc.solvers.discrete_transcription.solve_discrete`, the same N
-    steps transcribed and solved by IPOPT with the contact branches frozen, warm-started
-    from gd's control (from the transcription's control instead it can stop in a higher
-    local optimum of this piecewise-smooth loss: +1.3e-5 on multiple-collision).
-
-    Returns
-    -------
-    dict
-        ``discrete_loss`` (gd's), ``discrete_optimum`` and ``discrete_gap_relative``; or
-        ``discrete_error`` when the transcription of the discrete problem failed.
-    """
-    from hybridoc.problem import disc_scene
-    from hybridoc.solvers.discrete_transcription import solve_discrete
-
-    loss = float(sol.info.get("loss", float("nan")))
-    try:
-        d = solve_discrete(disc_scene(problem), warm_start=sol)
-    except HybridocError as exc:
-        return {"discrete_loss": loss, "discrete_error": str(exc)}
-    best = float(d.info["discrete_loss"])
-    return {
-        "discrete_loss": loss,
-        "discrete_optimum": best,
-        "discrete_gap_relative": (loss - best) / abs(best),
-    }
+def _run_options(
+    ocp: HybridOCP, names: Sequence[str], options: Mapping[str, Mapping[str, Any]] | None
+) -> dict[str, dict[str, Any]]:
+    """Each method's options: the caller's, completed by its crossval defaults."""
+    given = {k: dict(v) for k, v in (options or {}).items()}
+    out = {}
+    for name in names:
+        opts = given.get(name, {})
+        defaults = METHODS[name].crossval_defaults
+        out[name] = dict(defaults(ocp, opts)) if defaults is not None else opts
+    return out
 
 
-def local_gap(problem: ProblemLike, sol: Solution, ref: Solution) -> dict[str, Any]:
+def _run_methods(
+    ocp: HybridOCP, names: Sequence[str], opts: Mapping[str, Mapping[str, Any]], progress: Progress
+) -> tuple[dict[str, Solution], dict[str, float], dict[str, str]]:
+    """Solve with each method: the solutions, wall times and errors (a failure of the
+    reference is raised)."""
+    sols: dict[str, Solution] = {}
+    walls: dict[str, float] = {}
+    errors: dict[str, str] = {}
+    for name in names:
+        progress.stage(name)
+        t0 = time.perf_counter()
+        try:
+            sols[name] = solve(ocp, name, progress=progress, **opts[name])
+        except HybridocError as exc:
+            if name == "reference":
+                raise
+            errors[name] = str(exc)
+        walls[name] = time.perf_counter() - t0
+    return sols, walls, errors
+
+
+def _judge_method(
+    ocp: HybridOCP,
+    name: str,
+    sol: Solution,
+    ref: Solution,
+    wall: float,
+    tolerance: float,
+    progress: Progress,
+) -> tuple[dict[str, Any], list[str]]:
+    """The report entry of one method and the reasons it disagrees with the reference."""
+    entry = method_entry(sol, ref, wall_time_s=wall)
+    entry.update(local_gap(ocp, sol, ref, progress=progress))
+    entry["tolerance"] = tolerance
+    reasons: list[str] = []
+    if name == "reference":
+        return entry, reasons
+    gap = entry["cost_gap_relative"]
+    if sol.cost < ref.cost - max(1e-9 * abs(ref.cost), 1e-15):
+        reasons.append(
+            f"{name} beats the reference: cost {sol.cost:.10g} < {ref.cost:.10g} "
+            f"({gap:+.3e}); the reference is not the optimum"
+        )
+    elif gap > tolerance:
+        local = entry.get("cost_gap_local_relative")
+        why = (
+            f" (it is within {local:+.2e} of the extremal of its own event sequence "
+            f"{entry['local_reference_sequence']}: another local optimum)"
+            if local is not None and abs(local) <= tolerance
+            else ""
+        )
+        reasons.append(
+            f"{name} is {gap:+.3e} above the reference, beyond its tolerance {tolerance:.0e}{why}"
+        )
+    check = METHODS[name].crossval_check
+    if check is not None:
+        fields, own = check(ocp, sol)
+        entry.update(fields)
+        reasons += own
+    if not sol.success:
+        reasons.append(f"{name} reports {sol.status.value}: {sol.message}")
+    return entry, reasons
+
+
+def local_gap(
+    problem: ProblemLike, sol: Solution, ref: Solution, *, progress: ProgressLike = None
+) -> dict[str, Any]:
     """The gap of ``sol`` to the reference extremal with ``sol``'s own event sequence.
 
     Local methods (gradient descent above all) converge to the HMP extremal of the basin
     they start in, which need not be the lowest-cost one the reference finds (on
     multiple-collision a three-event extremal lies 4.6% below the paper's two-event one).
-    This measures a method against the extremal of its own mode sequence.
+    This measures a method against the extremal of its own mode sequence (solved, with
+    ``progress`` passed to the reference, when it is not the reference's own).
 
     Returns
     -------
@@ -365,14 +355,12 @@ def local_gap(problem: ProblemLike, sol: Solution, ref: Solution) -> dict[str, A
         ``cost_gap_local_relative``; ``local_reference_error`` instead when the reference
         has no verified extremal for that sequence.
     """
-    from hybridoc.solvers.registry import solve
-
     sequence = sol.sequence
     if event_comparison(sol.events, ref.events)["sequence_matches"]:
         local = ref
     else:
         try:
-            local = solve(problem, "reference", sequence=sequence, initial=sol)
+            local = solve(problem, "reference", sequence=sequence, initial=sol, progress=progress)
         except HybridocError as exc:
             return {
                 "local_reference_cost": None,
@@ -431,7 +419,7 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
 
 
 # ---------------------------------------------------------------------------- convergence
-def _orders(steps: Sequence[int], errors: Sequence[float]) -> list[float | None]:
+def observed_orders(steps: Sequence[int], errors: Sequence[float]) -> list[float | None]:
     """Observed orders ``log(e_k / e_{k+1}) / log(N_{k+1} / N_k)``, ``None`` at the first N."""
     out: list[float | None] = [None]
     for k in range(1, len(steps)):
@@ -465,7 +453,6 @@ def convergence(
         ``error`` (``|J_N - J*| / J*``) and ``order`` (observed, against N).
     """
     from hybridoc.ocp import MAX_STEPS
-    from hybridoc.solvers.registry import solve
     from hybridoc.solvers.transcription import resample_controls
 
     ocp = as_ocp(problem)
@@ -502,7 +489,7 @@ def convergence(
 
     def block(costs: list[float]) -> dict[str, Any]:
         err = [abs(c - J) / J for c in costs]
-        return {"cost": costs, "error": err, "order": _orders(steps, err)}
+        return {"cost": costs, "error": err, "order": observed_orders(steps, err)}
 
     out["dt"] = block(dt_costs)
     if include_gd:

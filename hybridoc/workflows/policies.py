@@ -8,24 +8,41 @@ tensors) and checks what it returns (:func:`hybridoc.evaluate`).
 
 :func:`validate_policy` judges a policy in closed loop on ``M`` draws of a scene's
 ``[distribution]`` and compares each with the exact reference of the same draw (from a
-dataset of :mod:`hybridoc.dataset`, computed when not given): the cost gap, whether the
+dataset of :mod:`hybridoc.workflows.datasets`, computed when not given): the cost gap, whether the
 event sequence differs from the optimal one, the worst cases. Rollouts run in the same
 engines as datasets (a local process pool, or Dask), one chunk of draws per task.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
+from hybridoc.progress import Progress, ProgressLike, progress_scope
+from hybridoc.workflows.datasets import (
+    CHUNK,
+    Dataset,
+    check_count,
+    check_dask,
+    distribution_scene,
+    draw_context,
+    draw_problem,
+    iter_chunks,
+    load_dataset,
+    make_dataset,
+    run_chunks,
+    usable_cores,
+)
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems import Scene
 
 __all__ = [
     "PolicyError",
@@ -155,26 +172,29 @@ class PolicyReport:
 _ROLLOUT_POLICY: dict[str, Any] = {}
 
 
+def _rollout_policy(key: str | None) -> Callable[..., Any]:
+    """The policy of a rollout task: the one set by :func:`validate_policy` in this process
+    (``key`` ``None``: an object), or loaded from its spec once per process."""
+    if key is None:
+        return _ROLLOUT_POLICY["policy"]
+    policy = _ROLLOUT_POLICY.get(key)
+    if policy is None:
+        policy = load_policy(key)
+        _ROLLOUT_POLICY.clear()
+        _ROLLOUT_POLICY[key] = policy
+    return policy
+
+
 def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
     """A worker's task: closed-loop rollouts of ``indices``."""
-    from hybridoc.dataset import _context, draw_ocp
     from hybridoc.evaluator import evaluate
 
-    ctx = _context(common["dataset"])
+    ctx = draw_context(common["dataset"])
     key = common["policy"]
-    if key is None:
-        policy = _ROLLOUT_POLICY["policy"]
-    else:
-        policy = _ROLLOUT_POLICY.get(key)
-        if policy is None:
-            policy = load_policy(key)
-            _ROLLOUT_POLICY.clear()
-            _ROLLOUT_POLICY[key] = policy
+    policy = _rollout_policy(key)
     costs, seqs, status, msgs = [], [], [], []
     for i in indices:
-        sc = ctx.scene.distribution.draw(ctx.scene, i, ctx.seed)
-        sc = dataclasses.replace(sc, name=f"{ctx.scene.name}#{i}")
-        ocp = draw_ocp(ctx.scene, ctx.ocp, sc)
+        _, ocp = draw_problem(ctx, i)
         try:
             ev = evaluate(ocp, policy=policy, hold=common["hold"])
         except ControlsError as exc:
@@ -212,7 +232,7 @@ def validate_policy(
     hold: str = "zoh",
     workers: int | None = None,
     dask: Any = None,
-    progress: bool = True,
+    progress: ProgressLike = True,
 ) -> PolicyReport:
     """Judge a feedback policy against the exact references over a scene's distribution.
 
@@ -228,15 +248,16 @@ def validate_policy(
     seed
         Overrides the distribution's seed.
     dataset
-        A :class:`~hybridoc.dataset.Dataset` or its directory with at least ``M`` rows of
-        the same scene and seed; default: computed (into ``dataset_out``, or a temporary
-        directory).
+        A :class:`~hybridoc.workflows.datasets.Dataset` or its directory with at least ``M``
+        rows of the same scene and seed; default: computed (into ``dataset_out``, or a
+        temporary directory).
     hold
         ``"zoh"`` or ``"continuous"`` (:func:`hybridoc.evaluate`).
     workers, dask
-        As in :func:`~hybridoc.dataset.make_dataset`.
+        As in :func:`~hybridoc.workflows.datasets.make_dataset`.
     progress
-        Progress bars on stderr.
+        ``True`` (a progress bar on stderr, the default), ``False``/``None`` or a
+        :class:`~hybridoc.progress.Progress`: the references' stages and the rollouts done.
 
     Returns
     -------
@@ -249,27 +270,12 @@ def validate_policy(
         :class:`~hybridoc.errors.ControlsError` naming the sample: wrong output shape,
         non-finite output, an exception inside the policy).
     """
-    import tempfile
-
-    from hybridoc.dataset import (
-        CHUNK,
-        Progress,
-        _check_count,
-        _scene_of,
-        check_dask,
-        iter_chunks,
-        load_dataset,
-        make_dataset,
-        run_chunks,
-        usable_cores,
-    )
-
-    samples = _check_count(samples, "samples", 1)
+    samples = check_count(samples, "samples", 1)
     if hold not in ("zoh", "continuous"):
         raise HybridocError(f"hold must be 'zoh' or 'continuous', got {hold!r}")
-    scene = _scene_of(problem)
-    seed = scene.distribution.seed if seed is None else _check_count(seed, "seed", 0)
-    workers = usable_cores() if workers is None else _check_count(workers, "workers", 1)
+    scene = distribution_scene(problem)
+    seed = scene.distribution.seed if seed is None else check_count(seed, "seed", 0)
+    workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
     check_dask(dask)
     spec_text = str(policy) if isinstance(policy, str | Path) else None
     pol = load_policy(policy)  # errors here, before any work
@@ -278,63 +284,15 @@ def validate_policy(
             "with dask, give the policy as a spec (model.pt or file.py:name) so that the "
             "workers can load it"
         )
-    # references
-    tmp = None
-    if dataset is None:
-        if dataset_out is None:
-            tmp = tempfile.TemporaryDirectory(prefix="hybridoc-refs-")
-            dataset_out = tmp.name
-        ds = make_dataset(
-            scene, samples, dataset_out, seed=seed, workers=workers, dask=dask, progress=progress
+    engine = {"workers": workers, "dask": dask}
+    with progress_scope(progress, "validate-policy") as p:
+        p.stage("references")
+        ref, ref_settings, ds_path = _references(
+            scene, samples, seed, dataset, dataset_out, engine, p
         )
-    else:
-        ds = dataset if hasattr(dataset, "columns") else load_dataset(dataset)
-        settings = ds.manifest.get("settings", {})
-        if settings.get("scene") != scene.to_toml() or int(settings.get("seed", -1)) != seed:
-            raise HybridocError(
-                f"the dataset in {str(ds.path)!r} was drawn from another scene or seed than "
-                f"{scene.name!r} with seed {seed}"
-            )
-        if len(ds) < samples:
-            raise HybridocError(
-                f"the dataset in {str(ds.path)!r} has {len(ds)} samples; {samples} requested"
-            )
-    ref = {k: v[:samples] for k, v in ds.columns.items()}
-    ref_settings = dict(ds.manifest.get("settings", {}))
-    if tmp is not None:
-        tmp.cleanup()
-    # rollouts
-    common = {
-        "dataset": {
-            "scene": ref_settings.get("scene", scene.to_toml()),
-            "seed": seed,
-            "tol": 1e-10,
-            "full": False,
-            "nominal": None,
-        },
-        "policy": spec_text,
-        "hold": hold,
-    }
-    _ROLLOUT_POLICY.clear()
-    if spec_text is None:
-        _ROLLOUT_POLICY["policy"] = pol
-    else:
-        _ROLLOUT_POLICY[spec_text] = pol
-    parts: dict[int, dict[str, np.ndarray]] = {}
-    bar = Progress("rollouts", samples, enabled=progress)
-
-    def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
-        parts[cid] = cols
-        bar.update(len(cols["index"]), int(np.sum(cols["rollout_status"] != "ok")))
-
-    t0 = time.perf_counter()
-    chunks = list(iter_chunks(samples, CHUNK))
-    try:
-        run_chunks(_rollout_chunk, common, chunks, workers=workers, dask=dask, on_result=on_result)
-    finally:
-        _ROLLOUT_POLICY.clear()
-    rollout_time = time.perf_counter() - t0
-    roll = {k: np.concatenate([parts[c][k] for c, _ in chunks]) for k in parts[chunks[0][0]]}
+        scene_toml = ref_settings.get("scene", scene.to_toml())
+        common = {"dataset": _draws_spec(scene_toml, seed), "policy": spec_text, "hold": hold}
+        roll, rollout_time = _rollouts(common, pol, samples, engine, p)
     report = _report(ref, roll, rollout_time)
     report.settings = {
         "scene": scene.name,
@@ -342,9 +300,88 @@ def validate_policy(
         "samples": samples,
         "seed": seed,
         "hold": hold,
-        "dataset": str(ds.path) if tmp is None else None,
+        "dataset": ds_path,
     }
     return report
+
+
+def _draws_spec(scene_toml: str, seed: int) -> dict[str, Any]:
+    """The :func:`~hybridoc.workflows.datasets.draw_context` specification of the draws that
+    a rollout task needs (no warm start: rollouts solve nothing)."""
+    return {"scene": scene_toml, "seed": seed, "tol": 1e-10, "full": False, "nominal": None}
+
+
+def _references(
+    scene: Scene,
+    samples: int,
+    seed: int,
+    dataset: Any,
+    dataset_out: str | Path | None,
+    engine: dict[str, Any],
+    progress: Progress,
+) -> tuple[dict[str, np.ndarray], dict[str, Any], str | None]:
+    """The first ``samples`` rows of the references (``dataset``, or computed), their
+    settings, and the dataset's directory (``None`` for a temporary one)."""
+    import tempfile
+
+    tmp = None
+    if dataset is None:
+        if dataset_out is None:
+            tmp = tempfile.TemporaryDirectory(prefix="hybridoc-refs-")
+            dataset_out = tmp.name
+        ds = make_dataset(scene, samples, dataset_out, seed=seed, progress=progress, **engine)
+    else:
+        ds = dataset if hasattr(dataset, "columns") else load_dataset(dataset)
+        _check_references(ds, scene, seed, samples)
+    ref = {k: v[:samples] for k, v in ds.columns.items()}
+    ref_settings = dict(ds.manifest.get("settings", {}))
+    if tmp is not None:
+        tmp.cleanup()
+    return ref, ref_settings, str(ds.path) if tmp is None else None
+
+
+def _check_references(ds: Dataset, scene: Scene, seed: int, samples: int) -> None:
+    settings = ds.manifest.get("settings", {})
+    if settings.get("scene") != scene.to_toml() or int(settings.get("seed", -1)) != seed:
+        raise HybridocError(
+            f"the dataset in {str(ds.path)!r} was drawn from another scene or seed than "
+            f"{scene.name!r} with seed {seed}"
+        )
+    if len(ds) < samples:
+        raise HybridocError(
+            f"the dataset in {str(ds.path)!r} has {len(ds)} samples; {samples} requested"
+        )
+
+
+def _rollouts(
+    common: dict[str, Any],
+    policy: Callable[..., Any],
+    samples: int,
+    engine: dict[str, Any],
+    progress: Progress,
+) -> tuple[dict[str, np.ndarray], float]:
+    """The rollout columns of draws ``0 .. samples - 1``, in order, and their wall time."""
+    _ROLLOUT_POLICY.clear()
+    _ROLLOUT_POLICY["policy" if common["policy"] is None else common["policy"]] = policy
+    parts: dict[int, dict[str, np.ndarray]] = {}
+    tally = {"done": 0, "failed": 0}
+    progress.stage("rollouts")
+
+    def on_result(cid: int, cols: dict[str, np.ndarray]) -> None:
+        parts[cid] = cols
+        tally["done"] += len(cols["index"])
+        tally["failed"] += int(np.sum(cols["rollout_status"] != "ok"))
+        progress.count(tally["done"], samples, f"{tally['failed']} failed")
+
+    t0 = time.perf_counter()
+    chunks = list(iter_chunks(samples, CHUNK))
+    try:
+        run_chunks(_rollout_chunk, common, chunks, on_result=on_result, **engine)
+    finally:
+        _ROLLOUT_POLICY.clear()
+    seconds = time.perf_counter() - t0
+    roll = {k: np.concatenate([parts[c][k] for c, _ in chunks]) for k in parts[chunks[0][0]]}
+    return roll, seconds
 
 
 def _report(

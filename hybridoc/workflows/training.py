@@ -57,6 +57,7 @@ from hybridoc.errors import ControlsError, SceneError
 from hybridoc.evaluator import adjoint, evaluate
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp, disc_scene
+from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solvers.simulator import Simulator
 from hybridoc.solvers.threads import torch_threads
 
@@ -154,7 +155,9 @@ class MLPPolicy(torch.nn.Module):
         return u[0] if single else u
 
 
-def mlp_policy(scene: Any, *, hidden: int = 32, layers: int = 2, seed: int = 0) -> MLPPolicy:
+def mlp_policy(
+    scene: ProblemLike, *, hidden: int = 32, layers: int = 2, seed: int = 0
+) -> MLPPolicy:
     """A small MLP feedback policy for a disc scene that starts near its initial guess.
 
     The inputs are normalised with the scene's scales: the time to ``[-1, 1]``, positions
@@ -236,7 +239,7 @@ class TrainResult:
 
 
 def train_policy(
-    scene: Any,
+    scene: ProblemLike,
     policy: torch.nn.Module,
     x0_batch: Any,
     *,
@@ -250,6 +253,7 @@ def train_policy(
     schedule: str = "constant",
     keep_best: bool = True,
     callback: Callable[[int, float], None] | None = None,
+    progress: ProgressLike = None,
 ) -> TrainResult:
     """Train a feedback policy through the closed-loop differentiable simulator.
 
@@ -287,6 +291,10 @@ def train_policy(
         with a constant step), not those of the last update.
     callback
         Called as ``callback(iteration, loss)`` after each iteration.
+    progress
+        ``None``/``False`` (silent, the default), ``True`` (a progress bar on stderr) or a
+        :class:`~hybridoc.progress.Progress`: the training stage and its iterations, with
+        the loss.
 
     Returns
     -------
@@ -299,6 +307,30 @@ def train_policy(
     SceneError
         An unknown optimiser or simulator setting.
     """
+    params = _trainable(policy, optimizer, schedule, iters)
+    sim = Simulator(scene, contact=contact, toi=toi, integrator=integrator)
+    x0 = _x0_tensor(x0_batch, sim.nx, batch_only=True)
+    torch.manual_seed(int(seed))
+    result = TrainResult(policy, toi=toi, contact=sim.contact, integrator=integrator)
+    t_start = time.perf_counter()
+    with progress_scope(progress, "training") as p:
+        p.stage(f"{optimizer} on {x0.shape[0]} initial states")
+        step = _Steps(result, int(iters), callback, p)
+        if optimizer == "adam":
+            _train_adam(sim, policy, x0, params, lr, schedule, keep_best, step)
+        else:
+            _train_lbfgs(sim, policy, x0, params, lr, step)
+    with torch.no_grad():
+        result.final_loss = float(sim.policy_loss(policy, x0))
+    result.seconds = time.perf_counter() - t_start
+    return result
+
+
+def _trainable(
+    policy: torch.nn.Module, optimizer: str, schedule: str, iters: int
+) -> list[torch.Tensor]:
+    """The policy's parameters to train, after the checks of :func:`train_policy`'s
+    arguments."""
     if optimizer not in OPTIMIZERS:
         raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if schedule not in ("constant", "cosine"):
@@ -310,56 +342,83 @@ def train_policy(
     params = [p for p in policy.parameters() if p.requires_grad]
     if not params:
         raise ControlsError("the policy has no parameters that require grad: nothing to train")
-    sim = Simulator(scene, contact=contact, toi=toi, integrator=integrator)
-    x0 = _x0_tensor(x0_batch, sim.nx, batch_only=True)
-    torch.manual_seed(int(seed))
-    result = TrainResult(policy, toi=toi, contact=sim.contact, integrator=integrator)
-    t_start = time.perf_counter()
-    if optimizer == "adam":
-        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
-        sched = (
-            torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(int(iters), 1), eta_min=lr / 100)
-            if schedule == "cosine"
-            else None
-        )
-        best, best_state = math.inf, None
-        for it in range(int(iters)):
-            opt.zero_grad()
-            loss = sim.policy_loss(policy, x0)
-            loss.backward()
-            value = float(loss.detach())
-            if keep_best and value < best:
-                best = value
-                best_state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
-            opt.step()
-            if sched is not None:
-                sched.step()
-            result.losses.append(value)
-            if callback is not None:
-                callback(it, value)
-        if best_state is not None:
-            with torch.no_grad():
-                last = float(sim.policy_loss(policy, x0))
-            if best < last:
-                policy.load_state_dict(best_state)
-    else:
-        opt = torch.optim.LBFGS(params, lr=lr, max_iter=20, line_search_fn="strong_wolfe")
+    return params
 
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            loss = sim.policy_loss(policy, x0)
-            loss.backward()
-            return loss
 
-        for it in range(int(iters)):
-            loss = opt.step(closure)
-            result.losses.append(float(loss.detach()))
-            if callback is not None:
-                callback(it, float(loss.detach()))
-    with torch.no_grad():
-        result.final_loss = float(sim.policy_loss(policy, x0))
-    result.seconds = time.perf_counter() - t_start
-    return result
+@dataclass
+class _Steps:
+    """Where each iteration's loss goes: the result, the callback and the progress."""
+
+    result: TrainResult
+    iters: int
+    callback: Callable[[int, float], None] | None
+    progress: Progress
+
+    def __call__(self, it: int, value: float) -> None:
+        self.result.losses.append(value)
+        if self.callback is not None:
+            self.callback(it, value)
+        self.progress.count(it + 1, self.iters, f"loss {value:.6g}")
+
+
+def _train_adam(
+    sim: Simulator,
+    policy: torch.nn.Module,
+    x0: torch.Tensor,
+    params: list[torch.Tensor],
+    lr: float,
+    schedule: str,
+    keep_best: bool,
+    step: _Steps,
+) -> None:
+    """Full-batch Adam (:func:`train_policy`), ending with the best parameters seen when
+    ``keep_best``."""
+    opt = torch.optim.Adam(params, lr=lr)
+    sched = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(step.iters, 1), eta_min=lr / 100)
+        if schedule == "cosine"
+        else None
+    )
+    best, best_state = math.inf, None
+    for it in range(step.iters):
+        opt.zero_grad()
+        loss = sim.policy_loss(policy, x0)
+        loss.backward()
+        value = float(loss.detach())
+        if keep_best and value < best:
+            best = value
+            best_state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+        opt.step()
+        if sched is not None:
+            sched.step()
+        step(it, value)
+    if best_state is not None:
+        with torch.no_grad():
+            last = float(sim.policy_loss(policy, x0))
+        if best < last:
+            policy.load_state_dict(best_state)
+
+
+def _train_lbfgs(
+    sim: Simulator,
+    policy: torch.nn.Module,
+    x0: torch.Tensor,
+    params: list[torch.Tensor],
+    lr: float,
+    step: _Steps,
+) -> None:
+    """Full-batch L-BFGS with a strong Wolfe line search (:func:`train_policy`)."""
+    opt = torch.optim.LBFGS(params, lr=lr, max_iter=20, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = sim.policy_loss(policy, x0)
+        loss.backward()
+        return loss
+
+    for it in range(step.iters):
+        loss = opt.step(closure)
+        step(it, float(loss.detach()))
 
 
 def _x0_tensor(x0: Any, nx: int, *, batch_only: bool = False) -> torch.Tensor:
