@@ -14,16 +14,22 @@ model and reports the discrete loss and the true continuous cost (the paper's Fi
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import SceneError
+from hybridoc.problems.paper import PAPER_SETTINGS
+from hybridoc.progress import ProgressLike, progress_scope
 from hybridoc.solvers.contacts import CONTACT_MODELS, ContactModel, contact_model
 
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems import Scene
+    from hybridoc.solution import Solution
+
 __all__ = [
-    "PAPER_OPTIMUM",
     "compare_contacts",
+    "DEFAULT_GD_SETTINGS",
     "compared_models",
     "contact_note",
     "gradcheck_points",
@@ -58,20 +64,27 @@ def parse_models(names: str | None) -> list[ContactModel]:
     return out
 
 
-#: Paper learning rates of plain gradient descent (section 5), 50 elsewhere.
-_PAPER_LR = {"single-collision": 200.0, "multiple-collision": 50.0}
-_PAPER_ITERS = {"single-collision": 500, "multiple-collision": 1500}
-#: The optimal losses the paper reports from its grid search (Table 1), drawn in the
-#: learning-curve figure. The exact optima are 0.311416870358 and 0.356279430543.
-PAPER_OPTIMUM = {"single-collision": 0.3115, "multiple-collision": 0.3737}
+DEFAULT_GD_SETTINGS: tuple[float, int] = (50.0, 500)
+"""``(learning rate, iterations)`` of plain gradient descent on a scene the paper did not
+solve."""
 
 
-def paper_gd_settings(scene: Any) -> tuple[float, int]:
+def paper_gd_settings(scene: Scene) -> tuple[float, int]:
     """``(learning rate, iterations)`` of the paper's plain gradient descent on ``scene``.
 
-    200 and 500 on single-collision, 50 and 1500 on multiple-collision; 50 and 500 elsewhere.
+    :data:`hybridoc.problems.paper.PAPER_SETTINGS` (200 and 500 on single-collision, 50 and
+    1500 on multiple-collision); :data:`DEFAULT_GD_SETTINGS` (50 and 500) elsewhere.
+
+    Parameters
+    ----------
+    scene : Scene
+        The disc scene (its ``name`` is looked up).
+
+    Returns
+    -------
+    tuple of (float, int)
     """
-    return _PAPER_LR.get(scene.name, 50.0), _PAPER_ITERS.get(scene.name, 500)
+    return PAPER_SETTINGS.get(scene.name, DEFAULT_GD_SETTINGS)
 
 
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
@@ -81,19 +94,19 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def gradient_errors(
-    scene: Any, controls: np.ndarray, model: ContactModel, exact: Any = None
+    scene: Scene, controls: np.ndarray, model: ContactModel, exact: Any = None
 ) -> dict[str, Any]:
     """Relative errors of one contact model's gradient against the exact gradient.
 
     Parameters
     ----------
-    scene
-        A :class:`~hybridoc.problems.Scene`.
-    controls
+    scene : Scene
+        The disc scene.
+    controls : numpy.ndarray
         ``(N, nu)`` piecewise-constant controls at which both gradients are taken.
-    model
+    model : ContactModel
         The contact model.
-    exact
+    exact : hybridoc.Gradient, optional
         The :class:`hybridoc.Gradient` at ``controls`` if already computed.
 
     Returns
@@ -133,7 +146,7 @@ def gradient_errors(
     }
 
 
-def gradcheck_points(scene: Any, gd_iters: list[int]) -> list[tuple[str, np.ndarray]]:
+def gradcheck_points(scene: Scene, gd_iters: list[int]) -> list[tuple[str, np.ndarray]]:
     """The controls at which ``gradcheck`` compares gradients.
 
     The initial guess and the iterates ``gd_iters`` of the paper's plain gradient descent with
@@ -163,13 +176,13 @@ def gradcheck_points(scene: Any, gd_iters: list[int]) -> list[tuple[str, np.ndar
 
 
 def compare_contacts(
-    scene: Any,
+    scene: Scene,
     *,
     models: list[ContactModel] | None = None,
     iters: int | None = None,
     lr: float | None = None,
-    progress: bool = False,
-) -> dict[str, Any]:
+    progress: ProgressLike = None,
+) -> dict[str, Solution]:
     """Plain gradient descent (the paper's settings, symplectic Euler) with every model.
 
     Every model runs on the compiled CasADi path where it has one for ``scene``
@@ -177,14 +190,15 @@ def compare_contacts(
 
     Parameters
     ----------
-    scene
-        A :class:`~hybridoc.problems.Scene`.
-    models
+    scene : Scene
+        The disc scene.
+    models : list of ContactModel, optional
         The contact models (default :func:`compared_models`).
-    iters, lr
+    iters, lr : int and float, optional
         Iterations and learning rate (default :func:`paper_gd_settings`).
-    progress
-        Show on stderr a progress line per model, named after the model.
+    progress : bool or Progress, optional
+        ``True`` for a progress meter on stderr, or a :class:`~hybridoc.progress.Progress`:
+        a stage per model, named after it, and a count of its iterations.
 
     Returns
     -------
@@ -194,41 +208,35 @@ def compare_contacts(
         (``cost``), the events of its controls (``events``, see :func:`contact_note`) and the
         learning curve (``arrays["loss_history"]``).
     """
-    from hybridoc.solvers.gd import _Progress, solve_gd
+    from hybridoc.solvers.gd import solve_gd
 
     lr0, it0 = paper_gd_settings(scene)
     iters = it0 if iters is None else iters
     models = list(models or compared_models())
     out = {}
-    for k, model in enumerate(models, 1):
-        toi = getattr(model, "toi", "both")
-        bar = _Progress(iters, f"{model.label} ({k}/{len(models)})") if progress else None
+    with progress_scope(progress, "compare-contacts") as meter:
+        for k, model in enumerate(models, 1):
+            meter.stage(f"{model.label} ({k}/{len(models)})")
 
-        def show(it: int, loss: float, _u: Any, bar: Any = bar) -> bool:
-            bar.update(it, loss)
-            return False
+            def show(it: int, loss: float, _u: Any) -> bool:
+                meter.count(it, iters, f"loss {loss:.6g}")
+                return False
 
-        try:
             sol = solve_gd(
                 scene,
-                contact=model.name,
-                toi=toi,
+                contact=model,
                 integrator="symplectic-euler",
                 optimizer="gd",
                 lr=lr0 if lr is None else lr,
                 iters=iters,
-                callback=show if bar is not None else None,
+                callback=show,
             )
-            if bar is not None:
-                bar.update(sol.info["iterations"], sol.info["loss"], force=True)
-        finally:
-            if bar is not None:
-                bar.close()
-        out[model.label] = sol
+            meter.count(sol.info["iterations"], iters, f"loss {sol.info['loss']:.6g}")
+            out[model.label] = sol
     return out
 
 
-def contact_note(label: str, sol: Any) -> str | None:
+def contact_note(label: str, sol: Solution) -> str | None:
     """``"<label>: no contact in the final trajectory"`` when the event-exact evaluation of a
     solution's controls has no contact event (the models were not compared on a collision),
     else ``None``."""

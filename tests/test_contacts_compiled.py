@@ -202,16 +202,20 @@ def test_gradient_descent_uses_the_compiled_path_within_the_limit() -> None:
 
     small = hybridoc.load_scene("multiple-collision").to_ocp()
     for name in CONTACT_MODELS:
-        _, path = make_loss(small, name, "both", "symplectic-euler")
+        _, path = make_loss(small, contact_model(name), "symplectic-euler")
         assert path == "compiled", name
     big = random_scene(4, 4, 2).to_ocp()
-    _, path = make_loss(big, "lcp", "both", "symplectic-euler")
+    _, path = make_loss(big, contact_model("lcp/both"), "symplectic-euler")
     assert path == "torch"  # beyond the enumeration limit the torch path takes over
     with pytest.raises(SceneError, match="torch"):
-        make_loss(big, "convex", "both", "symplectic-euler", path="compiled")
+        make_loss(big, contact_model("convex/both"), "symplectic-euler", path="compiled")
 
 
-def test_compare_contacts_names_the_models(capsys, tmp_path) -> None:
+def test_compare_contacts_names_the_models(capsys, tmp_path, monkeypatch) -> None:
+    import hybridoc.progress
+
+    monkeypatch.setattr(hybridoc.progress, "QUIET_LOG_S", 0.0)  # progress lines from the start
+    monkeypatch.setattr(hybridoc.progress, "QUIET_S", 0.0)
     code = main(
         ["compare-contacts", "single-collision", "--iters", "2", "--models", "lcp/both,pbd"]
     )

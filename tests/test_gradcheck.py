@@ -10,8 +10,9 @@ import pytest
 
 import hybridoc
 from hybridoc.cli import main
+from hybridoc.problems.paper import PAPER_SETTINGS
 from hybridoc.solvers.contacts import contact_model
-from hybridoc.solvers.gradcheck import compared_models, gradient_errors
+from hybridoc.solvers.gradcheck import compared_models, gradient_errors, paper_gd_settings
 
 
 @pytest.fixture(scope="module")
@@ -93,3 +94,37 @@ def test_cli_unknown_model_is_a_user_error(capsys):
 def test_models_cover_the_paper_list():
     names = {m.label for m in compared_models()}
     assert {"direct/none", "direct/both", "lcp/both", "convex/both", "compliant", "pbd"} <= names
+
+
+def test_paper_gd_settings_read_the_paper_numbers():
+    for name, settings in PAPER_SETTINGS.items():
+        assert paper_gd_settings(hybridoc.load_scene(name)) == settings
+    assert paper_gd_settings(hybridoc.load_scene("head-on")) == (50.0, 500)
+
+
+def test_compare_contacts_reports_through_the_progress_protocol():
+    from hybridoc.solvers.gradcheck import compare_contacts
+
+    class Recorder:
+        def __init__(self):
+            self.stages, self.counts, self.closed = [], [], False
+
+        def stage(self, text):
+            self.stages.append(text)
+
+        def detail(self, text):
+            pass
+
+        def count(self, done, total, text=""):
+            self.counts.append((done, total))
+
+        def close(self):
+            self.closed = True
+
+    rec = Recorder()
+    models = [contact_model("direct/both"), contact_model("pbd")]
+    sols = compare_contacts(hybridoc.load_scene("single-collision"), models=models, iters=2,
+                            progress=rec)  # fmt: skip
+    assert list(sols) == ["direct/both", "pbd"]
+    assert rec.stages == ["direct/both (1/2)", "pbd (2/2)"]
+    assert (2, 2) in rec.counts and not rec.closed  # a caller's Progress stays open

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
     add_json_out,
@@ -22,6 +22,12 @@ from hybridoc.cli._util import (
     say,
 )
 from hybridoc.errors import HybridocError, SceneError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from matplotlib.figure import Figure
+
+    from hybridoc.problems import Scene
+    from hybridoc.solution import Solution
 
 __all__ = ["register"]
 
@@ -103,11 +109,11 @@ def cmd_gradcheck(args: argparse.Namespace) -> int:
     return 0
 
 
-def _learning_curves(scene: Any, sols: dict[str, Any]) -> Any:
+def _learning_curves(scene: Scene, sols: dict[str, Solution]) -> Figure:
     import numpy as np
     from matplotlib.figure import Figure
 
-    from hybridoc.solvers.gradcheck import PAPER_OPTIMUM
+    from hybridoc.problems.paper import PAPER_OPTIMUM
 
     groups = [
         ("velocity-impulse models", [k for k in sols if "/" in k]),
@@ -142,14 +148,14 @@ def _learning_curves(scene: Any, sols: dict[str, Any]) -> Any:
 def cmd_compare_contacts(args: argparse.Namespace) -> int:
     """Plain gradient descent with every contact model: discrete loss and true cost.
 
-    Uses the paper's learning rate (200 on single-collision, 50 elsewhere) and iterations (500,
-    1500 on multiple-collision, 500 elsewhere) unless --iters / --lr are given; the true cost
+    Uses the paper's learning rate and iterations (hybridoc.problems.paper; 50 and 500 on
+    other scenes) unless --iters / --lr are given; the true cost
     is the event-exact continuous cost of the learned controls. A model whose learned
     controls make no contact at all is named in one line below the table.
     """
     from hybridoc.cli.evaluate import save
+    from hybridoc.problems.paper import PAPER_OPTIMUM
     from hybridoc.solvers.gradcheck import (
-        PAPER_OPTIMUM,
         compare_contacts,
         contact_note,
         paper_gd_settings,
