@@ -34,8 +34,8 @@ def _near_touches(ocp: HybridOCP, ev: Evaluation, limit: int = 2) -> list[tuple[
     """Local minima of guards without an event, closest first (at most ``limit``)."""
     if not ocp.guards:
         return []
-    radii = ocp.meta.get("radii")
-    thresh = float(np.max(radii)) if radii is not None else None
+    # disc scenes: within the largest radius; other problems: a tenth of the guard's range
+    thresh = max(d.radius for d in ocp.scene.discs) if isinstance(ocp, DiscOCP) else None
     t, X = ev.times, ev.states
     fired = {(e.name, round(e.time, 3)) for e in ev.events}
     found = []

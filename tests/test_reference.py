@@ -20,6 +20,7 @@ import pytest
 from scipy.optimize import minimize, minimize_scalar
 
 import hybridoc
+import hybridoc.solvers  # noqa: F401  (registers the candidate sources the reference uses)
 from hybridoc import ConvergenceError, Disc, Scene, SceneError
 from hybridoc.reference import reference_control, solve_reference
 

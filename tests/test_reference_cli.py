@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 import hybridoc
+import hybridoc.solvers  # noqa: F401  (registers the candidate sources the reference uses)
 from hybridoc.cli import main
 
 

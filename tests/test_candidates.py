@@ -1,0 +1,199 @@
+"""The reference's candidates interface (:mod:`hybridoc.reference.sources`).
+
+The reference imports no solver: candidate sequences and controls come from sources passed
+in or registered (the solvers register theirs when :mod:`hybridoc.solvers` is imported), and
+the result says which sources it used.
+"""
+
+from __future__ import annotations
+
+import ast
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hybridoc
+import hybridoc.solvers  # noqa: F401  (registers the solvers' candidate sources)
+from hybridoc.errors import ConvergenceError, SceneError
+from hybridoc.reference import (
+    Proposal,
+    register_source,
+    registered_sources,
+    solve_reference,
+    unregister_source,
+)
+from hybridoc.reference.solve import METHOD, ReferenceOptions, parse_search
+from hybridoc.solvers.candidates import MultiStartSource, TranscriptionSource
+
+REFERENCE = Path(__file__).resolve().parents[1] / "reference"
+#: multiple-collision's optimum (independently: tests/test_reference.py, the paper's issue)
+OPTIMUM = 0.356279430543373
+OPTIMAL_SEQUENCE = ["ball1|ball2", "ball2|wall", "ball1|ball2"]
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Every module a file imports, at any depth (imports inside functions count)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module is not None:
+            found.add(node.module)
+            found |= {f"{node.module}.{alias.name}" for alias in node.names}
+    return found
+
+
+def test_no_reference_module_imports_a_solver() -> None:
+    files = sorted(REFERENCE.glob("*.py"))
+    assert len(files) >= 6
+    for path in files:
+        bad = sorted(m for m in _imported_modules(path) if m.startswith("hybridoc.solvers"))
+        assert not bad, f"{path.name} imports {bad}"
+
+
+class _Oracle:
+    """Proposes multiple-collision's optimal sequence, with no control."""
+
+    name = "oracle"
+
+    def propose(self, ocp, context):
+        assert context.evaluation.cost > 0 and context.controls.shape == (ocp.steps, ocp.nu)
+        return [Proposal(self.name, OPTIMAL_SEQUENCE)]
+
+
+class _Useless:
+    name = "useless"
+
+    def propose(self, ocp, context):
+        return []
+
+
+class _Broken:
+    name = "broken"
+
+    def propose(self, ocp, context):
+        raise ConvergenceError("nothing converged")
+
+
+def _at_rest() -> tuple[hybridoc.HybridOCP, np.ndarray]:
+    # from zero controls nothing moves: the guess proposes no event, and its one-event
+    # neighbours are not realisable, so only a source can reach the optimum
+    ocp = hybridoc.as_ocp("multiple-collision")
+    return ocp, np.zeros((ocp.steps, ocp.nu))
+
+
+def test_a_source_passed_in_proposes_the_optimal_sequence() -> None:
+    ocp, zero = _at_rest()
+    sol = solve_reference(ocp, initial=zero, sources=[_Oracle()])
+    assert sol.success and sol.sequence == OPTIMAL_SEQUENCE
+    assert sol.cost == pytest.approx(OPTIMUM, rel=1e-9)
+    origins = {tuple(c["sequence"]): c["origin"] for c in sol.info["candidates"]}
+    assert origins[tuple(OPTIMAL_SEQUENCE)] == "oracle"
+    names = [s["name"] for s in sol.info["sources"]]
+    assert names == ["initial guess", "oracle", "one-event sequences"]
+    row = sol.info["sources"][1]
+    assert row["kind"] == "given" and row["proposals"] == 1
+    assert sol.info["warm_starts"] == []  # no source given that starts the shooting
+
+
+def test_a_useless_or_broken_source_still_runs() -> None:
+    ocp, zero = _at_rest()
+    sol = solve_reference(ocp, initial=zero, sources=[_Useless(), _Broken()])
+    assert sol.cost > OPTIMUM * 1.5  # the no-event extremal: nothing proposed better
+    rows = {s["name"]: s for s in sol.info["sources"]}
+    assert rows["useless"]["proposals"] == 0 and "failed" not in rows["useless"]
+    assert rows["broken"]["failed"] == "nothing converged"
+
+
+def test_a_proposed_control_is_known_and_leads_to_the_optimum() -> None:
+    """A proposal's control is one the result must not be worse than."""
+    ocp = hybridoc.as_ocp("multiple-collision")
+    best = solve_reference(ocp, sources=[])
+    assert best.cost == pytest.approx(OPTIMUM, rel=1e-9)
+
+    class Known:
+        name = "known"
+
+        def propose(self, ocp, context):
+            ev = hybridoc.evaluate(ocp, best.controls)
+            return [Proposal(self.name, ev.sequence, best.controls, ev, solve=False, label="a")]
+
+    ocp2, zero = _at_rest()
+    sol = solve_reference(ocp2, initial=zero, sources=[Known()])
+    # the trust step solves the sequence of the cheaper known control again, from it
+    assert sol.success and sol.cost == pytest.approx(OPTIMUM, rel=1e-9)
+    assert {"source": "a", "cost": pytest.approx(OPTIMUM, rel=1e-3),
+            "sequence": OPTIMAL_SEQUENCE} in sol.info["known_controls"]  # fmt: skip
+    origins = {tuple(c["sequence"]): c["origin"] for c in sol.info["candidates"]}
+    assert origins[tuple(OPTIMAL_SEQUENCE)] == "cheaper a"
+
+
+def test_registered_sources_are_the_default_and_recorded() -> None:
+    names = [s.name for s in registered_sources()]
+    assert names[:2] == ["transcription", "multi-start"]
+    sol = solve_reference("single-collision")
+    assert sol.cost == pytest.approx(0.31141687035847165, rel=1e-9)
+    used = [(s["name"], s["kind"]) for s in sol.info["sources"]]
+    assert ("transcription", "registered") in used and ("multi-start", "registered") in used
+    assert sol.info["warm_starts"] == ["transcription"]
+    # the legacy switches turn the built-in sources off
+    off = solve_reference("single-collision", transcription=False, multistart=0)
+    assert [s["name"] for s in off.info["sources"]] == ["initial guess", "one-event sequences"]
+    assert off.info["warm_starts"] == []
+
+
+def test_an_empty_registry_warns(monkeypatch: pytest.MonkeyPatch) -> None:
+    saved = registered_sources()
+    try:
+        for s in saved:
+            unregister_source(s.name)
+        with pytest.warns(UserWarning, match="no candidate sources are registered"):
+            sol = solve_reference("single-collision")
+        assert [s["name"] for s in sol.info["sources"]] == ["initial guess", "one-event sequences"]
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            solve_reference("single-collision", sources=[])  # an explicit choice: no warning
+    finally:
+        for s in saved:
+            register_source(s)
+    assert registered_sources() == saved
+
+
+def test_bad_sources_are_scene_errors() -> None:
+    with pytest.raises(SceneError, match="candidate source needs a name"):
+        solve_reference("single-collision", sources=[object()])
+    with pytest.raises(SceneError, match="list of candidate sources"):
+        solve_reference("single-collision", sources="transcription")
+    with pytest.raises(TypeError, match="candidate source needs a name"):
+        register_source(object())
+
+
+def test_the_transcription_starts_the_shooting_of_a_given_sequence() -> None:
+    """The fallback of :func:`solve_sequence` goes through the SequenceStarter protocol."""
+    from hybridoc.reference.sequence import solve_sequence
+
+    ocp = hybridoc.as_ocp("bouncing-ball-2")
+    ev = hybridoc.evaluate(ocp)
+    src = TranscriptionSource()
+    proposal = src.start(ocp, ev.sequence, ev, np.asarray(ocp.u_guess, dtype=float))
+    assert proposal.warm_start is not None and not proposal.known
+    res, why = solve_sequence(
+        ocp, ev.sequence, proposal.warm_start.event_times, np.asarray(ocp.u_guess, dtype=float),
+        warm_start=proposal.warm_start,
+    )  # fmt: skip
+    assert res is not None, why
+
+
+def test_the_method_declares_its_options() -> None:
+    METHOD.check_signature()
+    assert METHOD.name == "reference" and METHOD.tolerance == 1e-9
+    assert METHOD.options is ReferenceOptions
+    cli = [s.name for s in METHOD.specs() if s.cli]
+    assert cli == ["sequence", "search", "verbose"]
+    assert parse_search("3") == 3
+    for bad, match in (("-1", ">= 0"), ("x", ">= 0"), ("9", "at most 8")):
+        with pytest.raises(ValueError, match=match):
+            parse_search(bad)
+    assert isinstance(MultiStartSource().name, str)
