@@ -410,6 +410,35 @@ def test_bad_policies_are_one_clear_error(
     assert code == 2 and err.count("\n") == 1 and words in err, err
 
 
+def test_dataset_and_rollouts_report_through_one_progress(files: Path, dataset: Any,
+                                                          tmp_path: Path) -> None:  # fmt: skip
+    stages: list[str] = []
+    counts: list[tuple[int, int, str]] = []
+
+    class Recorder:
+        def stage(self, text: str) -> None:
+            stages.append(text)
+
+        def detail(self, text: str) -> None:
+            pass
+
+        def count(self, done: int, total: int, text: str = "") -> None:
+            counts.append((done, total, text))
+
+        def close(self) -> None:
+            raise AssertionError("a caller's Progress is not closed by the run")
+
+    rec = Recorder()
+    ds = make_dataset(files / "scene.toml", 2, tmp_path / "two", workers=1, progress=rec)
+    assert "nominal scene" in stages and stages[-1] == "draws"
+    assert counts[-1] == (2, 2, f"{int(np.sum(ds['status'] != 'success'))} failed")
+    stages.clear()
+    counts.clear()
+    validate_policy(files / "scene.toml", f"{files / 'pol.py'}:good", 2, dataset=dataset,
+                    workers=1, progress=rec)  # fmt: skip
+    assert stages == ["references", "rollouts"] and counts[-1] == (2, 2, "0 failed")
+
+
 def test_validate_policy_report(files: Path, dataset: Any, dask_client: Any) -> None:
     rep = validate_policy(files / "scene.toml", f"{files / 'pol.py'}:good", M,
                           dataset=dataset.path, workers=1, progress=False)  # fmt: skip

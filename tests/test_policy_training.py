@@ -162,6 +162,39 @@ def test_training_reduces_the_loss(scene, toi):
     assert res2.losses == res.losses
 
 
+class Recorder:
+    """A Progress that records what a run reports."""
+
+    def __init__(self) -> None:
+        self.stages: list[str] = []
+        self.counts: list[tuple[int, int, str]] = []
+        self.closed = False
+
+    def stage(self, text: str) -> None:
+        self.stages.append(text)
+
+    def detail(self, text: str) -> None:
+        pass
+
+    def count(self, done: int, total: int, text: str = "") -> None:
+        self.counts.append((done, total, text))
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_training_reports_its_iterations_through_progress(scene):
+    small = scene.with_steps(24)
+    rec = Recorder()
+    res = train_policy(
+        small, mlp_policy(small, hidden=4, layers=1), _x0_batch(small, 2), iters=3, progress=rec
+    )
+    assert rec.stages == ["adam on 2 initial states"]
+    assert [c[:2] for c in rec.counts] == [(1, 3), (2, 3), (3, 3)]
+    assert rec.counts[-1][2] == f"loss {res.losses[-1]:.6g}"
+    assert not rec.closed  # a caller's own Progress stays open for its next stage
+
+
 def test_lbfgs_training_reduces_the_loss(scene):
     small = scene.with_steps(24)
     pol = mlp_policy(small, hidden=4, layers=1, seed=0)

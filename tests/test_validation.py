@@ -151,6 +151,43 @@ def test_crossval_cli_json(tmp_path):
         assert (tmp_path / f"{SCENE}_crossval_{name}.png").exists()
 
 
+def test_crossval_reports_through_one_progress(monkeypatch):
+    """crossval names each method's stage and hands its Progress to every method it runs;
+    tolerances come from the methods' own declarations unless overridden."""
+    import hybridoc.workflows.validation as v
+
+    stages, passed = [], []
+
+    class Recorder:
+        def stage(self, text):
+            stages.append(text)
+
+        def detail(self, text):
+            pass
+
+        def count(self, done, total, text=""):
+            pass
+
+        def close(self):
+            raise AssertionError("a caller's Progress is not closed by crossval")
+
+    solve = v.solve
+
+    def spy(ocp, name, **kw):
+        passed.append((name, kw.get("progress")))
+        return solve(ocp, name, **kw)
+
+    monkeypatch.setattr(v, "solve", spy)
+    rec = Recorder()
+    report, _ = v.crossval("head-on", methods=("dt",), tolerances={"dt": 1e-3}, progress=rec)
+    assert stages[:1] == ["reference"] and "dt" in stages
+    assert "comparing dt with the reference" in stages
+    assert [name for name, _ in passed][:2] == ["reference", "dt"]
+    assert all(p is rec for _, p in passed)
+    assert report["reference"]["tolerance"] == hybridoc.methods.METHODS["reference"].tolerance
+    assert report["dt"]["tolerance"] == 1e-3
+
+
 def test_crossval_multiple_collision_local_and_global_gaps():
     """gd (exact flow, lbfgs) from the paper's guess alone lands in the two-event basin:
     within 0.25% of that sequence's HMP extremal, and about 4.9% above the three-event

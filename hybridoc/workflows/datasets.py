@@ -978,7 +978,9 @@ def _nominal(scene: Scene, tol: float, progress: Progress) -> dict[str, Any] | N
     progress.stage("nominal scene")
     t0 = time.perf_counter()
     try:
-        sol = solve_reference(dataclasses.replace(scene, distribution=None), tol=tol)
+        sol = solve_reference(
+            dataclasses.replace(scene, distribution=None), tol=tol, progress=progress
+        )
     except HybridocError as exc:
         _notice(f"nominal scene: no reference ({exc}); every draw gets the full discovery")
         return None

@@ -252,7 +252,8 @@ def crossval(
                 report[name] = {"error": errors[name], "wall_time_s": walls[name]}
                 reasons.append(f"{name} failed: {errors[name]}")
                 continue
-            p.stage(f"{name} against the reference")
+            if name != "reference":
+                p.stage(f"comparing {name} with the reference")
             report[name], why = _judge_method(ocp, name, sols[name], ref, walls[name], tol[name], p)
             reasons += why
     report["agree"] = not reasons
