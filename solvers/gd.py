@@ -3,7 +3,9 @@
 :func:`solve_gd` minimises the discrete objective ``phi(s_N) + sum_n c_n`` over the
 ``N x nu`` piecewise-constant controls and measures the result with the event-exact judge:
 the returned :class:`~hybridoc.solution.Solution` carries the *true* continuous cost of the
-controls.
+controls. The method's options are the fields of :class:`GDOptions`; :data:`METHOD` registers
+it as ``method="gd"`` (:mod:`hybridoc.methods`), with its crossval tolerance, defaults and
+discrete-gap check.
 
 Which simulation
     Disc scenes use the disc simulator with a contact model of
@@ -12,7 +14,9 @@ Which simulation
     the scene (every model, within limits such as the number of contacts of ``lcp`` and
     ``convex``), else the torch :class:`~hybridoc.solvers.simulator.Simulator`. Every other
     problem uses the generic time-of-impact simulation (:mod:`hybridoc.solvers.toi_sim`),
-    compiled the same way.
+    compiled the same way. The contact model is a name or a
+    :class:`~hybridoc.solvers.contacts.ContactModel` (``LCP(toi="both")``,
+    ``contact_model("compliant", stiffness=2e4)``), turned into a model object once, on entry.
 
 Integrator
     ``"exact"`` (the default): the exact flow of the piecewise-constant control with
@@ -23,38 +27,71 @@ Control bounds and path constraints
     Bounds are honoured by projection (``gd``, ``adam``) or by SciPy's L-BFGS-B (``lbfgs``);
     path constraints by a quadratic penalty in the objective, and the judge reports any
     remaining violation (status ``infeasible``).
+
+The pieces of a run
+    :func:`checked_options` validates the options and fills in their defaults; hops
+    (:func:`_hop`) and the multi-start (:func:`_multistart`) wrap the continuation
+    (:func:`_continuation`: the smoothing stages, then the real problem), which runs single
+    descents (:func:`_descend`, the optimiser loop in :class:`_Run`). One
+    :class:`~hybridoc.progress.Progress` serves the whole run: a stage per smoothing weight,
+    hop round and multi-start phase, a count per iteration.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
-import sys
 import time
 import weakref
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import SceneError
+from hybridoc.evaluator import evaluate
+from hybridoc.methods import (
+    Method,
+    nonnegative_int,
+    option,
+    positive_float,
+    positive_int,
+    settings_lines,
+)
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.problems.paper import PAPER_SETTINGS
+from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status
 from hybridoc.solvers.threads import torch_threads
 
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.evaluation import Evaluation
+    from hybridoc.solvers.contacts import ContactModel
+
 __all__ = [
     "DEFAULT_SMOOTHING",
+    "DISCRETE_TOLERANCE",
+    "GD_HOPS",
+    "GD_STARTS",
     "HOP_BATCH",
     "HOP_ITERS",
     "HOP_PATIENCE",
     "HOP_SCALES",
     "INTEGRATORS",
+    "METHOD",
     "OPTIMIZERS",
     "PAPER_SETTINGS",
+    "PATHS",
+    "GDOptions",
+    "checked_options",
+    "default_integrator",
     "default_settings",
     "make_loss",
+    "parse_smoothing",
     "solve_gd",
 ]
 
@@ -62,11 +99,8 @@ INTEGRATORS = ("exact", "symplectic-euler")
 
 OPTIMIZERS = ("gd", "adam", "lbfgs")
 
-PAPER_SETTINGS: dict[str, tuple[float, int]] = {
-    "single-collision": (200.0, 500),
-    "multiple-collision": (50.0, 1500),
-}
-"""The paper's plain gradient descent: ``scene name -> (learning rate, iterations)``."""
+PATHS = ("auto", "compiled", "torch")
+"""Where the loss is computed (``path`` of :func:`solve_gd`)."""
 
 DEFAULT_SMOOTHING = (1e-4, 1e-5, 1e-6)
 """Default continuation weights of ``lbfgs`` (see ``smoothing`` in :func:`solve_gd`)."""
@@ -74,6 +108,20 @@ DEFAULT_SMOOTHING = (1e-4, 1e-5, 1e-6)
 STALL_RTOL = 1e-9
 """Convergence test at the iteration limit (:func:`solve_gd`): the loss changed by at most
 this, relative, over the last :func:`stall_window` iterations."""
+
+GD_STARTS = {"disc": 32, "generic": 16}
+"""Cross-validation runs gradient descent as a multi-start (``starts``), since a local method
+from one guess can land in another basin (multiple-collision's two-event extremal); disc
+scenes have aimed starts, hence more of them."""
+
+GD_HOPS = 8
+"""Hops (batched restarts, :func:`solve_gd`) of gradient descent in cross-validation on the
+paper's symplectic Euler objective, whose kinks stall a plain descent."""
+
+DISCRETE_TOLERANCE = 1e-6
+"""Relative gap of gd's discrete loss to the optimum of its own discrete objective within
+which the two agree in cross-validation
+(:func:`~hybridoc.solvers.discrete_transcription.discrete_gap`)."""
 
 
 def stall_window(iters: int) -> int:
@@ -87,17 +135,123 @@ def _positive(x: Any) -> bool:
     return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x) and x > 0
 
 
+def _whole(x: Any, least: int) -> bool:
+    """``x`` is an integer (not a bool) ``>= least``."""
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool) and x >= least
+
+
 class _NonFinite(Exception):
     """The loss or its gradient became NaN or infinite."""
+
+
+# ---------------------------------------------------------------------- the options
+def parse_smoothing(text: str) -> tuple[float, ...]:
+    """Command-line parser of ``smoothing``: comma-separated weights, or ``none`` (or an
+    empty text) for no continuation (``ValueError`` with a one-line reason)."""
+    if text.strip().lower() in ("none", ""):
+        return ()
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(f"expected comma-separated numbers or 'none', got {text!r}") from None
+
+
+def _contact_names() -> list[str]:
+    """The registered contact models (read when the CLI's flags are built)."""
+    from hybridoc.solvers.contacts import model_names
+
+    return model_names()
+
+
+def _toi_modes() -> tuple[str, ...]:
+    """The time-of-impact settings of the impulse models."""
+    from hybridoc.solvers.contacts import TOI_MODES
+
+    return TOI_MODES
+
+
+@dataclass(frozen=True)
+class GDOptions:
+    """The options of gradient descent (``method="gd"``); each is a keyword of
+    :func:`solve_gd`, whose docstring says more, and (but the Python-only ones) a flag of
+    ``hybridoc solve``."""
+
+    contact: str | ContactModel = option(
+        "direct",
+        "disc contact model (default direct)",
+        choices=_contact_names,
+    )
+    toi: str | None = option(
+        None,
+        "time-of-impact correction (default both)",
+        choices=_toi_modes,
+    )
+    integrator: str | None = option(
+        None,
+        "exact (default) or the paper's symplectic-euler",
+        choices=INTEGRATORS,
+    )
+    optimizer: str = option("lbfgs", "default lbfgs", choices=OPTIMIZERS)
+    smoothing: tuple[float, ...] | None = option(
+        None,
+        "continuation weights of the control-smoothness penalty, or 'none' "
+        "(default: 1e-4,1e-5,1e-6 for lbfgs, none otherwise)",
+        parse=parse_smoothing,
+        metavar="MU,MU",
+    )
+    iters: int | None = option(
+        None, "iterations (per continuation stage with lbfgs)", parse=nonnegative_int
+    )
+    lr: float | None = option(None, "learning rate", parse=positive_float)
+    starts: int = option(
+        1,
+        "batched multi-start: K initial controls at once (the guess, its perturbations, "
+        "random smooth and aimed controls); the best is returned, all K in the JSON "
+        "(default 1)",
+        parse=positive_int,
+        metavar="K",
+    )
+    seed: int | None = option(
+        0, "seed of the multi-start's random starts (default 0)", parse=nonnegative_int
+    )
+    hops: int = option(
+        0,
+        "up to K rounds of batched restarts around the result, to get past the kinks of the "
+        "symplectic Euler loss (default 0)",
+        parse=nonnegative_int,
+        metavar="K",
+    )
+    callback: Callable[[int, float, np.ndarray], Any] | None = option(
+        None,
+        "called as callback(iteration, loss, controls) after every iteration; a true return "
+        "value stops the optimisation",
+        cli=False,
+    )
+    path: str = option(
+        "auto",
+        "auto (compiled where the model's CasADi step serves the scene, else torch), "
+        "compiled or torch",
+        choices=PATHS,
+        cli=False,
+    )
+    max_step: float | None = option(
+        None,
+        "lbfgs only: the largest change of any control value in one iteration (default: no limit)",
+        cli=False,
+    )
+    path_weight: float = option(
+        1e5, "weight of the quadratic penalty on path-constraint violations", cli=False
+    )
 
 
 def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
     """Default ``(learning rate, iterations)`` of an optimiser on a scene.
 
-    Plain ``gd`` uses the paper's settings on the paper's problems and otherwise a learning
-    rate of ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``)
-    for 1000 iterations; ``adam`` uses 0.05 for 1000 iterations; ``lbfgs`` a step of 0.1 (the
-    first trial step of its strong-Wolfe line search) for at most 300 iterations: with 1.0 it
+    Plain ``gd`` uses the paper's settings on the paper's problems
+    (:data:`hybridoc.problems.paper.PAPER_SETTINGS`) and otherwise a learning rate of
+    ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``) for 1000
+    iterations; ``adam`` uses 0.05 for 1000 iterations; ``lbfgs`` a step of 0.1 (the first
+    trial step of its strong-Wolfe line search) for at most 300 iterations: with 1.0 it
     leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
     """
     if optimizer == "gd":
@@ -109,50 +263,57 @@ def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
     raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
 
 
-class _Progress:
-    """A one-line progress bar on stderr."""
-
-    def __init__(self, total: int, label: str) -> None:
-        self.total, self.label, self.last = total, label, 0.0
-
-    def update(self, k: int, loss: float, force: bool = False) -> None:
-        now = time.perf_counter()
-        if not force and now - self.last < 0.1:
-            return
-        self.last = now
-        width = 30
-        filled = int(width * k / max(self.total, 1))
-        bar = "#" * filled + "." * (width - filled)
-        sys.stderr.write(f"\r{self.label} [{bar}] {k}/{self.total} loss {loss:.6g}")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
+# ---------------------------------------------------------------------- the loss
 _LOSSES: weakref.WeakKeyDictionary[Structure, dict[tuple[Any, ...], Any]] = (
     weakref.WeakKeyDictionary()
 )
 
 
+def _model_key(model: ContactModel) -> tuple[Any, ...]:
+    """What identifies a contact model in the loss cache: its class and settings."""
+    return (type(model), tuple(sorted((k, repr(v)) for k, v in model.settings().items())))
+
+
+def _is_direct_both(model: ContactModel) -> bool:
+    return model.name == "direct" and getattr(model, "toi", None) == "both"
+
+
 def make_loss(
     ocp: HybridOCP,
-    contact: str,
-    toi: str,
+    contact: str | ContactModel,
     integrator: str,
     path: str = "auto",
     path_weight: float = 1e5,
 ) -> tuple[Any, str]:
     """The differentiable objective of a problem: ``(loss object, "compiled" | "torch")``.
 
-    The loss object has ``loss(controls, x0=None)`` (torch, differentiable). Compiled losses
-    are kept per problem structure and settings: building one takes milliseconds, but
-    continuation stages and repeated solves reuse it.
+    Parameters
+    ----------
+    ocp
+        The problem.
+    contact
+        The contact model (disc scenes): a :class:`~hybridoc.solvers.contacts.ContactModel`,
+        or a name for :func:`~hybridoc.solvers.contacts.contact_model` with its defaults.
+        Generic problems take only ``direct`` with TOI ``both`` (their time-of-impact
+        simulation).
+    integrator
+        ``"exact"`` or ``"symplectic-euler"`` (disc scenes).
+    path
+        ``"auto"``, ``"compiled"`` or ``"torch"`` (:data:`PATHS`).
+    path_weight
+        Weight of the path-constraint penalty.
+
+    Returns
+    -------
+    tuple
+        The loss object, with ``loss(controls, x0=None)`` (torch, differentiable), and the
+        path taken. Compiled losses are kept per problem structure and settings: building
+        one takes milliseconds, but continuation stages and repeated solves reuse it.
     """
     from hybridoc.solvers.contacts import contact_model
 
-    if path not in ("auto", "compiled", "torch"):
+    model = contact_model(contact)
+    if path not in PATHS:
         raise SceneError(f"unknown path {path!r}; choose auto, compiled or torch")
     is_disc = isinstance(ocp, DiscOCP)
     if integrator not in INTEGRATORS:
@@ -160,7 +321,6 @@ def make_loss(
             f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
         )
     if is_disc:
-        model = contact_model(contact, toi=toi)
         # every registered model has a CasADi step, within limits (e.g. the scene's number of
         # contacts for the coupled impulse models): auto falls back to torch outside them
         reason = model.casadi_unsupported(ocp.scene, integrator)
@@ -168,7 +328,7 @@ def make_loss(
             raise SceneError(f"no compiled path: {reason}")
         use_compiled = path == "compiled" or (path == "auto" and reason is None)
     else:
-        if contact != "direct" or toi != "both":
+        if not _is_direct_both(model):
             raise SceneError(
                 f"contact models and TOI settings apply to disc scenes; {ocp.name!r} is "
                 "simulated by the generic time-of-impact method (contact='direct', toi='both')"
@@ -184,35 +344,32 @@ def make_loss(
     if not use_compiled:
         from hybridoc.solvers.simulator import Simulator
 
-        return Simulator(ocp, contact=contact, toi=toi, integrator=integrator), "torch"
+        return Simulator(ocp, contact=model, integrator=integrator), "torch"
     from hybridoc.solvers.compiled import CompiledLoss
 
-    key = (ocp.steps, ocp.horizon, contact, toi, integrator, path_weight, tuple(ocp.x0.tolist()))
+    key = (
+        ocp.steps, ocp.horizon, _model_key(model), integrator, path_weight,
+        tuple(ocp.x0.tolist()),
+    )  # fmt: skip
     cache = _LOSSES.setdefault(ocp.structure, {})
     loss = cache.get(key)
     if loss is None:
         if len(cache) > 8:
             cache.clear()
         loss = CompiledLoss(
-            ocp, contact, toi, integrator if is_disc else None, path_weight=path_weight
+            ocp, model, integrator=integrator if is_disc else None, path_weight=path_weight
         )
         cache[key] = loss
     return loss, "compiled"
 
 
-def default_integrator(ocp: HybridOCP, contact: str, toi: str) -> str:
+def default_integrator(ocp: HybridOCP, contact: ContactModel) -> str:
     """``"exact"`` where it exists (impulse models with both TOI corrections, generic
     problems), else the paper's ``"symplectic-euler"``."""
     if not isinstance(ocp, DiscOCP):
         return "exact"
-    from hybridoc.solvers.contacts import contact_model
-
-    model = contact_model(contact, toi=toi)
-    return (
-        "exact"
-        if model.impulse_based and getattr(model, "toi", None) == "both"
-        else ("symplectic-euler")
-    )
+    exact = contact.impulse_based and getattr(contact, "toi", None) == "both"
+    return "exact" if exact else "symplectic-euler"
 
 
 def _initial(ocp: HybridOCP, initial: Any) -> np.ndarray:
@@ -223,26 +380,94 @@ def _initial(ocp: HybridOCP, initial: Any) -> np.ndarray:
     return ocp.check_controls(controls, what="initial controls")
 
 
+# ---------------------------------------------------------------------- the entry point
+def checked_options(ocp: HybridOCP, options: GDOptions) -> GDOptions:
+    """The options of a run, checked, with their defaults filled in.
+
+    Parameters
+    ----------
+    ocp
+        The problem (the defaults of ``lr``, ``iters`` and ``integrator`` depend on it).
+    options
+        The options as given.
+
+    Returns
+    -------
+    GDOptions
+        ``contact`` a :class:`~hybridoc.solvers.contacts.ContactModel` that carries the TOI
+        setting (``toi`` is ``None``); ``integrator``, ``iters`` and ``lr`` set; ``smoothing``
+        a tuple of floats, or ``None`` (the default of the optimiser); integers as ``int``.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For an unknown name or a value out of range (one line).
+    """
+    from hybridoc.solvers.contacts import contact_model
+
+    o = options
+    if o.optimizer not in OPTIMIZERS:
+        raise SceneError(
+            f"unknown optimizer {o.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}"
+        )
+    lr0, it0 = default_settings(ocp, o.optimizer)
+    lr = lr0 if o.lr is None else o.lr
+    iters = it0 if o.iters is None else o.iters
+    # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
+    if not _whole(iters, 0):
+        raise SceneError(f"iters must be an integer >= 0, got {iters!r}")
+    if not _positive(lr):
+        raise SceneError(f"lr must be a positive finite number, got {lr!r}")
+    if o.max_step is not None and not _positive(o.max_step):
+        raise SceneError(f"max_step must be a positive finite number or None, got {o.max_step!r}")
+    model = contact_model(o.contact, **({} if o.toi is None else {"toi": o.toi}))
+    integrator = default_integrator(ocp, model) if o.integrator is None else o.integrator
+    if integrator not in INTEGRATORS:
+        raise SceneError(
+            f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
+        )
+    if not _whole(o.starts, 1):
+        raise SceneError(f"starts must be an integer >= 1, got {o.starts!r}")
+    if not _whole(o.hops, 0):
+        raise SceneError(f"hops must be an integer >= 0, got {o.hops!r}")
+    return dataclasses.replace(
+        o, contact=model, toi=None, integrator=integrator, iters=int(iters), lr=float(lr),
+        smoothing=_checked_smoothing(o.smoothing), starts=int(o.starts), hops=int(o.hops),
+    )  # fmt: skip
+
+
+def _checked_smoothing(smoothing: Any) -> tuple[float, ...] | None:
+    if smoothing is None:
+        return None
+    weights = tuple(smoothing) if isinstance(smoothing, Iterable | np.ndarray) else None
+    if (
+        isinstance(smoothing, str)
+        or weights is None
+        or not all(isinstance(m, numbers.Real) and math.isfinite(m) and m >= 0 for m in weights)
+    ):
+        raise SceneError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
+    return tuple(float(m) for m in weights)
+
+
 def solve_gd(
     problem: ProblemLike,
     *,
-    contact: str = "direct",
-    toi: str = "both",
+    initial: Any = None,
+    progress: ProgressLike = None,
+    contact: str | ContactModel = "direct",
+    toi: str | None = None,
     integrator: str | None = None,
     optimizer: str = "lbfgs",
+    smoothing: Sequence[float] | None = None,
     iters: int | None = None,
     lr: float | None = None,
-    initial: Any = None,
-    callback: Callable[[int, float, np.ndarray], Any] | None = None,
-    progress: bool = False,
-    path: str = "auto",
-    max_step: float | None = None,
-    smoothing: Sequence[float] | None = None,
-    path_weight: float = 1e5,
     starts: int = 1,
     seed: int | None = 0,
     hops: int = 0,
-    _penalty: float = 0.0,
+    callback: Callable[[int, float, np.ndarray], Any] | None = None,
+    path: str = "auto",
+    max_step: float | None = None,
+    path_weight: float = 1e5,
 ) -> Solution:
     """Minimise the discrete objective by gradient descent through the simulation.
 
@@ -251,9 +476,19 @@ def solve_gd(
     problem
         Any problem (:func:`hybridoc.problem.as_ocp`): a built-in name, a Scene, a
         HybridOCP, a ``.toml`` path or ``file.py:function``.
+    initial
+        Starting controls: ``None`` (the problem's guess), an ``(N, nu)`` array or a
+        Solution.
+    progress
+        ``True`` for a progress meter on stderr, or a :class:`~hybridoc.progress.Progress`
+        (``False``/``None``, the default: quiet). One meter serves the whole run: a stage
+        per smoothing weight, hop round and multi-start phase, a count per iteration.
     contact, toi
-        Disc scenes: the contact model (:data:`hybridoc.solvers.contacts.CONTACT_MODELS`)
-        and its time-of-impact correction.
+        Disc scenes: the contact model, a name of
+        :data:`hybridoc.solvers.contacts.CONTACT_MODELS` or a
+        :class:`~hybridoc.solvers.contacts.ContactModel` with its own options
+        (``LCP(toi="both")``, ``contact_model("compliant", stiffness=2e4)``), and the
+        time-of-impact correction of an impulse model given by name (default ``"both"``).
     integrator
         ``"exact"`` or ``"symplectic-euler"`` (disc scenes only; the paper's). Default: exact
         for impulse models with both TOI corrections and for generic problems, symplectic
@@ -262,23 +497,6 @@ def solve_gd(
         ``"gd"`` (plain gradient descent, as in the paper), ``"adam"`` or ``"lbfgs"``
         (``torch.optim.LBFGS`` with a strong-Wolfe line search; SciPy's L-BFGS-B when the
         problem has control bounds; default).
-    iters, lr
-        Iterations and learning rate; defaults from :func:`default_settings`.
-    initial
-        Starting controls: ``None`` (the problem's guess), an ``(N, nu)`` array or a
-        Solution.
-    callback
-        Called as ``callback(iteration, loss, controls)`` after every iteration; a true
-        return value stops the optimisation.
-    progress
-        Show a progress bar on stderr (quiet by default).
-    path
-        ``"auto"`` (the compiled CasADi path where the model's CasADi step serves the scene,
-        else torch),
-        ``"compiled"`` or ``"torch"`` (disc scenes).
-    max_step
-        ``lbfgs`` only: the largest change of any control value in one iteration (longer
-        steps are shortened and the curvature history is reset); default: no limit.
     smoothing
         Continuation weights ``mu_1 > mu_2 > ...``: before the real problem, solve it with the
         penalty ``mu sum_n |u_{n+1} - u_n|^2 / dt`` (about ``mu int |du/dt|^2 dt``) added, for
@@ -287,9 +505,8 @@ def solve_gd(
         crosses a grid time at which the control jumps, and gradient methods stall there; the
         penalty weakens those kinks so that the events first move to the right times.
         Default: :data:`DEFAULT_SMOOTHING` for ``lbfgs``, none for ``gd`` and ``adam``.
-    path_weight
-        Weight of the quadratic penalty on path-constraint violations (problems with
-        ``path`` constraints).
+    iters, lr
+        Iterations and learning rate; defaults from :func:`default_settings`.
     starts
         Multi-start: ``starts`` initial controls (the guess, perturbations of it, random smooth
         controls, controls aimed at each body and wall; :mod:`hybridoc.solvers.multistart`)
@@ -308,6 +525,18 @@ def solve_gd(
         L-BFGS of :mod:`hybridoc.solvers.multistart`; the lowest replaces the best when it is
         lower. Stops after ``hops`` rounds or :data:`HOP_PATIENCE` rounds without
         improvement. ``info["hops"]`` lists the rounds. Compiled path only.
+    callback
+        Called as ``callback(iteration, loss, controls)`` after every iteration; a true
+        return value stops the optimisation.
+    path
+        ``"auto"`` (the compiled CasADi path where the model's CasADi step serves the scene,
+        else torch), ``"compiled"`` or ``"torch"`` (disc scenes).
+    max_step
+        ``lbfgs`` only: the largest change of any control value in one iteration (longer
+        steps are shortened and the curvature history is reset); default: no limit.
+    path_weight
+        Weight of the quadratic penalty on path-constraint violations (problems with
+        ``path`` constraints).
 
     Returns
     -------
@@ -319,130 +548,116 @@ def solve_gd(
         L-BFGS could make no further progress, or the loss stalled, to :data:`STALL_RTOL`
         over :func:`stall_window` iterations, at the iteration limit), ``not-converged``
         (the iteration limit without meeting it, ``iters=0``, a stop by the callback, a
-        non-finite or rising loss) or ``infeasible``.
-    """
-    import hybridoc
-    from hybridoc.solution import Solution
+        non-finite or rising loss) or ``infeasible``. ``settings`` holds the contact model's
+        own (:meth:`~hybridoc.solvers.contacts.ContactModel.settings`) and the run's.
 
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For options out of range or that do not apply to the problem (one line).
+    """
     ocp = as_ocp(problem)
     torch_threads()  # the optimisers run in torch: one thread unless HYBRIDOC_THREADS says
-    if optimizer not in OPTIMIZERS:
-        raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
-    lr0, it0 = default_settings(ocp, optimizer)
-    lr = lr0 if lr is None else lr
-    iters = it0 if iters is None else iters
-    # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
-    if isinstance(iters, bool) or not isinstance(iters, numbers.Integral) or iters < 0:
-        raise SceneError(f"iters must be an integer >= 0, got {iters!r}")
-    if not _positive(lr):
-        raise SceneError(f"lr must be a positive finite number, got {lr!r}")
-    if max_step is not None and not _positive(max_step):
-        raise SceneError(f"max_step must be a positive finite number or None, got {max_step!r}")
-    iters, lr = int(iters), float(lr)
-    if integrator is None:
-        integrator = default_integrator(ocp, contact, toi)
-    if isinstance(starts, bool) or not isinstance(starts, numbers.Integral) or starts < 1:
-        raise SceneError(f"starts must be an integer >= 1, got {starts!r}")
-    if isinstance(hops, bool) or not isinstance(hops, numbers.Integral) or hops < 0:
-        raise SceneError(f"hops must be an integer >= 0, got {hops!r}")
-    if hops:
+    opts = checked_options(
+        ocp,
+        GDOptions(
+            contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
+            smoothing=smoothing, iters=iters, lr=lr, starts=starts, seed=seed, hops=hops,
+            callback=callback, path=path, max_step=max_step, path_weight=path_weight,
+        ),
+    )  # fmt: skip
+    with progress_scope(progress, "gd") as meter:
+        return _dispatch(ocp, opts, initial, meter)
+
+
+def _dispatch(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progress) -> Solution:
+    """Hops around a multi-start or a continuation, as ``opts`` (checked) says."""
+    if opts.hops:
         t_hop = time.perf_counter()
-        loss_obj, used_path = make_loss(ocp, contact, toi, integrator, path, path_weight)
+        loss_obj, used_path = make_loss(
+            ocp, opts.contact, opts.integrator, opts.path, opts.path_weight
+        )
         if not hasattr(loss_obj, "value_and_grad_batch"):
             raise SceneError(
                 f"hops run batched rollouts on the compiled path; the {used_path} path of "
-                f"contact {contact!r} has none"
+                f"contact {opts.contact.label!r} has none"
             )
-        base = solve_gd(
-            ocp, contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
-            iters=iters, lr=lr, initial=initial, callback=callback, progress=progress,
-            path=path, max_step=max_step, smoothing=smoothing, path_weight=path_weight,
-            starts=starts, seed=seed,
-        )  # fmt: skip
-        return _hop(ocp, base, loss_obj, int(hops), seed, t_hop)
-    if starts > 1:
-        return _multistart(
-            ocp, int(starts), seed, dict(
-                contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
-                iters=iters, lr=lr, callback=callback, progress=progress, path=path,
-                max_step=max_step, smoothing=smoothing, path_weight=path_weight,
-            ),
-        )  # fmt: skip
-    t_start = time.perf_counter()
-    loss_obj, used_path = make_loss(ocp, contact, toi, integrator, path, path_weight)
-    u0 = _initial(ocp, initial)
-    if ocp.has_bounds:
-        u0 = np.clip(u0, ocp.u_min, ocp.u_max)
-    if smoothing is None:
-        smoothing = DEFAULT_SMOOTHING if optimizer == "lbfgs" and not _penalty else ()
-    weights = tuple(smoothing) if isinstance(smoothing, Iterable | np.ndarray) else None
-    if (
-        isinstance(smoothing, str)
-        or weights is None
-        or not all(isinstance(m, numbers.Real) and math.isfinite(m) and m >= 0 for m in weights)
-    ):
-        raise SceneError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
-    smoothing = tuple(float(m) for m in weights)
-    settings = {
-        "contact": contact,
-        "toi": toi,
-        "integrator": integrator,
-        "optimizer": optimizer,
-        "iters": iters,
-        "lr": lr,
+        base = _dispatch(ocp, dataclasses.replace(opts, hops=0), initial, progress)
+        return _hop(ocp, base, loss_obj, opts, t_hop, progress)
+    if opts.starts > 1:
+        return _multistart(ocp, opts, progress)
+    return _continuation(ocp, opts, initial, progress)
+
+
+def _settings(ocp: HybridOCP, opts: GDOptions, used_path: str) -> dict[str, Any]:
+    """The JSON-ready settings of a Solution: the contact model's and the run's."""
+    return {
+        **opts.contact.settings(),
+        "integrator": opts.integrator,
+        "optimizer": opts.optimizer,
+        "iters": opts.iters,
+        "lr": opts.lr,
         "path": used_path,
         "simulation": "disc" if isinstance(ocp, DiscOCP) else "generic",
     }
-    if smoothing:
-        kwargs = dict(
-            contact=contact, toi=toi, integrator=integrator, optimizer=optimizer, iters=iters,
-            lr=lr, callback=callback, progress=progress, path=path, max_step=max_step,
-            smoothing=(), path_weight=path_weight,
-        )  # fmt: skip
-        histories, its, stages = [], 0, []
-        for mu in smoothing:
-            stage = solve_gd(ocp, initial=u0, _penalty=mu, **kwargs)
-            u0 = stage.controls
-            histories.append(stage.arrays["loss_history"])
-            its += stage.info["iterations"]
-            stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost})
-            # a stage need not converge (the next one starts from it), but NaN or a rising
-            # loss ends the continuation
-            if stage.info["nan_stop"] or stage.info["diverged"]:
-                break
-        sol = solve_gd(ocp, initial=u0, **kwargs)
-        sol.settings["smoothing"] = list(smoothing)
-        sol.info["iterations"] += its
-        sol.info["stages"] = stages
-        sol.arrays["loss_history"] = np.concatenate(histories + [sol.arrays["loss_history"]])
-        sol.timings["solve_time_s"] = time.perf_counter() - t_start
-        return sol
-    run = _Run(ocp, loss_obj, optimizer, lr, iters, max_step, _penalty, callback)
-    bar = _Progress(
-        iters, f"gd/{optimizer}" + (f" (smoothing, mu {_penalty:g})" if _penalty else "")
-    )
-    final_u, final_loss, k, message, nan_stop, history = run.optimise(u0, bar if progress else None)
+
+
+def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progress) -> Solution:
+    """One start: the smoothing stages (``opts.smoothing``), then the problem itself."""
+    t_start = time.perf_counter()
+    loss_obj, used_path = make_loss(ocp, opts.contact, opts.integrator, opts.path, opts.path_weight)
+    u0 = _initial(ocp, initial)
+    if ocp.has_bounds:
+        u0 = np.clip(u0, ocp.u_min, ocp.u_max)
+    smoothing = opts.smoothing
+    if smoothing is None:
+        smoothing = DEFAULT_SMOOTHING if opts.optimizer == "lbfgs" else ()
+    settings = _settings(ocp, opts, used_path)
+    if not smoothing:
+        progress.stage(f"descent ({opts.optimizer})")
+        return _descend(ocp, opts, loss_obj, u0, settings, progress, t_start=t_start)
+    histories, its, stages = [], 0, []
+    for mu in smoothing:
+        progress.stage(f"smoothing mu {mu:g}")
+        stage = _descend(ocp, opts, loss_obj, u0, dict(settings), progress, penalty=mu)
+        u0 = stage.controls
+        histories.append(stage.arrays["loss_history"])
+        its += stage.info["iterations"]
+        stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost})
+        # a stage need not converge (the next one starts from it), but NaN or a rising
+        # loss ends the continuation
+        if stage.info["nan_stop"] or stage.info["diverged"]:
+            break
+    progress.stage(f"descent ({opts.optimizer}) after smoothing")
+    sol = _descend(ocp, opts, loss_obj, u0, settings, progress)
+    sol.settings["smoothing"] = list(smoothing)
+    sol.info["iterations"] += its
+    sol.info["stages"] = stages
+    sol.arrays["loss_history"] = np.concatenate(histories + [sol.arrays["loss_history"]])
+    sol.timings["solve_time_s"] = time.perf_counter() - t_start
+    return sol
+
+
+def _descend(
+    ocp: HybridOCP,
+    opts: GDOptions,
+    loss_obj: Any,
+    u0: np.ndarray,
+    settings: dict[str, Any],
+    progress: Progress,
+    *,
+    penalty: float = 0.0,
+    t_start: float | None = None,
+) -> Solution:
+    """One descent from ``u0`` (with the smoothing ``penalty``), judged: its Solution."""
+    t_start = time.perf_counter() if t_start is None else t_start
+    run = _Run(ocp, loss_obj, opts, penalty, progress)
+    final_u, final_loss, k, message, nan_stop, history = run.optimise(u0)
     t_opt = time.perf_counter() - run.t_loop
-    ev = hybridoc.evaluate(ocp, final_u)
-    status, status_message = Status.SUCCESS, ""
+    ev = evaluate(ocp, final_u)
     diverged = bool(history) and history[-1] > history[0] * (1 + 1e-9) + 1e-300
-    converged, why = _converged(message, history, k, iters)
-    if nan_stop:
-        status, status_message = Status.NOT_CONVERGED, message
-    elif diverged:
-        status = Status.NOT_CONVERGED
-        status_message = (
-            f"the loss rose from {history[0]:.6g} to {history[-1]:.6g}: the optimisation "
-            "diverged; try a smaller learning rate"
-        )
-    elif not converged:
-        status, status_message = Status.NOT_CONVERGED, why
-    elif not ev.feasible:
-        status = Status.INFEASIBLE
-        status_message = (
-            f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
-            f"constraints by {ev.path_violation:.3g}"
-        )
+    converged, why = _converged(message, history, k, opts.iters)
+    status, status_message = _status(ev, message, history, nan_stop, diverged, converged, why)
     info = {
         "loss": float(final_loss),
         "iterations": int(k),
@@ -464,6 +679,38 @@ def solve_gd(
         arrays={"loss_history": np.array(history, dtype=float)},
     )
     return sol.set_status(status, status_message)
+
+
+def _infeasible(ev: Evaluation) -> str:
+    return (
+        f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
+        f"constraints by {ev.path_violation:.3g}"
+    )
+
+
+def _status(
+    ev: Evaluation,
+    message: str,
+    history: Sequence[float],
+    nan_stop: bool,
+    diverged: bool,
+    converged: bool,
+    why: str,
+) -> tuple[Status, str]:
+    """The status of one descent and its message: a non-finite stop, a rising loss, no
+    convergence (``why``), controls the judge finds infeasible, or success."""
+    if nan_stop:
+        return Status.NOT_CONVERGED, message
+    if diverged:
+        return Status.NOT_CONVERGED, (
+            f"the loss rose from {history[0]:.6g} to {history[-1]:.6g}: the optimisation "
+            "diverged; try a smaller learning rate"
+        )
+    if not converged:
+        return Status.NOT_CONVERGED, why
+    if not ev.feasible:
+        return Status.INFEASIBLE, _infeasible(ev)
+    return Status.SUCCESS, ""
 
 
 def _converged(message: str, history: Sequence[float], k: int, iters: int) -> tuple[bool, str]:
@@ -509,6 +756,7 @@ def _converged(message: str, history: Sequence[float], k: int, iters: int) -> tu
     )
 
 
+# ---------------------------------------------------------------------- hops
 HOP_BATCH = 32
 """Hops (:func:`solve_gd`): perturbations of the best control per round."""
 HOP_ITERS = 150
@@ -520,10 +768,14 @@ HOP_SCALES = (1e-3, 1.0)
 
 
 def _hop(
-    ocp: HybridOCP, base: Solution, loss_obj: Any, hops: int, seed: int | None, t0: float
+    ocp: HybridOCP,
+    base: Solution,
+    loss_obj: Any,
+    opts: GDOptions,
+    t0: float,
+    progress: Progress,
 ) -> Solution:
     """:func:`solve_gd` with ``hops`` (see there): batched restarts around the best control."""
-    from hybridoc.evaluator import evaluate
     from hybridoc.solvers.multistart import batched_lbfgs, smooth_noise
 
     if base.info.get("nan_stop") or base.info.get("diverged"):
@@ -539,10 +791,12 @@ def _hop(
 
     x = np.array(base.controls, dtype=float)
     f = float(loss_obj.value_and_grad(x)[0])
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(opts.seed)
     rounds: list[dict[str, Any]] = []
     stale = 0
-    for _ in range(hops):
+    for r in range(opts.hops):
+        progress.stage(f"hops: round {r + 1} of at most {opts.hops}")
+        progress.detail(f"loss {f:.6g}")
         size = max(float(np.abs(x).max()), 1e-3)
         scales = size * np.geomspace(*HOP_SCALES, HOP_BATCH)
         P = np.stack([x + sc * smooth_noise(rng, *x.shape, modes=8) for sc in scales])
@@ -559,6 +813,20 @@ def _hop(
             stale += 1
             if stale >= HOP_PATIENCE:
                 break
+    return _hopped_solution(ocp, base, x, f, rounds, stale, opts.hops, t0)
+
+
+def _hopped_solution(
+    ocp: HybridOCP,
+    base: Solution,
+    x: np.ndarray,
+    f: float,
+    rounds: list[dict[str, Any]],
+    stale: int,
+    hops: int,
+    t0: float,
+) -> Solution:
+    """The Solution of the hops: the best control ``x`` (loss ``f``), judged."""
     ev = evaluate(ocp, x)
     # converged: the descent met its own test, or the hops moved it and then found nothing
     # lower in HOP_PATIENCE rounds (a descent stopped at its iteration limit that no hop
@@ -586,14 +854,11 @@ def _hop(
             "the hops did not settle"
         )  # fmt: skip
     elif not ev.feasible:
-        status = Status.INFEASIBLE
-        message = (
-            f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
-            f"constraints by {ev.path_violation:.3g}"
-        )
+        status, message = Status.INFEASIBLE, _infeasible(ev)
     return sol.set_status(status, message)
 
 
+# ---------------------------------------------------------------------- multi-start
 #: multi-start: the coarse grid of the batched phase, its iterations, and how many distinct
 #: results are refined at full resolution
 MULTISTART_STEPS = 60
@@ -602,20 +867,29 @@ MULTISTART_REFINE = 2
 MULTISTART_SMOOTHING = (3e-6,)
 
 
-def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str, Any]) -> Solution:
+def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution:
     """:func:`solve_gd` with ``starts > 1`` (see its ``starts``)."""
     from hybridoc.solvers.multistart import explore
 
     t0 = time.perf_counter()
-    if isinstance(ocp, DiscOCP) and options["contact"] != "direct":
+    if isinstance(ocp, DiscOCP) and opts.contact.name != "direct":
         raise SceneError(
             "the batched multi-start explores with the compiled exact simulation of contact "
             "'direct'; other contact models start from its result with --initial"
         )
     coarse = min(ocp.steps, MULTISTART_STEPS)
     rows: list[dict[str, Any]] = []
-    found = explore(ocp, starts, seed=seed, steps=coarse, iters=MULTISTART_ITERS, report=rows)
+    progress.stage(f"multi-start: {opts.starts} starts on {coarse} steps")
+    found = explore(
+        ocp, opts.starts, seed=opts.seed, steps=coarse, iters=MULTISTART_ITERS, report=rows,
+        loss_for=_exploration_loss,
+    )  # fmt: skip
     t_explore = time.perf_counter() - t0
+    single = dataclasses.replace(opts, starts=1)
+    # the batched phase has found the basin: one light smoothing stage for the kinks
+    smoothing = opts.smoothing
+    if smoothing is None:
+        smoothing = MULTISTART_SMOOTHING if opts.optimizer == "lbfgs" else ()
     refined: list[Solution] = []
     seen: set[tuple[str, ...]] = set()
     for r in found:
@@ -625,24 +899,36 @@ def _multistart(ocp: HybridOCP, starts: int, seed: int | None, options: dict[str
         if refined and r["cost"] > 1.02 * found[0]["cost"]:
             break  # the batched phase ranks the basins well enough
         seen.add(key)
-        # the batched phase has found the basin: one light smoothing stage for the kinks
-        smoothing = options["smoothing"]
-        if smoothing is None:
-            smoothing = MULTISTART_SMOOTHING if options["optimizer"] == "lbfgs" else ()
-        refined.append(solve_gd(ocp, initial=r["controls"], **dict(options, smoothing=smoothing)))
+        progress.stage(f"multi-start: refining the basin {' '.join(key) or '(no events)'}")
+        refine = dataclasses.replace(single, smoothing=smoothing)
+        refined.append(_continuation(ocp, refine, r["controls"], progress))
         if len(refined) >= MULTISTART_REFINE:
             break
     if not refined:
-        return solve_gd(ocp, **options)
+        return _continuation(ocp, single, None, progress)
     best = min(refined, key=lambda s: s.cost)
-    best.settings["starts"] = starts
-    best.settings["seed"] = seed
+    best.settings["starts"] = opts.starts
+    best.settings["seed"] = opts.seed
     best.info["starts"] = rows  # every start: coarse loss, judged cost and events
     best.info["explore_steps"] = coarse
     best.info["refined"] = [{"cost": s.cost, "sequence": s.sequence} for s in refined]
     best.timings["explore_time_s"] = t_explore
     best.timings["solve_time_s"] = time.perf_counter() - t0
     return best
+
+
+def _exploration_loss(coarse: HybridOCP) -> Any:
+    """The loss the multi-start explores with: the compiled exact simulation, contact
+    ``direct`` with TOI ``both`` (kept in the cache of :func:`make_loss`)."""
+    from hybridoc.solvers.contacts import contact_model
+
+    return make_loss(coarse, contact_model("direct", toi="both"), "exact")[0]
+
+
+# ---------------------------------------------------------------------- one optimisation
+_Result = tuple[np.ndarray, float, int, str, bool, list[float]]
+"""What :meth:`_Run.optimise` returns: controls, loss, iterations, message, NaN stop and the
+loss history."""
 
 
 class _Run:
@@ -652,24 +938,29 @@ class _Run:
         self,
         ocp: HybridOCP,
         loss_obj: Any,
-        optimizer: str,
-        lr: float,
-        iters: int,
-        max_step: float | None,
+        opts: GDOptions,
         penalty: float,
-        callback: Callable[[int, float, np.ndarray], Any] | None,
+        progress: Progress,
     ) -> None:
         self.ocp = ocp
         self.loss_obj = loss_obj
-        self.optimizer = optimizer
-        self.lr = lr
-        self.iters = iters
-        self.max_step = math.inf if max_step is None else max_step
+        self.optimizer = opts.optimizer
+        self.lr = opts.lr
+        self.iters = opts.iters
+        self.max_step = math.inf if opts.max_step is None else opts.max_step
         self.penalty = penalty
-        self.callback = callback
+        self.callback = opts.callback
+        self.progress = progress
         self.n_evals = 0
         self.restarts = 0
         self.t_loop = time.perf_counter()
+        # the torch loop's state (optimise)
+        self.u: Any = None
+        self.opt: Any = None
+        self.fresh = True
+        self.scale = 1.0
+        self.best: dict[str, Any] = {}
+        self.last: dict[str, Any] = {}
 
     def value(self, u: Any) -> Any:
         """The objective (with the smoothing and path penalties) of torch controls ``u``."""
@@ -686,139 +977,153 @@ class _Run:
             raise _NonFinite(f"the loss became {val}")
         return value
 
-    def optimise(
-        self, u0: np.ndarray, bar: _Progress | None
-    ) -> tuple[np.ndarray, float, int, str, bool, list[float]]:
+    def report(self, k: int, loss: float, controls: Callable[[], np.ndarray]) -> bool:
+        """Iteration ``k`` is done: count it, call the callback; whether the callback stops."""
+        self.progress.count(k, self.iters, f"loss {loss:.6g}")
+        return self.callback is not None and bool(self.callback(k, loss, controls()))
+
+    # ------------------------------------------------------------------ the torch loop
+    def evaluate_loss(self) -> Any:
+        """The objective at the current controls; keeps the best and the last."""
+        value = self.value(self.u)
+        val = float(value.detach())
+        if val < self.best["loss"]:
+            self.best["loss"], self.best["u"] = val, self.u.detach().numpy().copy()
+        self.last["u"], self.last["value"] = self.u.detach().clone(), val
+        return value
+
+    def loss_here(self) -> float:
+        """The loss at the current controls (the line search's last evaluation when it was
+        there: no second rollout)."""
+        import torch
+
+        if self.last["u"] is not None and torch.equal(self.last["u"], self.u.detach()):
+            return float(self.last["value"])
+        return float(self.evaluate_loss().detach())
+
+    def closure(self) -> Any:
+        """The optimiser's closure: the scaled objective, its gradient in ``u.grad``."""
+        import torch
+
+        self.opt.zero_grad()
+        value = self.evaluate_loss() * self.scale
+        value.backward()
+        if not bool(torch.isfinite(self.u.grad).all()):
+            raise _NonFinite("the gradient became NaN or infinite")
+        return value
+
+    def make_optimizer(self) -> Any:
+        """A fresh torch optimiser on ``u`` (an empty curvature history for L-BFGS)."""
+        import torch
+
+        if self.optimizer == "gd":
+            return torch.optim.SGD([self.u], lr=self.lr)
+        if self.optimizer == "adam":
+            return torch.optim.Adam([self.u], lr=self.lr)
+        return torch.optim.LBFGS(
+            [self.u],
+            lr=self.lr,
+            max_iter=1,
+            history_size=50,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-12,
+            tolerance_change=1e-15,
+        )
+
+    def project(self) -> None:
+        """Clip ``u`` to the control bounds (``gd`` and ``adam``)."""
+        import torch
+
+        ocp = self.ocp
+        if ocp.has_bounds:
+            with torch.no_grad():
+                lower, upper = torch.as_tensor(ocp.u_min), torch.as_tensor(ocp.u_max)
+                self.u.copy_(torch.clamp(self.u, lower, upper))
+
+    def lbfgs_step(self, history: list[float]) -> bool:
+        """One L-BFGS iteration; appends the loss to ``history``. True: converged (a fresh
+        start made no progress)."""
+        import torch
+
+        u = self.u
+        if not history:
+            history.append(self.loss_here())
+        before = u.detach().clone()
+        self.opt.step(self.closure)
+        jump = float((u.detach() - before).abs().max())
+        if jump > self.max_step:
+            # a quasi-Newton step can leap into another event sequence: cut it back (inf-norm)
+            # and reset the curvature history
+            with torch.no_grad():
+                u.copy_(before + (u - before) * (self.max_step / jump))
+            self.opt, self.fresh = self.make_optimizer(), True
+            self.restarts += 1
+            value = float(self.evaluate_loss().detach())
+            if value > history[-1]:
+                with torch.no_grad():
+                    u.copy_(before)
+                value = history[-1]
+            history.append(value)
+        elif torch.equal(before, u.detach()):
+            # kinks of the loss (a contact moving to another step) can spoil the quasi-Newton
+            # model: restart from here with an empty history; stop when a fresh start makes
+            # no progress either
+            history.append(history[-1])
+            if self.fresh:
+                return True
+            self.opt, self.fresh = self.make_optimizer(), True
+            self.restarts += 1
+        else:
+            history.append(self.loss_here())
+            self.fresh = False
+        return False
+
+    def optimise(self, u0: np.ndarray) -> _Result:
         """Run the optimiser; returns controls, loss, iterations, message, NaN stop, history."""
         import torch
 
         self.t_loop = time.perf_counter()
         if self.optimizer == "lbfgs" and self.ocp.has_bounds:
-            return self._lbfgsb(u0, bar)
-        ocp = self.ocp
-        u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
-        best = {"loss": math.inf, "u": u0.copy()}
-
-        last: dict[str, Any] = {"u": None, "value": None}
-
-        def evaluate_loss() -> Any:
-            value = self.value(u)
-            val = float(value.detach())
-            if val < best["loss"]:
-                best["loss"], best["u"] = val, u.detach().numpy().copy()
-            last["u"], last["value"] = u.detach().clone(), val
-            return value
-
-        def loss_here() -> float:
-            """The loss at the current controls (the line search's last evaluation when it
-            was there: no second rollout)."""
-            if last["u"] is not None and torch.equal(last["u"], u.detach()):
-                return float(last["value"])
-            return float(evaluate_loss().detach())
-
+            return self.lbfgsb(u0)
+        self.u = u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
+        self.best = {"loss": math.inf, "u": u0.copy()}
+        self.last = {"u": None, "value": None}
         # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
         # the gradient with respect to one control value scales with dt: it sees loss / dt
-        scale = 1.0 / ocp.dt if self.optimizer == "lbfgs" else 1.0
-
-        def closure() -> Any:
-            opt.zero_grad()
-            value = evaluate_loss() * scale
-            value.backward()
-            if not bool(torch.isfinite(u.grad).all()):
-                raise _NonFinite("the gradient became NaN or infinite")
-            return value
-
-        def make_optimizer() -> Any:
-            if self.optimizer == "gd":
-                return torch.optim.SGD([u], lr=self.lr)
-            if self.optimizer == "adam":
-                return torch.optim.Adam([u], lr=self.lr)
-            return torch.optim.LBFGS(
-                [u],
-                lr=self.lr,
-                max_iter=1,
-                history_size=50,
-                line_search_fn="strong_wolfe",
-                tolerance_grad=1e-12,
-                tolerance_change=1e-15,
-            )
-
-        def project() -> None:
-            if ocp.has_bounds:
-                with torch.no_grad():
-                    u.copy_(torch.clamp(u, torch.as_tensor(ocp.u_min), torch.as_tensor(ocp.u_max)))
-
-        opt = make_optimizer()
+        self.scale = 1.0 / self.ocp.dt if self.optimizer == "lbfgs" else 1.0
+        self.opt, self.fresh = self.make_optimizer(), True
         history: list[float] = []
         message = "finished the requested iterations"
         k = 0
-        fresh = True
         try:
             for k in range(self.iters):
                 if self.optimizer == "lbfgs":
-                    if not history:
-                        history.append(loss_here())
-                    before = u.detach().clone()
-                    opt.step(closure)
-                    jump = float((u.detach() - before).abs().max())
-                    if jump > self.max_step:
-                        # a quasi-Newton step can leap into another event sequence: cut it
-                        # back (inf-norm) and reset the curvature history
-                        with torch.no_grad():
-                            u.copy_(before + (u - before) * (self.max_step / jump))
-                        opt, fresh = make_optimizer(), True
-                        self.restarts += 1
-                        value = float(evaluate_loss().detach())
-                        if value > history[-1]:
-                            with torch.no_grad():
-                                u.copy_(before)
-                            value = history[-1]
-                        history.append(value)
-                    elif torch.equal(before, u.detach()):
-                        # kinks of the loss (a contact moving to another step) can spoil the
-                        # quasi-Newton model: restart from here with an empty history; stop
-                        # when a fresh start makes no progress either
-                        history.append(history[-1])
-                        if fresh:
-                            message = "converged: L-BFGS made no further progress"
-                            k += 1
-                            break
-                        opt, fresh = make_optimizer(), True
-                        self.restarts += 1
-                    else:
-                        history.append(loss_here())
-                        fresh = False
+                    if self.lbfgs_step(history):
+                        message = "converged: L-BFGS made no further progress"
+                        k += 1
+                        break
                 else:
-                    history.append(float(closure().detach()))
-                    opt.step()
-                    project()
-                if bar:
-                    bar.update(k + 1, history[-1])
-                if self.callback is not None and self.callback(
-                    k + 1, history[-1], u.detach().numpy().copy()
-                ):
+                    history.append(float(self.closure().detach()))
+                    self.opt.step()
+                    self.project()
+                if self.report(k + 1, history[-1], lambda: u.detach().numpy().copy()):
                     message = "stopped by the callback"
                     k += 1
                     break
             else:
                 k = self.iters
             if self.optimizer != "lbfgs" or not history:
-                history.append(float(evaluate_loss().detach()))
+                history.append(float(self.evaluate_loss().detach()))
             return u.detach().numpy().copy(), history[-1], k, message, False, history
         except _NonFinite as exc:
+            best = self.best
             message = (
                 f"stopped early at iteration {k}: {exc}; returning the best iterate "
                 f"(discrete loss {best['loss']:.6g}); try a smaller learning rate"
             )
             return best["u"], best["loss"], k, message, True, history or [best["loss"]]
-        finally:
-            if bar:
-                bar.update(k, history[-1] if history else math.nan, force=True)
-                bar.close()
 
-    def _lbfgsb(
-        self, u0: np.ndarray, bar: _Progress | None
-    ) -> tuple[np.ndarray, float, int, str, bool, list[float]]:
+    def lbfgsb(self, u0: np.ndarray) -> _Result:
         """SciPy's L-BFGS-B on the same objective (problems with control bounds)."""
         import torch
         from scipy.optimize import minimize
@@ -838,9 +1143,7 @@ class _Run:
             nonlocal k
             k += 1
             history.append(fun(x)[0] * ocp.dt)
-            if bar:
-                bar.update(k, history[-1])
-            if self.callback is not None and self.callback(k, history[-1], x.reshape(shape)):
+            if self.report(k, history[-1], lambda: x.reshape(shape)):
                 raise StopIteration
 
         bounds = list(zip(np.tile(ocp.u_min, shape[0]), np.tile(ocp.u_max, shape[0]), strict=True))
@@ -850,18 +1153,84 @@ class _Run:
                 fun, u0.ravel(), jac=True, method="L-BFGS-B", bounds=bounds,
                 callback=cb, options={"maxiter": self.iters, "ftol": 1e-15, "gtol": 1e-12},
             )  # fmt: skip
-            x = res.x
-            if res.status == 99:  # the callback raised StopIteration
-                msg = "stopped by the callback"
-            elif res.status == 1:  # SciPy's iteration limit
-                msg = f"finished the requested iterations (L-BFGS-B: {res.message})"
-            else:  # SciPy's convergence tests, or a line search that cannot progress
-                msg = f"converged: L-BFGS-B: {res.message}"
         except _NonFinite as exc:
             return u0, history[-1], k, f"stopped early: {exc}", True, history
-        finally:
-            if bar:
-                bar.close()
+        x = res.x
+        if res.status == 99:  # the callback raised StopIteration
+            msg = "stopped by the callback"
+        elif res.status == 1:  # SciPy's iteration limit
+            msg = f"finished the requested iterations (L-BFGS-B: {res.message})"
+        else:  # SciPy's convergence tests, or a line search that cannot progress
+            msg = f"converged: L-BFGS-B: {res.message}"
         final = fun(x)[0] * ocp.dt
         history.append(final)
         return x.reshape(shape), final, k, msg, False, history
+
+
+# ---------------------------------------------------------------------- the Method
+def _supports(ocp: HybridOCP) -> str | None:
+    """``None`` when gd can solve ``ocp``: its functions must be SX (the compiled step)."""
+    for fn in (ocp.f, ocp.L, ocp.phi):
+        if not fn.is_a("SXFunction"):
+            return f"the differentiable simulation needs SX functions; {fn.name()!r} is MX"
+    return None
+
+
+def _fmt(x: Any, digits: int) -> str:
+    if x is None or math.isnan(float(x)):
+        return "-"
+    return f"{float(x):.{digits}g}"
+
+
+def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
+    """What ``hybridoc solve`` prints about a gd solution: loss, iterations, settings."""
+    lines = []
+    if "loss" in sol.info:
+        lines.append(("loss", f"{_fmt(sol.info['loss'], 12)} (the simulation's discrete loss)"))
+    if "iterations" in sol.info:
+        lines.append(("iterations", str(sol.info["iterations"])))
+    return lines + settings_lines(sol)
+
+
+def _crossval_defaults(ocp: HybridOCP, options: dict[str, Any]) -> dict[str, Any]:
+    """Crossval's gd: a multi-start (:data:`GD_STARTS`), and :data:`GD_HOPS` hops on the
+    symplectic Euler objective, whose kinks stall a descent, unless the caller sets them."""
+    out = dict(options)
+    out.setdefault("starts", GD_STARTS["disc" if isinstance(ocp, DiscOCP) else "generic"])
+    if out.get("integrator") == "symplectic-euler":
+        out.setdefault("hops", GD_HOPS)
+    return out
+
+
+def _crossval_check(ocp: HybridOCP, sol: Solution) -> tuple[dict[str, Any], list[str]]:
+    """On the symplectic Euler objective: gd's discrete loss against the optimum of that
+    objective (:func:`~hybridoc.solvers.discrete_transcription.discrete_gap`), within
+    :data:`DISCRETE_TOLERANCE`."""
+    if sol.settings.get("integrator") != "symplectic-euler":
+        return {}, []
+    from hybridoc.solvers.discrete_transcription import discrete_gap
+
+    entry = discrete_gap(ocp, sol)
+    dgap = entry.get("discrete_gap_relative")
+    reasons = []
+    if dgap is not None and dgap > DISCRETE_TOLERANCE:
+        reasons.append(
+            f"gd's discrete loss is {dgap:+.3e} above the optimum of its own discrete "
+            f"objective (the N-step transcription from its control), beyond "
+            f"{DISCRETE_TOLERANCE:.0e}"
+        )
+    return entry, reasons
+
+
+METHOD = Method(
+    "gd",
+    "gradient descent through the differentiable time-of-impact simulation",
+    run=solve_gd,
+    options=GDOptions,
+    tolerance=5e-3,
+    supports=_supports,
+    summary_lines=_summary_lines,
+    crossval_defaults=_crossval_defaults,
+    crossval_check=_crossval_check,
+)
+"""Gradient descent as a registered method (``method="gd"``, :data:`hybridoc.methods.BUILTIN`)."""

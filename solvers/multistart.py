@@ -23,6 +23,7 @@ from hybridoc.problems.disc_ocp import DiscOCP
 __all__ = [
     "EXPLORE_SMOOTHING",
     "batched_lbfgs",
+    "exploration_loss",
     "explore",
     "resample",
     "smooth_noise",
@@ -137,6 +138,34 @@ def resample(u: np.ndarray, steps: int) -> np.ndarray:
     return u[..., idx, :]
 
 
+def _direction(g: np.ndarray, S: list[np.ndarray], Yh: list[np.ndarray]) -> np.ndarray:
+    """The L-BFGS search direction of every start (:func:`batched_lbfgs`): the two-loop
+    recursion over the curvature pairs ``S``, ``Yh``, batched over starts; normalised
+    steepest descent where that is not a descent direction."""
+    q = g.copy()
+    alphas = []
+    for s, y in zip(reversed(S), reversed(Yh), strict=True):
+        ys = np.einsum("bi,bi->b", y, s)
+        rho = np.where(ys > 0, 1.0 / np.where(ys > 0, ys, 1.0), 0.0)
+        a = rho * np.einsum("bi,bi->b", s, q)
+        q -= a[:, None] * y
+        alphas.append((a, rho))
+    gamma = 1.0 / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+    if S:
+        s, y = S[-1], Yh[-1]
+        ys, yy = np.einsum("bi,bi->b", s, y), np.einsum("bi,bi->b", y, y)
+        gamma = np.where(ys > 0, ys / np.where(yy > 0, yy, 1.0), gamma)
+    r = gamma[:, None] * q
+    for (a, rho), s, y in zip(reversed(alphas), S, Yh, strict=True):
+        b = rho * np.einsum("bi,bi->b", y, r)
+        r += (a - b)[:, None] * s
+    d = -r
+    slope = np.einsum("bi,bi->b", d, g)
+    bad = ~(slope < 0) | ~np.isfinite(slope)
+    d[bad] = -g[bad] / np.maximum(np.linalg.norm(g[bad], axis=1), 1e-300)[:, None]
+    return d
+
+
 def batched_lbfgs(
     value_and_grad: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     U0: np.ndarray,
@@ -188,28 +217,7 @@ def batched_lbfgs(
     active = np.isfinite(f)
     failures = np.zeros(B, dtype=int)
     for _ in range(iters):
-        # two-loop recursion, batched over starts
-        q = g.copy()
-        alphas = []
-        for s, y in zip(reversed(S), reversed(Yh), strict=True):
-            ys = np.einsum("bi,bi->b", y, s)
-            rho = np.where(ys > 0, 1.0 / np.where(ys > 0, ys, 1.0), 0.0)
-            a = rho * np.einsum("bi,bi->b", s, q)
-            q -= a[:, None] * y
-            alphas.append((a, rho))
-        gamma = 1.0 / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
-        if S:
-            s, y = S[-1], Yh[-1]
-            ys, yy = np.einsum("bi,bi->b", s, y), np.einsum("bi,bi->b", y, y)
-            gamma = np.where(ys > 0, ys / np.where(yy > 0, yy, 1.0), gamma)
-        r = gamma[:, None] * q
-        for (a, rho), s, y in zip(reversed(alphas), S, Yh, strict=True):
-            b = rho * np.einsum("bi,bi->b", y, r)
-            r += (a - b)[:, None] * s
-        d = -r
-        slope = np.einsum("bi,bi->b", d, g)
-        bad = ~(slope < 0) | ~np.isfinite(slope)
-        d[bad] = -g[bad] / np.maximum(np.linalg.norm(g[bad], axis=1), 1e-300)[:, None]
+        d = _direction(g, S, Yh)
         slope = np.einsum("bi,bi->b", d, g)
         step = np.ones(B)
         accepted = np.zeros(B, dtype=bool)
@@ -253,6 +261,19 @@ def batched_lbfgs(
     return X.reshape(shape), f, calls
 
 
+def exploration_loss(coarse: HybridOCP) -> Any:
+    """The loss :func:`explore` descends by default: the compiled exact simulation of
+    contact ``direct`` with TOI ``both`` (disc scenes), or the generic time-of-impact
+    simulation, with the default path-constraint weight (a new
+    :class:`~hybridoc.solvers.compiled.CompiledLoss`; gradient descent passes its cached one,
+    the same function)."""
+    from hybridoc.solvers.compiled import CompiledLoss
+    from hybridoc.solvers.contacts import contact_model
+
+    integrator = "exact" if isinstance(coarse, DiscOCP) else None
+    return CompiledLoss(coarse, contact_model("direct", toi="both"), integrator=integrator)
+
+
 def explore(
     ocp: HybridOCP,
     count: int,
@@ -262,20 +283,42 @@ def explore(
     iters: int = 60,
     judge: int | None = None,
     report: list[dict[str, Any]] | None = None,
+    loss_for: Callable[[HybridOCP], Any] | None = None,
 ) -> list[dict[str, Any]]:
-    """Batched descent from ``count`` diverse starts on a coarse grid; the ``judge`` best
-    results (by discrete loss, distinct ones; default all) judged at the problem's
-    resolution. Returns ``[{"controls", "cost", "sequence", "evaluation"}]`` sorted by cost
-    (failed evaluations dropped). A ``report`` list receives one row per start, in start
-    order: its coarse ``loss`` and, where it was judged, ``cost`` and ``sequence``, else
-    ``same_as`` (the start that reached the same optimum) or the reason it was not."""
-    from hybridoc.errors import HybridocError
-    from hybridoc.evaluator import evaluate
-    from hybridoc.solvers.gd import make_loss
+    """Batched descent from ``count`` diverse starts on a coarse grid, the best judged.
 
+    Parameters
+    ----------
+    ocp
+        The problem.
+    count
+        The number of starts (:func:`starting_controls`).
+    seed
+        Seed of the random starts.
+    steps
+        The coarse grid (default: the problem's).
+    iters
+        Iterations of the batched L-BFGS (a smoothed stage, then ``iters // 2`` plain).
+    judge
+        How many of the best distinct results (by discrete loss) are judged at the
+        problem's resolution; default all.
+    report
+        A list that receives one row per start, in start order: its coarse ``loss`` and,
+        where it was judged, ``cost`` and ``sequence``, else ``same_as`` (the start that
+        reached the same optimum) or the reason it was not.
+    loss_for
+        ``loss_for(coarse_ocp)``: the loss object to descend, with ``value_and_grad_batch``;
+        default :func:`exploration_loss`.
+
+    Returns
+    -------
+    list of dict
+        ``[{"controls", "cost", "sequence", "evaluation"}]`` sorted by cost (failed
+        evaluations dropped).
+    """
     N = ocp.steps
     coarse = ocp if steps is None or steps >= N else ocp.replace(steps=int(steps))
-    loss, _ = make_loss(coarse, "direct", "both", "exact")
+    loss = (loss_for or exploration_loss)(coarse)
     U0 = resample(starting_controls(ocp, count, seed=seed), coarse.steps)
 
     def make_vg(mu: float) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
@@ -298,22 +341,48 @@ def explore(
         lower, upper = ocp.u_min, ocp.u_max
     X, f, _ = batched_lbfgs(make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper)
     X, f, _ = batched_lbfgs(make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper)
+    picked = _distinct(f, judge)
+    out, rows = _judged(ocp, X, f, picked, coarse.dt)
+    if report is not None:
+        report.extend(rows)
+    out.sort(key=lambda r: r["cost"])
+    return out
+
+
+def _same(f: np.ndarray, b: int, c: int) -> bool:
+    """Starts ``b`` and ``c`` reached the same local optimum (equal losses to 1e-9)."""
+    return bool(abs(f[b] - f[c]) <= 1e-9 * max(abs(f[c]), 1.0))
+
+
+def _distinct(f: np.ndarray, judge: int | None) -> list[int]:
+    """The starts with distinct final losses, lowest first, at most ``judge`` of them."""
     order = [int(b) for b in np.argsort(np.where(np.isfinite(f), f, np.inf))]
     picked: list[int] = []
     for b in order:
-        if any(abs(f[b] - f[c]) <= 1e-9 * max(abs(f[c]), 1.0) for c in picked):
+        if any(_same(f, b, c) for c in picked):
             continue  # the same local optimum again
         picked.append(b)
         if judge is not None and len(picked) >= judge:
             break
+    return picked
+
+
+def _judged(
+    ocp: HybridOCP, X: np.ndarray, f: np.ndarray, picked: list[int], dt: float
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The picked results resampled to the problem's grid and judged, and one report row
+    per start (:func:`explore`)."""
+    from hybridoc.errors import HybridocError
+    from hybridoc.evaluator import evaluate
+
     out = []
     rows: list[dict[str, Any]] = [
         # f is scaled by 1 / dt for the optimiser: the rows carry the discrete loss itself
-        {"start": b, "loss": float(f[b]) * coarse.dt if np.isfinite(f[b]) else None}
+        {"start": b, "loss": float(f[b]) * dt if np.isfinite(f[b]) else None}
         for b in range(len(f))
     ]
     for b in picked:
-        u = resample(X[b], N)
+        u = resample(X[b], ocp.steps)
         try:
             ev = evaluate(ocp, u)
         except HybridocError as exc:
@@ -327,9 +396,6 @@ def explore(
         if row["loss"] is None:
             row["error"] = "the descent diverged"
         else:
-            same = [c for c in picked if abs(f[b] - f[c]) <= 1e-9 * max(abs(f[c]), 1.0)]
+            same = [c for c in picked if _same(f, b, c)]
             row["same_as" if same else "not_judged"] = same[0] if same else True
-    if report is not None:
-        report.extend(rows)
-    out.sort(key=lambda r: r["cost"])
-    return out
+    return out, rows

@@ -129,8 +129,13 @@ def test_bad_arguments() -> None:
         solve_gd("head-on", initial=np.zeros((3, 2)))
 
 
-def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_solve_json(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     # 3 iterations of plain gd are not a converged answer: the JSON says so, exit code 2
+    import hybridoc.progress
+
+    monkeypatch.setattr(hybridoc.progress, "QUIET_LOG_S", 0.0)  # the meter speaks at once
     rc = main(["solve", "head-on", "--optimizer", "gd", "--iters", "3", "--json"])
     out = capsys.readouterr()
     assert rc == 2
@@ -141,7 +146,7 @@ def test_cli_solve_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert data["success"] is False and "iteration limit (3)" in data["message"]
     assert data["info"]["iterations"] == 3 and "loss" in data["info"]
     assert data["info"]["converged"] is False
-    assert "gd/gd" in out.err  # the progress bar goes to stderr
+    assert "gd descent (gd)" in out.err and "3/3 loss" in out.err  # progress: on stderr
     assert out.err.splitlines()[-1].startswith("hybridoc: error: not-converged: stopped at")
 
 
