@@ -305,8 +305,22 @@ def step_parts(
         lams = [flags[k] * ph.impulse(c.w, c.inv_mass_sum, scene.restitution)
                 for k, c in enumerate(cs)]  # fmt: skip
     use_pos = exact or model.toi in ("position", "both")
-    dv: list[Any] = [0] * n
-    dp: list[Any] = [0] * n
+    dp, dv = _impulse_changes(cl, cs, lams, m, use_pos)
+    p_next = [p_hat[i] + dp[i] for i in range(n)]
+    v_next = [v_hat[i] + dv[i] for i in range(n)]
+    return StepParts(
+        ca.vertcat(*p_next, *v_next), ca.vertcat(*tests),
+        ca.vertcat(*[c.gap for c in cs]), ca.vertcat(*[c.speed for c in cs]),
+    )  # fmt: skip
+
+
+def _impulse_changes(
+    cl: list[ph.Contact], cs: list[_Contact], lams: list[Any], m: list[float], use_pos: bool
+) -> tuple[list[Any], list[Any]]:
+    """Per disc, the position correction ``sum_c toi_c dv_c`` (with ``use_pos``) and the
+    velocity change ``sum_c dv_c`` of the impulses ``lams``."""
+    dv: list[Any] = [0] * len(m)
+    dp: list[Any] = [0] * len(m)
     for c, lam, cc in zip(cl, lams, cs, strict=True):
         for disc, sign in ((c.i, 1.0), (c.j, -1.0)):
             if disc is None:
@@ -315,12 +329,7 @@ def step_parts(
             dv[disc] = dv[disc] + dvi
             if use_pos:
                 dp[disc] = dp[disc] + cc.toi * dvi
-    p_next = [p_hat[i] + dp[i] for i in range(n)]
-    v_next = [v_hat[i] + dv[i] for i in range(n)]
-    return StepParts(
-        ca.vertcat(*p_next, *v_next), ca.vertcat(*tests),
-        ca.vertcat(*[c.gap for c in cs]), ca.vertcat(*[c.speed for c in cs]),
-    )  # fmt: skip
+    return dp, dv
 
 
 class _Contact(NamedTuple):

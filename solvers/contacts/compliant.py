@@ -30,8 +30,8 @@ if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay 
 
 from hybridoc.errors import EvaluationError
 from hybridoc.problems import physics as ph
-from hybridoc.solvers.contacts._penalty_common import MIN_DISTANCE, pairs, prepare
 from hybridoc.solvers.contacts.base import ContactModel, register
+from hybridoc.solvers.contacts.penalty_common import MIN_DISTANCE, pairs, prepare
 
 __all__ = [
     "Compliant",

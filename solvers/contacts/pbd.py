@@ -18,8 +18,8 @@ if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay 
 
 from hybridoc.errors import EvaluationError
 from hybridoc.problems import physics as ph
-from hybridoc.solvers.contacts._penalty_common import MIN_DISTANCE, prepare
 from hybridoc.solvers.contacts.base import ContactModel, register
+from hybridoc.solvers.contacts.penalty_common import MIN_DISTANCE, prepare
 
 __all__ = ["DEFAULT_PBD_ITERATIONS", "PBD", "pbd_casadi_step", "pbd_step"]
 
