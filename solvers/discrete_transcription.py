@@ -25,35 +25,39 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
 
 from hybridoc.errors import ConvergenceError, HybridocError
 from hybridoc.evaluator import evaluate
-from hybridoc.problem import disc_scene
+from hybridoc.ocp import HybridOCP
+from hybridoc.problem import ProblemLike, disc_scene
+from hybridoc.solution import Solution
+
+if TYPE_CHECKING:
+    from hybridoc.problems.scene import Scene
 
 __all__ = ["discrete_gap", "discrete_loss", "solve_discrete"]
 
-
-def _scene(scene: Any) -> Any:
-    from hybridoc.problems import load_scene
-
-    return load_scene(scene)
+_ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 
 
-def _terminal(scene: Any, s: Any) -> Any:
-    n = scene.n_discs
+def _scene(scene: ProblemLike) -> Scene:
+    return disc_scene(scene)
+
+
+def _terminal(scene: Scene, s: Any) -> Any:
     out = 0
     for i, d in enumerate(scene.discs):
         if d.target is not None:
             out = out + ca.sumsqr(s[2 * i : 2 * i + 2] - ca.DM(d.target))
-    del n
     return out
 
 
-def _frozen_step(scene: Any, toi: str) -> tuple[ca.Function, ca.Function]:
+def _frozen_step(scene: Scene, toi: str) -> tuple[ca.Function, ca.Function]:
     """The ``direct`` step with its contact branches fixed by flags, and the branch tests.
 
     Both come from :func:`hybridoc.solvers.casadi_step.step_parts` (with the flags of the
@@ -75,14 +79,14 @@ def _frozen_step(scene: Any, toi: str) -> tuple[ca.Function, ca.Function]:
 
 
 def discrete_loss(
-    scene: Any, controls: Any, *, contact: str = "direct", toi: str = "both"
+    scene: ProblemLike, controls: Any, *, contact: str = "direct", toi: str = "both"
 ) -> float:
     """The discrete loss of ``(N, nu)`` controls under the CasADi step (float64).
 
     Parameters
     ----------
     scene
-        A Scene, a built-in name or a TOML path.
+        A Scene, a built-in name, a TOML path or a :class:`~hybridoc.problems.DiscOCP`.
     controls
         ``(N, nu)`` controls.
     contact, toi
@@ -106,8 +110,191 @@ def discrete_loss(
     return term + scene.control_weight * scene.dt * float(np.sum(u**2))
 
 
+class _DiscreteNLP:
+    """The N steps by multiple shooting with the contact branches frozen by parameters (a
+    smooth NLP, solved with exact second derivatives), and rollouts of the true step that
+    read the branches.
+
+    The branch region is kept by bounds on the predicted gaps and normal speeds
+    ``(d^, w^)``: an applied contact needs ``d^ <= 0`` and ``w^ <= 0``; a skipped one keeps
+    ``d^ >= 0`` or ``w^ >= 0`` (whichever holds at the start); and an applied contact keeps
+    its time of impact within the step: ``d^ - dt w^ >= 0``.
+    """
+
+    def __init__(
+        self, scene: Scene, ocp: HybridOCP, contact: str, toi: str, tol: float, max_iter: int
+    ) -> None:
+        from hybridoc.solvers.casadi_step import make_step
+
+        self.scene, self.ocp = scene, ocp
+        N, nu = scene.steps, ocp.nu
+        self.N, self.nu = N, nu
+        if contact != "direct":
+            make_step(scene, contact=contact, toi=toi)  # raises the clear error
+        true_step = make_step(scene, contact=contact, toi=toi)
+        self.roll = true_step.mapaccum("roll", N)
+        fstep, ftest = _frozen_step(scene, toi)
+        self.nc = nc = ftest.size1_out(0)
+        self.x0 = x0 = scene.initial_state()
+        self.nx = nx = x0.size
+        S = ca.SX.sym("S", nx, N + 1)
+        U = ca.SX.sym("U", nu, N)
+        F = ca.SX.sym("F", nc, N)
+        nxt, gaps, speeds = fstep.map(N)(S[:, :-1], U, F)
+        g = ca.vertcat(
+            ca.vec(S[:, 0] - ca.DM(x0)),
+            ca.vec(S[:, 1:] - nxt),
+            ca.vec(gaps),
+            ca.vec(speeds),
+            ca.vec(gaps - scene.dt * speeds),
+        )
+        self.n_eq = nx * (N + 1)
+        J = _terminal(scene, S[:, -1]) + scene.control_weight * scene.dt * ca.sumsqr(U)
+        opts = {
+            "ipopt.tol": tol,
+            "ipopt.max_iter": max_iter,
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            # no bound relaxation: a contact held at its branch boundary must not cross it
+            "ipopt.bound_relax_factor": 0.0,
+            "print_time": False,
+        }
+        nlp = {"x": ca.vertcat(ca.vec(S), ca.vec(U)), "f": J, "g": g, "p": ca.vec(F)}
+        self.solver = ca.nlpsol("discrete", "ipopt", nlp, opts)
+        self.flags_of = ftest.map(N)
+        self.last: Any = None  # (flags, gaps) of the latest rollout
+
+    def rollout(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """States ``(nx, N + 1)``, contact flags ``(nc, N)`` and the loss of ``u``'s rollout
+        (its flags and gaps are kept as :attr:`last`)."""
+        x0, scene = self.x0, self.scene
+        states = np.hstack([x0[:, None], np.asarray(self.roll(x0, u.T))])
+        fl, gp, sp = (np.asarray(x) for x in self.flags_of(states[:, :-1], u.T))
+        self.last = (fl.ravel(order="F"), gp.ravel(order="F"))
+        loss = float(self.ocp.phi(states[:, -1])) + scene.control_weight * scene.dt * float(
+            np.sum(u**2)
+        )
+        return states, fl, loss
+
+    def region(self, f: np.ndarray, gp: np.ndarray, off_gap: np.ndarray) -> tuple[Any, Any]:
+        """``lbg``, ``ubg`` that keep every contact in the branch of its flag."""
+        m = f.size
+        lo = np.full(3 * m, -np.inf)
+        hi = np.full(3 * m, np.inf)
+        on = f > 0.5
+        hi[:m][on] = 0.0
+        hi[m : 2 * m][on] = 0.0
+        lo[2 * m :][on] = 0.0
+        by_gap = ~on & ((gp >= 0) | off_gap)
+        lo[:m][by_gap] = 0.0
+        lo[m : 2 * m][~on & ~by_gap] = 0.0
+        zeros = np.zeros(self.n_eq)
+        return np.concatenate([zeros, lo]), np.concatenate([zeros, hi])
+
+    def flipped(self, f: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Flags on the other side of the active gap bounds (collision one step later or
+        earlier), or None when no gap bound is active."""
+        nc, N = self.nc, self.N
+        lam_gap = np.abs(lam[: f.size]).reshape((nc, N), order="F")
+        F2 = f.reshape((nc, N), order="F").copy()
+        off = np.zeros_like(F2, dtype=bool)
+        act = np.argwhere(lam_gap > 1e-9)
+        if act.size == 0:
+            return None
+        for c, n in act:
+            if F2[c, n] > 0.5:  # held at d^ = 0 from inside: let it hit one step later
+                F2[c, n] = 0.0
+                off[c, n] = True
+                if n + 1 < N:
+                    F2[c, n + 1] = 1.0
+            else:  # held at d^ = 0 from outside: let it hit here, not at its later step
+                later = np.flatnonzero(F2[c, n + 1 :] > 0.5)
+                F2[c, n] = 1.0
+                if later.size:
+                    F2[c, n + 1 + later[0]] = 0.0
+        return F2.ravel(order="F"), off.ravel(order="F")
+
+
+@dataclass
+class _Rounds:
+    """The outcome of :func:`_refreeze`."""
+
+    u: np.ndarray  # the best controls
+    flags: np.ndarray  # their rollout's contact flags
+    loss: float
+    loss0: float  # the warm start's
+    status: str  # IPOPT's, of the last round
+    iterations: int
+    rounds: int
+    converged: bool
+
+
+def _refreeze(nlp: _DiscreteNLP, u0: np.ndarray, max_rounds: int, verbose: bool) -> _Rounds:
+    """Solve the frozen NLP, re-read the branches from a rollout of its controls, and repeat
+    until they no longer change; at a boundary (an active gap bound) the branches on its other
+    side are tried too. Stops at the first round that does not lower the loss."""
+    N, nx, nu = nlp.N, nlp.nx, nlp.nu
+    best_u = u0
+    states, fl, best_loss = nlp.rollout(u0)
+    loss0 = best_loss
+    status, iters, rounds, converged = "", 0, 0, False
+    try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
+    flipping = False
+    for rounds in range(1, max_rounds + 1):
+        w0 = np.concatenate([states.ravel(order="F"), best_u.T.ravel(order="F")])
+        lbg, ubg = nlp.region(try_flags, nlp.last[1], try_off)
+        res = nlp.solver(x0=w0, lbg=lbg, ubg=ubg, p=try_flags)
+        stats = nlp.solver.stats()
+        status = str(stats.get("return_status", ""))
+        iters += int(stats.get("iter_count", 0))
+        ok = bool(stats.get("success", False)) or status == "Solved_To_Acceptable_Level"
+        if not ok:
+            converged = flipping  # the flipped branch is infeasible: the boundary is optimal
+            break
+        w = np.asarray(res["x"]).ravel()
+        u_new = w[nx * (N + 1) :].reshape((nu, N), order="F").T.copy()
+        saved = nlp.last
+        states_new, fl_new, loss_new = nlp.rollout(u_new)
+        consistent_round = np.array_equal(fl_new.ravel(order="F"), try_flags)
+        if verbose:
+            print(
+                f"round {rounds}: {status}, {stats.get('iter_count')} it, loss {loss_new:.12g}, "
+                f"NLP {float(res['f']):.12g}, branches kept: {consistent_round}",
+                file=sys.stderr,
+            )
+        if loss_new >= best_loss - 1e-13 * abs(best_loss):
+            # no progress on the neighbouring branches: a local optimum on the boundary
+            # between branches (a contact exactly at a step end), or the end of progress
+            nlp.last = saved if not flipping else nlp.last
+            converged = flipping or consistent_round
+            break
+        best_u, states, fl, best_loss = u_new, states_new, fl_new, loss_new
+        nxt = nlp.flipped(fl.ravel(order="F"), np.asarray(res["lam_g"]).ravel()[nlp.n_eq :])
+        if nxt is not None and consistent_round:
+            try_flags, try_off = nxt
+            flipping = True
+        elif consistent_round:
+            converged = True
+            break
+        else:
+            try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
+            flipping = False
+    return _Rounds(best_u, fl, best_loss, loss0, status, iters, rounds, converged)
+
+
+def _warm_start(scene: Scene, ocp: HybridOCP, warm_start: Any) -> np.ndarray:
+    """The ``(N, nu)`` controls of :func:`solve_discrete`'s ``warm_start``."""
+    if warm_start is None:
+        from hybridoc.solvers.transcription import solve_dt
+
+        return solve_dt(scene).controls
+    if isinstance(warm_start, str) and warm_start == "initial":
+        return np.asarray(ocp.u_guess, dtype=float)
+    return ocp.check_controls(getattr(warm_start, "controls", warm_start), what="warm start")
+
+
 def solve_discrete(
-    scene: Any,
+    scene: ProblemLike,
     *,
     contact: str = "direct",
     toi: str = "both",
@@ -116,13 +303,14 @@ def solve_discrete(
     max_iter: int = 1000,
     max_rounds: int = 10,
     verbose: bool = False,
-) -> Any:
+) -> Solution:
     """Minimise the simulator's discrete N-step loss exactly with IPOPT.
 
     Parameters
     ----------
     scene
-        A Scene, a built-in name or a TOML path (its ``steps`` is the N).
+        A Scene, a built-in name, a TOML path or a :class:`~hybridoc.problems.DiscOCP` (its
+        ``steps`` is the N).
     contact, toi
         Simulator settings (default: ``direct`` impulses with both TOI corrections).
     warm_start
@@ -152,166 +340,20 @@ def solve_discrete(
     ConvergenceError
         IPOPT failed.
     """
-    from hybridoc.solution import Solution
-    from hybridoc.solvers.casadi_step import make_step
-
     scene = _scene(scene)
     ocp = scene.to_ocp()
-    N, nu = scene.steps, ocp.nu
-    if warm_start is None:
-        from hybridoc.solvers.transcription import solve_dt
-
-        u0 = solve_dt(scene).controls
-    elif isinstance(warm_start, str) and warm_start == "initial":
-        u0 = np.asarray(ocp.u_guess, dtype=float)
-    else:
-        u0 = ocp.check_controls(getattr(warm_start, "controls", warm_start), what="warm start")
+    u0 = _warm_start(scene, ocp, warm_start)
     t0 = time.perf_counter()
-    if contact != "direct":
-        make_step(scene, contact=contact, toi=toi)  # raises the clear error
-    true_step = make_step(scene, contact=contact, toi=toi)
-    roll = true_step.mapaccum("roll", N)
-    fstep, ftest = _frozen_step(scene, toi)
-    nc = ftest.size1_out(0)
-    x0 = scene.initial_state()
-    nx = x0.size
-    # multiple shooting with the contact branches frozen at those of the current rollout:
-    # a smooth NLP, solved with exact second derivatives; the branches are then re-read from
-    # a rollout of its controls and the solve repeated until they no longer change
-    S = ca.SX.sym("S", nx, N + 1)
-    U = ca.SX.sym("U", nu, N)
-    F = ca.SX.sym("F", nc, N)
-    nxt, gaps, speeds = fstep.map(N)(S[:, :-1], U, F)
-    # the branch region is kept by bounds on (d^, w^): an applied contact needs d^ <= 0 and
-    # w^ <= 0; a skipped one keeps d^ >= 0 or w^ >= 0 (whichever holds at the start)
-    # and an applied contact keeps its time of impact within the step: d^ - dt w^ >= 0
-    g = ca.vertcat(
-        ca.vec(S[:, 0] - ca.DM(x0)),
-        ca.vec(S[:, 1:] - nxt),
-        ca.vec(gaps),
-        ca.vec(speeds),
-        ca.vec(gaps - scene.dt * speeds),
-    )
-    n_eq = nx * (N + 1)
-    J = _terminal(scene, S[:, -1]) + scene.control_weight * scene.dt * ca.sumsqr(U)
-    opts = {
-        "ipopt.tol": tol,
-        "ipopt.max_iter": max_iter,
-        "ipopt.print_level": 0,
-        "ipopt.sb": "yes",
-        # no bound relaxation: a contact held at its branch boundary must not cross it
-        "ipopt.bound_relax_factor": 0.0,
-        "print_time": False,
-    }
-    nlp = {"x": ca.vertcat(ca.vec(S), ca.vec(U)), "f": J, "g": g, "p": ca.vec(F)}
-    solver = ca.nlpsol("discrete", "ipopt", nlp, opts)
-    flags_of = ftest.map(N)
-
-    def rollout(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        states = np.hstack([x0[:, None], np.asarray(roll(x0, u.T))])
-        fl, gp, sp = (np.asarray(x) for x in flags_of(states[:, :-1], u.T))
-        bounds[0] = (fl.ravel(order="F"), gp.ravel(order="F"))
-        loss = float(ocp.phi(states[:, -1])) + scene.control_weight * scene.dt * float(np.sum(u**2))
-        return states, fl, loss
-
-    bounds: list[Any] = [None]
-
-    def region(f: np.ndarray, gp: np.ndarray, off_gap: np.ndarray) -> tuple[Any, Any]:
-        m = f.size
-        lo = np.full(3 * m, -np.inf)
-        hi = np.full(3 * m, np.inf)
-        on = f > 0.5
-        hi[:m][on] = 0.0
-        hi[m : 2 * m][on] = 0.0
-        lo[2 * m :][on] = 0.0
-        by_gap = ~on & ((gp >= 0) | off_gap)
-        lo[:m][by_gap] = 0.0
-        lo[m : 2 * m][~on & ~by_gap] = 0.0
-        return np.concatenate([np.zeros(n_eq), lo]), np.concatenate([np.zeros(n_eq), hi])
-
-    def flipped(f: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Flags on the other side of the active gap bounds (collision one step later or
-        earlier), or None when no gap bound is active."""
-        lam_gap = np.abs(lam[: f.size]).reshape((nc, N), order="F")
-        F2 = f.reshape((nc, N), order="F").copy()
-        off = np.zeros_like(F2, dtype=bool)
-        act = np.argwhere(lam_gap > 1e-9)
-        if act.size == 0:
-            return None
-        for c, n in act:
-            if F2[c, n] > 0.5:  # held at d^ = 0 from inside: let it hit one step later
-                F2[c, n] = 0.0
-                off[c, n] = True
-                if n + 1 < N:
-                    F2[c, n + 1] = 1.0
-            else:  # held at d^ = 0 from outside: let it hit here, not at its later step
-                later = np.flatnonzero(F2[c, n + 1 :] > 0.5)
-                F2[c, n] = 1.0
-                if later.size:
-                    F2[c, n + 1 + later[0]] = 0.0
-        return F2.ravel(order="F"), off.ravel(order="F")
-
-    best_u = u0
-    states, fl, best_loss = rollout(u0)
-    loss0 = best_loss
-    status, iters, rounds, converged = "", 0, 0, False
-    try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
-    flipping = False
-    for rounds in range(1, max_rounds + 1):
-        w0 = np.concatenate([states.ravel(order="F"), best_u.T.ravel(order="F")])
-        lbg, ubg = region(try_flags, bounds[0][1], try_off)
-        res = solver(x0=w0, lbg=lbg, ubg=ubg, p=try_flags)
-        stats = solver.stats()
-        status = str(stats.get("return_status", ""))
-        iters += int(stats.get("iter_count", 0))
-        ok = bool(stats.get("success", False)) or status == "Solved_To_Acceptable_Level"
-        if not ok:
-            converged = flipping  # the flipped branch is infeasible: the boundary is optimal
-            break
-        w = np.asarray(res["x"]).ravel()
-        u_new = w[nx * (N + 1) :].reshape((nu, N), order="F").T.copy()
-        saved = bounds[0]
-        states_new, fl_new, loss_new = rollout(u_new)
-        consistent_round = np.array_equal(fl_new.ravel(order="F"), try_flags)
-        if verbose:
-            print(
-                f"round {rounds}: {status}, {stats.get('iter_count')} it, loss {loss_new:.12g}, "
-                f"NLP {float(res['f']):.12g}, branches kept: {consistent_round}",
-                file=sys.stderr,
-            )
-        if loss_new >= best_loss - 1e-13 * abs(best_loss):
-            # no progress on the neighbouring branches: a local optimum on the boundary
-            # between branches (a contact exactly at a step end), or the end of progress
-            bounds[0] = saved if not flipping else bounds[0]
-            converged = flipping or consistent_round
-            break
-        best_u, states, fl, best_loss = u_new, states_new, fl_new, loss_new
-        nxt = flipped(fl.ravel(order="F"), np.asarray(res["lam_g"]).ravel()[n_eq:])
-        if nxt is not None and consistent_round:
-            try_flags, try_off = nxt
-            flipping = True
-        elif consistent_round:
-            converged = True
-            break
-        else:
-            try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
-            flipping = False
-    if (
-        best_loss >= loss0
-        and rounds == 1
-        and status
-        not in (
-            "Solve_Succeeded",
-            "Solved_To_Acceptable_Level",
-        )
-    ):
+    nlp = _DiscreteNLP(scene, ocp, contact, toi, tol, max_iter)
+    r = _refreeze(nlp, u0, max_rounds, verbose)
+    if r.loss >= r.loss0 and r.rounds == 1 and r.status not in _ACCEPTED:
         raise ConvergenceError(
-            f"discrete transcription did not converge (IPOPT: {status}); try a warm start "
+            f"discrete transcription did not converge (IPOPT: {r.status}); try a warm start "
             "closer to the optimum (e.g. the direct transcription's or gradient descent's "
             "controls)"
         )
-    u = best_u
-    consistent = bool(np.array_equal(rollout(u)[1], fl))
+    u = r.u
+    consistent = bool(np.array_equal(nlp.rollout(u)[1], r.flags))
     solve_time = time.perf_counter() - t0
     loss = discrete_loss(scene, u, contact=contact, toi=toi)
     loss0 = discrete_loss(scene, u0, contact=contact, toi=toi)
@@ -326,21 +368,21 @@ def solve_discrete(
         ev,
         method="discrete",
         scene=scene.name,
-        settings={"contact": contact, "toi": toi, "tol": tol, "steps": N},
+        settings={"contact": contact, "toi": toi, "tol": tol, "steps": scene.steps},
         timings={"solve_time_s": solve_time},
         info={
             "discrete_loss": loss,
             "warm_start_loss": loss0,
-            "iterations": iters,
-            "rounds": rounds,
+            "iterations": r.iterations,
+            "rounds": r.rounds,
             "branches_consistent": consistent,
-            "converged": converged,
-            "ipopt_status": status,
+            "converged": r.converged,
+            "ipopt_status": r.status,
         },
     )
 
 
-def discrete_gap(ocp: Any, sol: Any) -> dict[str, Any]:
+def discrete_gap(ocp: ProblemLike, sol: Solution) -> dict[str, Any]:
     """Gradient descent on the paper's discrete objective against that objective's optimum.
 
     The symplectic Euler loss that gd minimises is not the continuous cost; its own optimum

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ import hybridoc
 from hybridoc.solvers.casadi_step import make_step
 from hybridoc.solvers.discrete_transcription import (
     _frozen_step,
+    discrete_gap,
     discrete_loss,
     solve_discrete,
 )
@@ -88,3 +91,18 @@ def test_floor_near_continuous_optimum(scene, floor):
 def test_bad_warm_start_is_a_clear_error(scene):
     with pytest.raises(hybridoc.ControlsError):
         solve_discrete(scene, warm_start=np.zeros((3, 2)))
+
+
+def test_discrete_gap_of_the_floor_is_zero(scene, floor):
+    # a gd-like solution whose loss is the floor's: warm-started there, IPOPT finds no lower
+    sol = dataclasses.replace(floor, info={**floor.info, "loss": floor.info["discrete_loss"]})
+    gap = discrete_gap(scene, sol)
+    assert gap["discrete_loss"] == floor.info["discrete_loss"]
+    assert gap["discrete_optimum"] <= gap["discrete_loss"]
+    assert 0.0 <= gap["discrete_gap_relative"] < 1e-9
+
+
+def test_discrete_gap_of_a_problem_without_a_simulator_says_why(floor):
+    gap = discrete_gap("bouncing-ball-2", floor)  # a generic HybridOCP, not a disc scene
+    assert set(gap) == {"discrete_loss", "discrete_error"}
+    assert "not a disc scene" in gap["discrete_error"]
