@@ -84,7 +84,6 @@ __all__ = [
     "INTEGRATORS",
     "METHOD",
     "OPTIMIZERS",
-    "PAPER_SETTINGS",
     "PATHS",
     "GDOptions",
     "checked_options",
