@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
-PKG_DIRS := hybridoc hybridoc/cli reference solvers solvers/contacts problems problems/library problems/scenes
+PKG_DIRS := hybridoc hybridoc/cli hybridoc/workflows reference solvers solvers/contacts problems problems/library problems/scenes
 
 .PHONY: run test test-all fuzz lint format docs docs-check screenshots bench install clean
 

@@ -206,7 +206,7 @@ def per_iteration(
                 for integ in INTEGRATORS:
                     if integ != "exact" or exact_ok(name):
                         try:
-                            c_losses[name, integ] = CompiledLoss(problem, name, "both", integ)
+                            c_losses[name, integ] = CompiledLoss(problem, name, integ, toi="both")
                         except HybridocError as exc:
                             c_errors[name, integ] = str(exc)
         # one compilation at a time, in the background: wait for all before timing anything
@@ -231,7 +231,7 @@ def per_iteration(
             out.append(base | {"path": "compiled C", "na": off})
         try:
             with codegen_env("0"):
-                loss = CompiledLoss(problem, name, "both", integ)
+                loss = CompiledLoss(problem, name, integ, toi="both")
         except HybridocError as exc:
             return out + [base | {"path": "compiled VM", "na": str(exc)[:80]}]
         return out + [base | {"path": "compiled VM"} | timed(loss, max(3, repeats // 10))]
@@ -478,14 +478,14 @@ def setup_times(repeats: int) -> list[dict[str, Any]]:
     cases += [(f"grid {n} discs N=480", lambda n=n: grid_scene(n)) for n in SETUP_DISCS]
     rows = []
     with codegen_env("0"):
-        CompiledLoss(grid_scene(2, steps=10), "direct", "both", "exact")  # one-time imports
+        CompiledLoss(grid_scene(2, steps=10), "direct", "exact")  # one-time imports
         for label, make in cases:
             builds, firsts = [], []
             for _ in range(repeats):
                 scene = make()  # a fresh Scene: nothing cached from the last repeat
                 u = scene.initial_controls()
                 t0 = time.perf_counter()
-                loss = CompiledLoss(scene, "direct", "both", "exact")
+                loss = CompiledLoss(scene, "direct", "exact")
                 t1 = time.perf_counter()
                 loss.value_and_grad(u)
                 t2 = time.perf_counter()

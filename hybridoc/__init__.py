@@ -40,12 +40,14 @@ if TYPE_CHECKING:  # pragma: no cover - what type checkers and editors see
     from hybridoc.evaluation import Evaluation, Gradient
     from hybridoc.evaluator import evaluate, gradient
     from hybridoc.events import Event
+    from hybridoc.methods import solve
     from hybridoc.ocp import Guard, HybridOCP
     from hybridoc.problem import as_ocp
-    from hybridoc.problems import Disc, Scene, Wall, builtin_names, load_scene
+    from hybridoc.problems import Disc, DiscOCP, Scene, Wall, builtin_names, load_scene
+    from hybridoc.reference import solve_reference
     from hybridoc.solution import Solution, Status
-    from hybridoc.solvers.policy_training import closed_loop_cost
-    from hybridoc.solvers.registry import crossval, solve
+    from hybridoc.workflows.training import closed_loop_cost
+    from hybridoc.workflows.validation import crossval
 
 __version__: str
 
@@ -53,6 +55,7 @@ __all__ = [
     "ControlsError",
     "ConvergenceError",
     "Disc",
+    "DiscOCP",
     "Evaluation",
     "EvaluationError",
     "Event",
@@ -75,6 +78,7 @@ __all__ = [
     "gradient",
     "load_scene",
     "solve",
+    "solve_reference",
 ]
 
 # Where each public name is defined (the TYPE_CHECKING block above says the same).
@@ -97,13 +101,15 @@ _EXPORTS: dict[str, str] = {
     "Wall": "hybridoc.problems",
     "as_ocp": "hybridoc.problem",
     "builtin_names": "hybridoc.problems",
-    "closed_loop_cost": "hybridoc.solvers.policy_training",  # torch
-    "crossval": "hybridoc.solvers.registry",
+    "closed_loop_cost": "hybridoc.workflows.training",  # torch
+    "crossval": "hybridoc.workflows.validation",
     "evaluate": "hybridoc.evaluator",
     "evaluate_callable": "hybridoc.callable_eval",
     "gradient": "hybridoc.evaluator",
     "load_scene": "hybridoc.problems",
-    "solve": "hybridoc.solvers.registry",
+    "solve": "hybridoc.methods",
+    "solve_reference": "hybridoc.reference",
+    "DiscOCP": "hybridoc.problems",
 }
 
 # Submodules that ``import hybridoc`` used to load as a side effect: ``hybridoc.problems.X``

@@ -42,6 +42,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "BUILTIN",
+    "BUILTIN_SOURCES",
     "CLI_METHOD",
     "DEFAULT_METHOD",
     "DEFAULT_TOLERANCE",
@@ -51,6 +52,7 @@ __all__ = [
     "NoOptions",
     "OptionSpec",
     "get_method",
+    "load_builtin_sources",
     "nonnegative_int",
     "option",
     "option_specs",
@@ -324,6 +326,26 @@ BUILTIN: dict[str, str] = {
 }
 """The methods that ship with hybridoc: ``name -> "module:attribute"`` of their
 :class:`Method`, imported on first use."""
+
+
+BUILTIN_SOURCES: tuple[str, ...] = ("hybridoc.solvers.candidates:register_builtin_sources",)
+"""Functions (``"module:function"``) that register the reference's candidate sources that
+ship with hybridoc (the transcription, the multi-start): the reference's registry calls them
+on first use (:func:`load_builtin_sources`), as :data:`BUILTIN` names the built-in methods,
+so that the reference runs with them however it is reached and still imports no solver."""
+
+_SOURCES_LOADED = False
+
+
+def load_builtin_sources() -> None:
+    """Call the :data:`BUILTIN_SOURCES` registration functions (once per process)."""
+    global _SOURCES_LOADED
+    if _SOURCES_LOADED:
+        return
+    _SOURCES_LOADED = True
+    for where in BUILTIN_SOURCES:
+        module, _, attr = where.partition(":")
+        getattr(importlib.import_module(module), attr)()
 
 
 class _Registry(Mapping[str, Method]):

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import os
 import sys
 import time
 import warnings
@@ -50,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc.cores import usable_cores
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
@@ -428,9 +428,9 @@ def solve_reference(
     sources
         The candidate sources (:class:`~hybridoc.reference.sources.CandidateSource`,
         :class:`~hybridoc.reference.sources.SequenceStarter`), in order; ``None``: the
-        registered ones (:func:`~hybridoc.reference.sources.register_source`; importing
-        :mod:`hybridoc.solvers` registers the transcription and the multi-start, and a
-        warning says when none is registered).
+        registered ones (:func:`~hybridoc.reference.sources.register_source`: the
+        transcription and the multi-start unless unregistered; a warning says when none
+        is).
     progress
         ``True``, ``False``/``None`` or a :class:`~hybridoc.progress.Progress`: stage lines
         (which sequence is being solved, the sources, the verification) and the count of
@@ -535,8 +535,7 @@ def _active_sources(
         chosen, kind = registered_sources(), "registered"
         if not chosen:
             warnings.warn(
-                "no candidate sources are registered (import hybridoc.solvers, or call "
-                "hybridoc.solve(problem, 'reference') or hybridoc.solve_reference): the "
+                "no candidate sources are registered (all were unregistered): the "
                 "reference proposes sequences from the initial guess and the one-event "
                 "sequences only",
                 stacklevel=3,
@@ -1025,14 +1024,6 @@ def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, floa
     return seq, (None if res is None else res.z), why, time.perf_counter() - t0
 
 
-def _usable_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluation) -> None:
     """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning, in
     worker processes (one per core, at most :data:`MAX_WORKERS`) where the platform can
@@ -1082,7 +1073,7 @@ def _search_outcomes(
     from concurrent.futures import ProcessPoolExecutor
 
     _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol, starters=book.starters)
-    workers = min(_usable_cores(), MAX_WORKERS)
+    workers = min(usable_cores(), MAX_WORKERS)
     outcomes = []
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():

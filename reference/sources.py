@@ -16,10 +16,11 @@ guesses and a control to start Newton from), a known control the result must not
 than, or both.
 
 Sources are passed in (``solve_reference(problem, sources=[...])``) or registered
-(:func:`register_source`). The solvers register theirs (the direct transcription, the
-batched multi-start of the simulator) when :mod:`hybridoc.solvers` is imported, which
-``hybridoc.solve``, the command line and ``hybridoc.solve_reference`` do; the result says
-which sources were used (``info["sources"]``).
+(:func:`register_source`). The sources that ship with hybridoc (the direct transcription,
+the batched multi-start of the simulator, in :mod:`hybridoc.solvers.candidates`) are
+registered on the registry's first use through :data:`hybridoc.methods.BUILTIN_SOURCES`, as
+the built-in methods are, so every entry point runs with them while this package imports no
+solver; the result says which sources were used (``info["sources"]``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+from hybridoc.methods import load_builtin_sources
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -209,5 +212,8 @@ def unregister_source(name: str) -> None:
 
 
 def registered_sources() -> tuple[Any, ...]:
-    """The registered sources, in registration order."""
+    """The registered sources, in registration order: the built-in ones
+    (:data:`hybridoc.methods.BUILTIN_SOURCES`, registered on first use) and any registered
+    since."""
+    load_builtin_sources()
     return tuple(_REGISTRY.values())

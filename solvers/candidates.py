@@ -165,13 +165,3 @@ def register_builtin_sources() -> None:
     the order the reference takes their proposals in)."""
     register_source(TranscriptionSource())
     register_source(MultiStartSource())
-
-
-def __getattr__(name: str) -> Any:
-    # ``hybridoc.solve_reference``: the reference's entry point, reached through this module
-    # so that the sources above are registered; imported on first use (CasADi)
-    if name == "solve_reference":
-        from hybridoc.reference.solve import solve_reference
-
-        return solve_reference
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

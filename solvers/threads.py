@@ -18,19 +18,12 @@ from __future__ import annotations
 
 import os
 
+from hybridoc.cores import usable_cores
 from hybridoc.errors import SceneError
 
 __all__ = ["casadi_threads", "configured_threads", "torch_threads", "usable_cores"]
 
 _APPLIED: int | None = None
-
-
-def usable_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def configured_threads() -> int | None:

@@ -36,6 +36,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hybridoc.evaluation",
             "hybridoc.solution",
             "hybridoc.progress",
+            "hybridoc.cores",
             "hybridoc._pyfile",
         ),
     ),

@@ -197,3 +197,23 @@ def test_the_method_declares_its_options() -> None:
         with pytest.raises(ValueError, match=match):
             parse_search(bad)
     assert isinstance(MultiStartSource().name, str)
+
+
+def test_the_built_in_sources_serve_every_entry_point() -> None:
+    """Reached directly, without anything importing hybridoc.solvers first, the reference
+    still runs with the transcription and multi-start sources (hybridoc.methods.
+    BUILTIN_SOURCES registers them on first use), so no entry point gets a weaker search."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from hybridoc.reference import solve_reference; "
+        "sol = solve_reference('head-on'); "
+        "print(','.join(s['name'] for s in sol.info['sources'])); "
+        "print('hybridoc.solvers.transcription' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-W", "error::UserWarning", "-c", code],
+        capture_output=True, text=True, timeout=300, check=True,
+    ).stdout.splitlines()  # fmt: skip
+    assert "transcription" in out[0] and "multi-start" in out[0]

@@ -6,7 +6,7 @@
     :data:`~hybridoc.solvers.contacts.TOI_MODES`), whether it has a CasADi step (the compiled
     path of gradient descent), and its one-line summary.
 ``.. hybridoc-methods::``
-    Every solver of :data:`hybridoc.solvers.registry.METHODS`: ``method=`` name, the function
+    Every solver of :data:`hybridoc.methods.METHODS`: ``method=`` name, the function
     that runs it, its summary and the options it accepts (read from the function's signature).
 ``.. hybridoc-problems::``
     Every built-in problem: the disc scenes (:func:`hybridoc.problems.builtin_names`) and the
@@ -80,16 +80,23 @@ class ContactModels(_Table):
 
 class Methods(_Table):
     def lines(self) -> list[str]:
-        from hybridoc.solvers.registry import METHODS
+        from hybridoc.methods import METHODS
 
         rows = []
         for name, m in METHODS.items():
             fn = m.function()
-            opts = ", ".join(f"``{o}``" for o in m.accepted())
+            opts = ", ".join(f"``{o}``" for o in m.option_names())
             rows.append(
-                [f"``{name}``", f":func:`~{fn.__module__}.{fn.__qualname__}`", m.summary, opts]
+                [
+                    f"``{name}``",
+                    f":func:`~{fn.__module__}.{fn.__qualname__}`",
+                    m.summary,
+                    f":class:`~{m.options.__module__}.{m.options.__qualname__}`: {opts}",
+                    f"{m.tolerance:.0e}",
+                ]
             )
-        return _list_table(["method", "function", "summary", "options"], rows, "10 20 35 35")
+        headers = ["method", "function", "summary", "options", "crossval tolerance"]
+        return _list_table(headers, rows, "10 18 30 32 10")
 
 
 class Problems(_Table):

@@ -103,7 +103,7 @@ for method in ("reference", "dt", "gd"):
 # %%
 # Plotting
 # --------
-# :func:`~hybridoc.solvers.validation.crossval_figures` draws the three trajectories and
+# :func:`~hybridoc.workflows.validation.crossval_figures` draws the three trajectories and
 # the three controls. The optimal push is steered so that ``ball2`` leaves the collision
 # towards the origin:
 figures = crossval_figures("single-collision", sols)

@@ -68,7 +68,7 @@ print(f"grid of {scene.steps} steps (the paper's: {nominal.steps}); dt {scene.dt
 print(f"{N_TRAIN} training states")
 
 # %%
-# :func:`~hybridoc.solvers.policy_training.mlp_policy` builds a small ``tanh`` network
+# :func:`~hybridoc.workflows.training.mlp_policy` builds a small ``tanh`` network
 # :math:`(t, s) \mapsto u` with its inputs scaled to the scene. Its output is the scene's
 # initial control plus the network, whose last layer starts small, so the untrained policy
 # acts almost like the initial guess. It is a float64 ``torch.nn.Module`` that takes one
@@ -85,7 +85,7 @@ print("initial guess u(0): ", scene.initial_controls()[0])
 # %%
 # Training through the simulator
 # ------------------------------
-# :func:`~hybridoc.solvers.policy_training.train_policy` rolls the policy out in closed
+# :func:`~hybridoc.workflows.training.train_policy` rolls the policy out in closed
 # loop in the differentiable simulator from all training states at once
 # (:meth:`~hybridoc.solvers.simulator.Simulator.rollout_policy`: symplectic Euler,
 # impulses, the control held over each step) and minimises the mean cost
@@ -193,17 +193,15 @@ for name, kept in snapshots.items():
 #
 # Validation against the exact optima
 # -----------------------------------
-# Now the other draws. :func:`~hybridoc.dataset.make_dataset` computes the exact optimum of
+# Now the other draws. :func:`~hybridoc.workflows.datasets.make_dataset` computes the exact optimum of
 # each of the first draws of the distribution (tutorial 8 and :doc:`/datasets` explain how).
-# :func:`~hybridoc.policies.validate_policy` rolls a policy out in the judge on the same
+# :func:`~hybridoc.workflows.policies.validate_policy` rolls a policy out in the judge on the same
 # draws, with the control held over each step as in training, and compares each rollout's
 # cost :math:`J_\pi` with the optimum :math:`J^*` of the same draw. The optimum is an
 # open-loop control that knows the draw in advance: a gap of zero is the best possible.
 tmp = tempfile.TemporaryDirectory(prefix="hybridoc-tutorial-")
 out = Path(tmp.name)
-references = make_dataset(
-    scene, N_VAL, out / "references", workers=1, progress=False, verbose=False
-)
+references = make_dataset(scene, N_VAL, out / "references", workers=1, progress=False)
 print(f"{len(references)} exact optima:", references.manifest["counts"])
 optima = references["cost"]
 print(f"optimal cost from {optima.min():.4f} to {optima.max():.4f}")
@@ -231,8 +229,8 @@ for name, rep in reports.items():
 #
 # The figures
 # -----------
-# :func:`~hybridoc.policies.policy_figures` draws what ``hybridoc validate-policy --out``
-# saves (through :func:`~hybridoc.policies.report_figures`): the histogram of the relative
+# :func:`~hybridoc.workflows.policies.policy_figures` draws what ``hybridoc validate-policy --out``
+# saves (through :func:`~hybridoc.workflows.policies.report_figures`): the histogram of the relative
 # gap and the gap over the initial-state coordinates that vary.
 labels = list(scene.to_ocp().state_labels)
 figures = {

@@ -62,7 +62,7 @@ print(
 # %%
 # Exact optima on a process pool
 # ------------------------------
-# :func:`~hybridoc.dataset.make_dataset` solves the nominal scene once with the
+# :func:`~hybridoc.workflows.datasets.make_dataset` solves the nominal scene once with the
 # reference's full search, then every draw by Newton on the conditions of optimality,
 # started from the nominal optimum, and accepts a draw only when the judge confirms it
 # (:doc:`/datasets`). The draws go in chunks of 25, one task each, to a pool of worker
@@ -71,7 +71,7 @@ print(
 tmp = tempfile.TemporaryDirectory(prefix="hybridoc-tutorial-")
 out = Path(tmp.name)
 start = time.perf_counter()
-pool_ds = make_dataset(scene, M, out / "pool", workers=2, progress=False, verbose=False)
+pool_ds = make_dataset(scene, M, out / "pool", workers=2, progress=False)
 print(f"{len(pool_ds)} draws in {time.perf_counter() - start:.1f} s on a pool of 2")
 print(
     "status:", pool_ds.manifest["counts"], "| solved by:", pool_ds.manifest["methods"]
@@ -105,9 +105,7 @@ cluster = LocalCluster(
 client = Client(cluster)
 print("workers:", len(client.scheduler_info()["workers"]))
 start = time.perf_counter()
-dask_ds = make_dataset(
-    scene, M, out / "dask", dask=client, progress=False, verbose=False
-)
+dask_ds = make_dataset(scene, M, out / "dask", dask=client, progress=False)
 print(f"{len(dask_ds)} draws in {time.perf_counter() - start:.1f} s on Dask")
 
 pool_bytes = (out / "pool" / "dataset.npz").read_bytes()
@@ -173,7 +171,7 @@ def follow(t, s):
 # %%
 # Validating it
 # -------------
-# :func:`~hybridoc.policies.validate_policy` rolls the policy out in closed loop on the
+# :func:`~hybridoc.workflows.policies.validate_policy` rolls the policy out in closed loop on the
 # first :math:`M` draws (on the same engines) and compares each rollout's true cost
 # :math:`J_\pi` with the optimum :math:`J^*` of the same draw from our dataset:
 reports = {}
@@ -234,8 +232,8 @@ print("same rollouts on Dask and on the pool:", same)
 # %%
 # The figures
 # -----------
-# :func:`~hybridoc.policies.policy_figures` draws what ``hybridoc validate-policy --out``
-# saves (through :func:`~hybridoc.policies.report_figures`): the histogram of the relative
+# :func:`~hybridoc.workflows.policies.policy_figures` draws what ``hybridoc validate-policy --out``
+# saves (through :func:`~hybridoc.workflows.policies.report_figures`): the histogram of the relative
 # gap and the gap over the two initial-state coordinates that vary (red crosses: a rollout
 # whose events differ from the optimum's).
 labels = list(scene.to_ocp().state_labels)
