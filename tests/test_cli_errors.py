@@ -80,7 +80,7 @@ def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (("solve", "head-on", "--lr", "-1"), ("--lr", "> 0")),
         (("solve", "head-on", "--lr", "nan"), ("--lr", "finite")),
         (("solve", "head-on", "--smoothing", "x"), ("--smoothing", "'x'")),
-        (("solve", "head-on", "--mesh", "0"), ("--mesh", "integer >= 1")),
+        (("solve", "head-on", "--mesh", "0"), ("--mesh", "from 1 to 1000", "'0'")),
         (("solve", "head-on", "--search", "-1"), ("--search", "integer >= 0")),
         (("solve", "head-on", "--time-limit", "0"), ("--time-limit", "> 0")),
         (("compare-contacts", "head-on", "--iters", "-2"), ("--iters",)),
@@ -210,7 +210,7 @@ def test_check_sequence() -> None:
 
 
 def test_convergence_rejects_bad_steps() -> None:
-    from hybridoc.solvers.validation import convergence
+    from hybridoc.workflows.validation import convergence
 
     for steps in [(), (1.5,), (0,)]:
         with pytest.raises(SceneError, match="steps"):
