@@ -19,7 +19,7 @@ def test_import_from_the_repository_root():
 
     root = Path(__file__).resolve().parent.parent
     code = (
-        "import hybridoc, hybridoc.problems, hybridoc.solvers.registry; "
+        "import hybridoc, hybridoc.problems, hybridoc.methods; "
         "print(hybridoc.__file__); print(hybridoc.solve('head-on', 'dt').cost)"
     )
     proc = subprocess.run(

@@ -88,8 +88,8 @@ def test_unknown_attribute_is_an_attribute_error() -> None:
 def test_deferred_help_lists_the_registries() -> None:
     """The commands that read registries add their arguments on first use: their help still
     lists every method and contact model."""
+    from hybridoc.methods import METHODS
     from hybridoc.solvers.contacts import model_names
-    from hybridoc.solvers.registry import METHODS
 
     subs = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
     solve_help = " ".join(subs["solve"].format_help().split())
