@@ -196,9 +196,10 @@ for name, kept in snapshots.items():
 # Now the other draws. :func:`~hybridoc.workflows.datasets.make_dataset` computes the exact
 # optimum of each of the first draws of the distribution (tutorial 8 and :doc:`/datasets`
 # explain how). :func:`~hybridoc.workflows.policies.validate_policy` rolls a policy out in
-# the judge on the same draws, with the control held over each step as in training, and compares each rollout's
-# cost :math:`J_\pi` with the optimum :math:`J^*` of the same draw. The optimum is an
-# open-loop control that knows the draw in advance: a gap of zero is the best possible.
+# the judge on the same draws, with the control held over each step as in training, and
+# compares each rollout's cost :math:`J_\pi` with the optimum :math:`J^*` of the same draw.
+# The optimum is an open-loop control that knows the draw in advance: a gap of zero is the
+# best possible.
 tmp = tempfile.TemporaryDirectory(prefix="hybridoc-tutorial-")
 out = Path(tmp.name)
 references = make_dataset(scene, N_VAL, out / "references", workers=1, progress=False)
