@@ -26,7 +26,7 @@ import torch
 from matplotlib.figure import Figure
 
 import hybridoc
-from hybridoc.cli.solve import PAPER_TABLE1
+from hybridoc.problems.paper import PAPER_OPTIMUM, PAPER_TABLE1
 from hybridoc.solvers.gradcheck import (
     compared_models,
     gradcheck_points,
@@ -91,7 +91,7 @@ for toi in ("none", "position", "velocity", "both"):
         f" {sol.cost:10.5f}  {sol.sequence}"
     )
 optimum = hybridoc.solve(scene, "reference").cost
-paper_optimum = PAPER_TABLE1["optimum"]["single-collision"]
+paper_optimum = PAPER_OPTIMUM["single-collision"]
 print(f"exact optimum {optimum:.6f}; the paper's grid search {paper_optimum}")
 
 fig_table = Figure(figsize=(6.4, 3.6), layout="constrained")
