@@ -35,6 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
         registered_sources,
         unregister_source,
     )
+    from hybridoc.reference.warm import warm_extremal
 
 __all__ = [
     "METHOD",
@@ -52,6 +53,7 @@ __all__ = [
     "solve_reference",
     "unregister_source",
     "verify_reference",
+    "warm_extremal",
 ]
 
 _EXPORTS = {
@@ -70,6 +72,7 @@ _EXPORTS = {
     "solve_reference": "hybridoc.reference.solve",
     "unregister_source": "hybridoc.reference.sources",
     "verify_reference": "hybridoc.reference.sequence",
+    "warm_extremal": "hybridoc.reference.warm",
 }
 
 

@@ -65,16 +65,21 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-def _exports() -> dict[str, str]:
-    """``name -> module`` of the package's lazy re-exports (``_EXPORTS`` in its
-    ``__init__.py``, read from the source)."""
-    tree = ast.parse((ROOT / "hybridoc" / "__init__.py").read_text(encoding="utf-8"))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.AnnAssign | ast.Assign):
-            targets = [node.target] if isinstance(node, ast.AnnAssign) else node.targets
-            if any(getattr(t, "id", "") == "_EXPORTS" for t in targets):
-                return ast.literal_eval(node.value)
-    raise AssertionError("hybridoc/__init__.py has no _EXPORTS")
+def _exports() -> dict[str, dict[str, str]]:
+    """``package -> {name: module}`` of the packages' lazy re-exports (PEP 562): the
+    ``_EXPORTS`` dictionary of their ``__init__.py``, read from the source. An import of such
+    a name is an import of the module that defines it."""
+    out = {}
+    for module, path in MODULES.items():
+        if path.name != "__init__.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.AnnAssign | ast.Assign):
+                targets = [node.target] if isinstance(node, ast.AnnAssign) else node.targets
+                if any(getattr(t, "id", "") == "_EXPORTS" for t in targets):
+                    out[module] = ast.literal_eval(node.value)
+    assert "hybridoc" in out and "hybridoc.reference" in out
+    return out
 
 
 EXPORTS = _exports()
@@ -114,8 +119,8 @@ def _imports(module: str) -> list[tuple[str, str, int]]:
                 full = f"{base}.{alias.name}"
                 if base == "hybridoc" and alias.name.startswith("__"):
                     continue  # __version__: package metadata
-                if base == "hybridoc" and alias.name in EXPORTS:  # the lazy re-exports
-                    out.append((EXPORTS[alias.name], alias.name, node.lineno))
+                if alias.name in EXPORTS.get(base, {}):  # a lazy re-export
+                    out.append((EXPORTS[base][alias.name], alias.name, node.lineno))
                 elif full in MODULES:  # a submodule imported by name
                     out.append((full, "", node.lineno))
                 else:

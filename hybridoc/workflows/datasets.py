@@ -158,10 +158,6 @@ FORMAT = "hybridoc-dataset/1"
 CHUNK = 25
 """Draws per chunk (one shard file, one task of the pool or of Dask)."""
 
-_OPT_RTOL = 1e-9
-CONTINUATION = (4, 16)
-"""Steps of the continuations in the initial state tried when Newton from the nominal
-point fails."""
 _VARIABLE_K = {  # column -> number of extra rows beyond K (K events, K + 1 phases)
     "event_times": 0,
     "multipliers": 0,
@@ -377,48 +373,10 @@ def _failed_record(ocp: DiscOCP, message: str) -> dict[str, Any]:
 
 def _warm(ctx: DrawContext, ocp: DiscOCP) -> tuple[ReferenceResult | None, str]:
     """The nominal sequence's extremal from the nominal point, verified; or why not."""
-    from hybridoc.evaluator import evaluate
-    from hybridoc.reference import verify_reference
-    from hybridoc.reference.candidates import enumerate_sequences, lower_bound
-    from hybridoc.reference.result import make_result
-    from hybridoc.reference.shooting import newton, shooting_system
+    from hybridoc.reference import warm_extremal
 
     assert ctx.sequence is not None and ctx.z is not None
-    S = shooting_system(ocp, ctx.sequence)
-    nr = newton(S, ctx.z, tol=ctx.tol)
-    if not nr.converged:
-        # continuation in the initial state from the nominal one (deterministic per draw)
-        x_nom, x_i = np.asarray(ctx.ocp.x0, dtype=float), np.asarray(ocp.x0, dtype=float)
-        for steps in CONTINUATION:
-            z = ctx.z
-            for k in range(1, steps + 1):
-                Sk = shooting_system(
-                    ocp.replace(x0=x_nom + (k / steps) * (x_i - x_nom)), ctx.sequence
-                )
-                nr = newton(Sk, z, tol=ctx.tol)
-                if not nr.converged:
-                    break
-                z = nr.z
-            if nr.converged:
-                nr = newton(S, z, tol=ctx.tol)
-                if nr.converged:
-                    break
-    if not nr.converged:
-        return None, f"Newton from the nominal point: residual {nr.residual:.2e}"
-    res = make_result(S, nr, "warm")
-    ok, _, msg = verify_reference(res)
-    if not ok:
-        return None, msg
-    bound = res.cost * (1 - _OPT_RTOL)
-    for seq in enumerate_sequences(ocp, 1):
-        if seq != ctx.sequence and lower_bound(ocp, seq) < bound:
-            return None, f"the sequence {seq} is not ruled out by its lower bound"
-    guess = evaluate(ocp, ocp.u_guess)
-    if guess.cost < bound:
-        return None, "the initial guess is cheaper"
-    if ocp.has_bounds and ocp.bound_violation(res.cell_averages()) > 1e-9:
-        return None, "the extremal violates the control bounds"
-    return res, ""
+    return warm_extremal(ocp, ctx.sequence, ctx.z, tol=ctx.tol, start_x0=ctx.ocp.x0)
 
 
 def _solve_draw(ctx: DrawContext, index: int) -> dict[str, Any]:
