@@ -9,13 +9,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems.scene import Scene
 
 __all__ = [
     "plot_controls",
@@ -65,7 +68,7 @@ def _wall_geometry(
 
 
 def plot_scene(
-    scene: Any,
+    scene: Scene,
     evaluation: Any = None,
     *,
     ax: Axes | None = None,
@@ -396,7 +399,7 @@ def plot_costates(
     return fig
 
 
-def _scene_overlay(scene: Any, evals: Mapping[str, Any], *, title: str) -> Figure:
+def _scene_overlay(scene: Scene, evals: Mapping[str, Any], *, title: str) -> Figure:
     """The scene drawn with the first evaluation, the others' disc paths overlaid."""
     names = list(evals)
     fig = plot_scene(scene, evals[names[0]], title=title)

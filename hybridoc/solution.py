@@ -22,11 +22,14 @@ from enum import StrEnum
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.errors import HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems.scene import Scene
 
 __all__ = ["Solution", "Status", "package_versions"]
 
@@ -297,7 +300,7 @@ class Solution:
         ev: Any,
         *,
         method: str,
-        scene: Any,
+        scene: str | Scene,
         settings: Mapping[str, Any] | None = None,
         timings: Mapping[str, Any] | None = None,
         info: Mapping[str, Any] | None = None,

@@ -32,7 +32,7 @@ from hybridoc.solvers.contacts.casadi_parts import (
 from hybridoc.solvers.contacts.direct import direct_impulses
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.problems import Scene
+    from hybridoc.problems import DiscOCP, Scene
 
 __all__ = [
     "ImpulseInputs",
@@ -79,7 +79,7 @@ def step_expression(
 
 
 def make_step(
-    scene: Any,
+    scene: Scene | str | DiscOCP,
     contact: ContactModel | str = "direct",
     integrator: str = "symplectic-euler",
     *,

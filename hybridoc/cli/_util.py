@@ -35,6 +35,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
 
     from hybridoc.methods import Method, OptionSpec
+    from hybridoc.ocp import HybridOCP
+    from hybridoc.problems.scene import Scene
 
 __all__ = [
     "HybridocArgumentParser",
@@ -226,7 +228,7 @@ def load_problem_arg(text: str) -> Any:
     return as_ocp(text)
 
 
-def disc_scene_of(ocp: Any, command: str) -> Any:
+def disc_scene_of(ocp: HybridOCP, command: str) -> Scene:
     """The Scene of a disc problem, or a one-line error naming the command."""
     from hybridoc.problems import DiscOCP
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import fmt, format_table, indent, load_problem_arg, problem_arg
 from hybridoc.errors import HybridocError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.problems.scene import Scene
 
 __all__ = ["register"]
 
@@ -52,7 +55,7 @@ def cmd_problems(args: argparse.Namespace) -> int:
     return 0
 
 
-def _guess_text(scene: Any) -> str:
+def _guess_text(scene: Scene) -> str:
     parts = []
     for i in scene.actuated_indices:
         d = scene.discs[i]
@@ -70,7 +73,7 @@ def _guess_text(scene: Any) -> str:
     return "; ".join(parts)
 
 
-def _scene_lines(scene: Any) -> list[str]:
+def _scene_lines(scene: Scene) -> list[str]:
     lines = [f"scene {scene.name}" + (f": {scene.description}" if scene.description else "")]
     lines.append(
         f"horizon T = {fmt(scene.horizon)}, steps N = {scene.steps} (dt = {fmt(scene.dt, 6)}), "

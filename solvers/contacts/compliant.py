@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay light
     from torch import Tensor
 
+    from hybridoc.problems.scene import Scene
+
 from hybridoc.errors import EvaluationError
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts.base import ContactModel, register
@@ -181,7 +183,7 @@ def compliant_step(
 
 
 def compliant_casadi_step(
-    scene: Any,
+    scene: Scene,
     s: Any,
     u: Any,
     *,
@@ -272,5 +274,5 @@ class Compliant(ContactModel):
             stiffness=self.stiffness, damping=self.damping,
         )  # fmt: skip
 
-    def casadi_next_state(self, scene: Any, s: Any, u: Any, integrator: str) -> Any:
+    def casadi_next_state(self, scene: Scene, s: Any, u: Any, integrator: str) -> Any:
         return compliant_casadi_step(scene, s, u, stiffness=self.stiffness, damping=self.damping)

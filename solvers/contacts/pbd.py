@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # torch is imported where it is used: the registry must stay light
     from torch import Tensor
 
+    from hybridoc.problems.scene import Scene
+
 from hybridoc.errors import EvaluationError
 from hybridoc.problems import physics as ph
 from hybridoc.solvers.contacts.base import ContactModel, register
@@ -102,7 +104,9 @@ def pbd_step(
     return torch.stack(xs, dim=1), torch.stack(vel, dim=1)
 
 
-def pbd_casadi_step(scene: Any, s: Any, u: Any, *, iterations: int = DEFAULT_PBD_ITERATIONS) -> Any:
+def pbd_casadi_step(
+    scene: Scene, s: Any, u: Any, *, iterations: int = DEFAULT_PBD_ITERATIONS
+) -> Any:
     """:func:`pbd_step` of a scene in CasADi: the next state as an expression.
 
     The same sweeps as the torch step (one shared algorithm); a constraint that the torch step
@@ -259,5 +263,5 @@ class PBD(ContactModel):
             sim.restitution, iterations=self.iterations,
         )  # fmt: skip
 
-    def casadi_next_state(self, scene: Any, s: Any, u: Any, integrator: str) -> Any:
+    def casadi_next_state(self, scene: Scene, s: Any, u: Any, integrator: str) -> Any:
         return pbd_casadi_step(scene, s, u, iterations=self.iterations)
