@@ -154,6 +154,7 @@ class ProgressMeter:
     def stage(self, text: str) -> None:
         with self._lock:
             self._stage, self._detail = text, ""
+            self._count = self._count_t0 = None  # a stage counts afresh (its rate too)
             self._emit_stage(heartbeat=False)
         if self._thread is None and not self._closed:
             self._thread = threading.Thread(
@@ -168,8 +169,8 @@ class ProgressMeter:
     def count(self, done: int, total: int, text: str = "") -> None:
         now = self.elapsed()
         with self._lock:
-            if self._count_t0 is None:
-                self._count_t0 = (now, done)
+            if self._count_t0 is None or (self._count is not None and done < self._count[0]):
+                self._count_t0 = (now, done)  # the first count, or counting started again
             self._count = (done, total, text)
             if now < self.quiet:
                 return

@@ -303,7 +303,8 @@ def add_method_options(
     The flags of the options that the same methods take form one argument group, titled
     "gd options", "dt and reference options", ...; a flag's help, choices, metavar and
     parser come from the option (:func:`hybridoc.methods.option`), and its default is
-    ``None``: :func:`method_options_given` passes on only the flags given.
+    ``None``: :func:`method_options_given` passes on only the flags given. An option whose
+    default is ``False`` is a switch (``--verbose``), given without a value.
 
     Raises
     ------
@@ -318,6 +319,12 @@ def add_method_options(
     for owners, specs in groups.items():
         group = parser.add_argument_group(_owners_title(owners))
         for spec in specs:
+            if spec.default is False:  # a switch, off by default: a flag without a value
+                group.add_argument(
+                    spec.flag, dest=spec.name, action="store_const", const=True, default=None,
+                    help=spec.help,
+                )  # fmt: skip
+                continue
             group.add_argument(
                 spec.flag,
                 dest=spec.name,

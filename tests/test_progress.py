@@ -1,0 +1,81 @@
+"""The one progress protocol (hybridoc.progress): what a meter writes, on a fake clock."""
+
+from __future__ import annotations
+
+import io
+
+import pytest
+
+from hybridoc import progress as hp
+
+
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    now = [0.0]
+    monkeypatch.setattr(hp.time, "perf_counter", lambda: now[0])
+    monkeypatch.setattr(hp, "QUIET_S", 0.0)
+    monkeypatch.setattr(hp, "REDRAW_S", 0.0)
+    return now
+
+
+def test_the_time_left_is_per_stage(clock: list[float]) -> None:
+    out = io.StringIO()
+    with hp.ProgressMeter("gd", stream=out, tty=True) as meter:
+        meter.count(0, 100)
+        clock[0] = 10.0
+        meter.count(50, 100)  # 5 per second: 10 s left
+        meter.stage("next")
+        meter.count(0, 100)
+        clock[0] = 11.0
+        meter.count(10, 100)  # 10 per second in this stage: 9 s left, not 99
+    text = out.getvalue()
+    assert "50/100, 10 s left" in text
+    assert "gd next [##" in text and "10/100, 9 s left" in text
+    assert text.endswith("\n")  # close ends the bar's line
+
+
+def test_a_log_gets_plain_lines_at_its_pace(clock: list[float], monkeypatch) -> None:
+    monkeypatch.setattr(hp, "QUIET_LOG_S", 5.0)
+    monkeypatch.setattr(hp, "EVERY_LOG_S", 30.0)
+    out = io.StringIO()
+    with hp.ProgressMeter("dataset", stream=out, tty=False) as meter:
+        for k in range(100):
+            clock[0] = float(k)
+            meter.count(k, 100, "0 failed")
+        meter.count(100, 100, "0 failed")
+    lines = out.getvalue().splitlines()
+    assert "\r" not in out.getvalue()
+    # silent for 5 s, then one line per 30 s, and the last count
+    assert [line.split("] ")[1].split("/")[0] for line in lines] == ["5", "35", "65", "95", "100"]
+
+
+def test_as_progress_and_scope() -> None:
+    assert isinstance(hp.as_progress(None, "x"), hp.NullProgress)
+    assert isinstance(hp.as_progress(False, "x"), hp.NullProgress)
+    meter = hp.as_progress(True, "x")
+    assert isinstance(meter, hp.ProgressMeter)
+    meter.close()
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.calls: list[tuple] = []
+
+        def stage(self, text: str) -> None:
+            self.calls.append(("stage", text))
+
+        def detail(self, text: str) -> None:
+            self.calls.append(("detail", text))
+
+        def count(self, done: int, total: int, text: str = "") -> None:
+            self.calls.append(("count", done, total))
+
+        def close(self) -> None:
+            self.calls.append(("close",))
+
+    rec = Recorder()
+    assert hp.as_progress(rec, "x") is rec
+    with hp.progress_scope(rec, "x") as p:
+        p.stage("a")
+    assert rec.calls == [("stage", "a")]  # the caller's object is not closed for it
+    with pytest.raises(TypeError, match="progress must be"):
+        hp.as_progress("yes", "x")
