@@ -133,7 +133,11 @@ class MultiStartSource:
     def propose(self, ocp: HybridOCP, context: SourceContext) -> list[Proposal]:
         """Every judged result as a known control; each distinct sequence to solve."""
         from hybridoc.errors import HybridocError
+        from hybridoc.solvers.contacts import contact_model
+        from hybridoc.solvers.gd import make_loss
         from hybridoc.solvers.multistart import explore
+
+        model = contact_model("direct", toi="both")
 
         count = context.multistart
         if not count:
@@ -144,6 +148,9 @@ class MultiStartSource:
             found = explore(
                 ocp, count, steps=min(ocp.steps, MULTISTART_STEPS), iters=MULTISTART_ITERS,
                 judge=MULTISTART_JUDGED,
+                # gd's cached loss (the default's function): built once per problem
+                # structure, not once per call (datasets call the reference per draw)
+                loss_for=lambda coarse: make_loss(coarse, model, "exact")[0],
             )  # fmt: skip
         except HybridocError as exc:
             context.say(f"multi-start failed: {exc}")
