@@ -25,7 +25,7 @@ from __future__ import annotations
 import threading
 import weakref
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -162,6 +162,99 @@ def is_sx(ocp: HybridOCP) -> bool:
     return all(fn.is_a("SXFunction") for fn in fns if fn is not None)
 
 
+def _sample_degree(ocp: HybridOCP) -> tuple[list[bool], int]:
+    """Which guards are polynomials along the flow, and the degree of the detector samples."""
+    degrees = [g.degree for g in ocp.guards]
+    exact = [d is not None and int(d) <= UNKNOWN_DEGREE for d in degrees]
+    if ocp.guards and all(exact):
+        return exact, max(max(int(d) for d in degrees if d is not None), 1)
+    return exact, UNKNOWN_DEGREE
+
+
+class _Detectors:
+    """The guards' detectors at a symbolic state and their rounding levels (``fn``)."""
+
+    def __init__(self, ocp: HybridOCP, sym: Any, sp: Any, sc: Any) -> None:
+        G = len(ocp.guards)
+        self.G, self.sym = G, sym
+        dets = [g.detector if g.detector is not None else g.psi for g in ocp.guards]
+        self.expr = ca.vertcat(*[d(sp) for d in dets]) if G else sym(0, 1)
+        self.grad = ca.jacobian(self.expr, sp) if G else sym(0, ocp.nx)
+        # each guard's rounding level from the scales of the components it depends on (see
+        # ``rounding_level``): a far or fast body does not blur the guards of the others
+        self.fn = ca.Function("det", [sp, sc], [self.expr, rounding_level(self.expr, sp, sc)])
+
+    def at(self, x: Any, x_sc: Any) -> tuple[Any, Any]:
+        """The detectors and their rounding levels at ``x`` with component scales ``x_sc``."""
+        if not self.G:
+            return self.sym(0, 1), self.sym(0, 1)
+        return self.fn(x, x_sc)
+
+    def columns(self, states: list[tuple[Any, Any]]) -> tuple[Any, Any]:
+        """The detectors and their rounding levels at ``states``, one column per state."""
+        if not self.G:
+            return self.sym(0, len(states)), self.sym(0, len(states))
+        outs = [self.fn(x, x_sc) for x, x_sc in states]
+        return ca.horzcat(*[o[0] for o in outs]), ca.horzcat(*[o[1] for o in outs])
+
+
+class _FlowNodes(NamedTuple):
+    """The flow of one grid interval sampled for the detectors (symbolic)."""
+
+    s_end: Any
+    """``s(h)``."""
+    cost: Any
+    """Running cost over ``[0, h]``."""
+    nodes: list[tuple[Any, Any]]
+    """(state, component scales) at the Chebyshev-Lobatto nodes of ``[0, h]``."""
+    window: list[tuple[Any, Any]]
+    """(state, component scales) at the nodes of a sub-window ``[a, b]``."""
+    sc_end: Any
+    """Component scales at ``s(h)``."""
+
+
+def _integrator_flow_nodes(
+    ocp: HybridOCP, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
+) -> _FlowNodes:
+    """The nodes of the built-in CVODES flow map: one integration with a time grid."""
+    # no Jacobian of the flow (a sensitivity solve per call), so each component's scale is
+    # its magnitude at the start and at the node
+    D = len(x_nodes) - 1
+    fracs = (x_nodes[1:] + 1) / 2
+    fracs[-1] = 1.0
+    sampler = integrator_flow_samples(ocp.f, ocp.L, fracs)
+    xs, qs = sampler(s, u, h)
+    s_end, cost = xs[:, D - 1], qs[:, D - 1]
+
+    def scaled(x0: Any, x: Any) -> tuple[Any, Any]:
+        return x, ca.fmax(state_scale(x0), ca.fabs(x))
+
+    node_states = [(s, state_scale(s))]
+    node_states += [scaled(s, xs[:, k]) for k in range(D)]
+    # a sub-window [a, b]: flow to a, then sample
+    s_a = sampler(s, u, a)[0][:, D - 1]
+    xw = sampler(s_a, u, b - a)[0]
+    win_states = [scaled(s, s_a)] + [scaled(s, xw[:, k]) for k in range(D)]
+    sc_end = ca.fmax(state_scale(s), ca.fabs(s_end))
+    return _FlowNodes(s_end, cost, node_states, win_states, sc_end)
+
+
+def _flow_map_nodes(
+    ocp: HybridOCP, sym: Any, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
+) -> _FlowNodes:
+    """The nodes of a closed-form flow map, each with the flow map's rounding scales."""
+    fm = ocp.flow_map
+    assert fm is not None
+    s_end, cost = fm(s, u, h)
+    flow_sc = flow_scale_fn(fm, sym, ocp.nx, ocp.nu)
+    # the first node is s itself (exact); the others carry the flow map's rounding
+    node_states = [(s, state_scale(s))]
+    node_states += [tuple(flow_sc(s, u, h * (xk + 1) / 2)) for xk in x_nodes[1:-1]]
+    node_states.append((s_end, flow_sc(s, u, h)[1]))
+    win_states = [tuple(flow_sc(s, u, a + (b - a) * (xk + 1) / 2)) for xk in x_nodes]
+    return _FlowNodes(s_end, cost, node_states, win_states, flow_sc(s, u, h)[1])
+
+
 class Kernels:
     """CasADi functions of one problem structure.
 
@@ -178,70 +271,38 @@ class Kernels:
         self.sx = is_sx(ocp)
         sym = ca.SX if self.sx else ca.MX
         s, u, h = sym.sym("s", nx), sym.sym("u", nu), sym.sym("h")
-        degrees = [g.degree for g in ocp.guards]
-        exact = [d is not None and int(d) <= UNKNOWN_DEGREE for d in degrees]
-        if G and all(exact):
-            D = max(max(int(d) for d in degrees if d is not None), 1)
-        else:
-            D = UNKNOWN_DEGREE
+        exact, D = _sample_degree(ocp)
         self.nx, self.nu, self.G, self.D = nx, nu, G, D
         self.exact = np.array(exact, dtype=bool)
         self.cheb = Chebyshev(D)
         self.names = [g.name for g in ocp.guards]
-        fm = ocp.flow_map
-        assert fm is not None
-        dets = [g.detector if g.detector is not None else g.psi for g in ocp.guards]
+        assert ocp.flow_map is not None
         sp, sc = sym.sym("sp", nx), sym.sym("sc", nx)
-        det_expr = ca.vertcat(*[d(sp) for d in dets]) if G else sym(0, 1)
-        det_grad = ca.jacobian(det_expr, sp) if G else sym(0, nx)
-        # each guard's rounding level from the scales of the components it depends on (see
-        # ``rounding_level``): a far or fast body does not blur the guards of the others
-        det_fn = ca.Function("det", [sp, sc], [det_expr, rounding_level(det_expr, sp, sc)])
-        own_scale = state_scale(sp)
-
-        def det_cols(states: list[tuple[Any, Any]]) -> tuple[Any, Any]:
-            if not G:
-                return sym(0, len(states)), sym(0, len(states))
-            outs = [det_fn(x, x_sc) for x, x_sc in states]
-            return ca.horzcat(*[o[0] for o in outs]), ca.horzcat(*[o[1] for o in outs])
-
-        x_nodes = self.cheb.x
+        dets = _Detectors(ocp, sym, sp, sc)
         a_, b_ = sym.sym("a"), sym.sym("b")
         if ocp.structure.integrator_flow:
-            # the built-in CVODES flow map: all nodes from one integration with a time grid;
-            # no Jacobian of the flow (a sensitivity solve per call), so each component's
-            # scale is its magnitude at the start and at the node
-            fracs = (x_nodes[1:] + 1) / 2
-            fracs[-1] = 1.0
-            sampler = integrator_flow_samples(ocp.f, ocp.L, fracs)
-            xs, qs = sampler(s, u, h)
-            s_end, cost = xs[:, D - 1], qs[:, D - 1]
-
-            def scaled(x0: Any, x: Any) -> tuple[Any, Any]:
-                return x, ca.fmax(state_scale(x0), ca.fabs(x))
-
-            node_states = [(s, state_scale(s))]
-            node_states += [scaled(s, xs[:, k]) for k in range(D)]
-            # a sub-window [a, b]: flow to a, then sample
-            s_a = sampler(s, u, a_)[0][:, D - 1]
-            xw = sampler(s_a, u, b_ - a_)[0]
-            win_states = [scaled(s, s_a)] + [scaled(s, xw[:, k]) for k in range(D)]
-            s_pt = s_end
-            sc_pt = ca.fmax(state_scale(s), ca.fabs(s_end))
+            flow = _integrator_flow_nodes(ocp, s, u, h, a_, b_, self.cheb.x)
         else:
-            s_end, cost = fm(s, u, h)
-            flow_sc = flow_scale_fn(fm, sym, nx, ocp.nu)
-            # the first node is s itself (exact); the others carry the flow map's rounding
-            node_states = [(s, state_scale(s))]
-            node_states += [tuple(flow_sc(s, u, h * (xk + 1) / 2)) for xk in x_nodes[1:-1]]
-            node_states.append((s_end, flow_sc(s, u, h)[1]))
-            win_states = [tuple(flow_sc(s, u, a_ + (b_ - a_) * (xk + 1) / 2)) for xk in x_nodes]
-            s_pt, sc_pt = s_end, flow_sc(s, u, h)[1]
-        samples, noise = det_cols(node_states)
-        psi_end = ca.vertcat(*[g.psi(s_end) for g in ocp.guards]) if G else sym(0, 1)
-        self.interval_fn = dense_fn("interval", [s, u, h], [s_end, cost, samples, noise, psi_end])
-        w_samples, w_noise = det_cols(win_states)
-        self.window_fn = dense_fn("window", [s, u, a_, b_], [w_samples, w_noise])
+            flow = _flow_map_nodes(ocp, sym, s, u, h, a_, b_, self.cheb.x)
+        self._build_interval_fns(ocp, dets, flow, [s, u, h], [a_, b_])
+        fs = ocp.f(sp, u)
+        self._build_state_fns(ocp, dets, sp, u, fs)
+        self._build_adjoint_fns(ocp, sym, flow, [s, u, h], sp, fs)
+        self._local = threading.local()
+
+    def _build_interval_fns(
+        self, ocp: HybridOCP, dets: _Detectors, flow: _FlowNodes, suh: list[Any], ab: list[Any]
+    ) -> None:
+        """Builds ``interval`` (and its batched form), ``window``, ``flow`` and ``point``."""
+        s, u, h = suh
+        sym = dets.sym
+        samples, noise = dets.columns(flow.nodes)
+        psi_end = ca.vertcat(*[g.psi(flow.s_end) for g in ocp.guards]) if dets.G else sym(0, 1)
+        self.interval_fn = dense_fn(
+            "interval", [s, u, h], [flow.s_end, flow.cost, samples, noise, psi_end]
+        )
+        w_samples, w_noise = dets.columns(flow.window)
+        self.window_fn = dense_fn("window", [s, u, *ab], [w_samples, w_noise])
         # SX kernels are cheap: many grid intervals per call (what lies past an event is
         # computed again from the new state); an MX flow map (an integrator) is too costly to
         # evaluate past an event, so one interval per call
@@ -251,21 +312,25 @@ class Kernels:
             if self.chunk > 1
             else self.interval_fn
         )
-        self.flow_fn = dense_fn("flow", [s, u, h], [s_end, cost])
-        det_v, det_n = det_fn(s_pt, sc_pt) if G else (sym(0, 1), sym(0, 1))
-        det_r = ca.jacobian(det_v, h) if G else sym(0, 1)
-        self.point_fn = dense_fn("point", [s, u, h], [s_end, det_v, det_r, det_n])
+        self.flow_fn = dense_fn("flow", [s, u, h], [flow.s_end, flow.cost])
+        det_v, det_n = dets.at(flow.s_end, flow.sc_end)
+        det_r = ca.jacobian(det_v, h) if dets.G else sym(0, 1)
+        self.point_fn = dense_fn("point", [s, u, h], [flow.s_end, det_v, det_r, det_n])
+
+    def _build_state_fns(self, ocp: HybridOCP, dets: _Detectors, sp: Any, u: Any, fs: Any) -> None:
+        """Builds the functions at a lone state: detectors, guards and rates, resets."""
+        G, sym = dets.G, dets.sym
         # at a state without its flow (the callable path's dense output, an event state):
         # each component's scale is its own magnitude
-        det_at, noise_at = det_fn(sp, own_scale) if G else (sym(0, 1), sym(0, 1))
+        own_scale = state_scale(sp)
+        det_at, noise_at = dets.at(sp, own_scale)
         self.det_fn = dense_fn("det_noise", [sp], [det_at, noise_at])
-        fs = ocp.f(sp, u)
-        det_rate = ca.mtimes(det_grad, fs) if G else sym(0, 1)
-        self.det_rate_fn = dense_fn("det_rate", [sp, u], [det_expr, det_rate, noise_at])
+        det_rate = ca.mtimes(dets.grad, fs) if G else sym(0, 1)
+        self.det_rate_fn = dense_fn("det_rate", [sp, u], [dets.expr, det_rate, noise_at])
         # the callable path samples detectors at the degree-16 nodes of each integrator step
         self.det_nodes_fn = self.det_fn.map(UNKNOWN_DEGREE + 1)
         psi = ca.vertcat(*[g.psi(sp) for g in ocp.guards]) if G else sym(0, 1)
-        psi_grad = ca.jacobian(psi, sp) if G else sym(0, nx)
+        psi_grad = ca.jacobian(psi, sp) if G else sym(0, ocp.nx)
         rate = ca.mtimes(psi_grad, fs) if G else sym(0, 1)
         accel = ca.jtimes(rate, sp, fs) if G else sym(0, 1)
         psi_noise = rounding_level(psi, sp, own_scale) if G else sym(0, 1)
@@ -274,9 +339,16 @@ class Kernels:
         self.reset_fns = [
             dense_fn(f"reset{j}", [sp], [g.reset(sp)]) for j, g in enumerate(ocp.guards)
         ]
-        # adjoint pieces: one Jacobian of (s_end, cost) w.r.t. (s, u) (for an integrator flow
-        # map a single forward-sensitivity solve instead of four)
-        jac = ca.jacobian(ca.vertcat(s_end, cost), ca.vertcat(s, u))
+
+    def _build_adjoint_fns(
+        self, ocp: HybridOCP, sym: Any, flow: _FlowNodes, suh: list[Any], sp: Any, fs: Any
+    ) -> None:
+        """Builds the adjoint pieces (Jacobians, ``(f, L)``, grad phi) and the path function."""
+        s, u, h = suh
+        nx = self.nx
+        # one Jacobian of (s_end, cost) w.r.t. (s, u) (for an integrator flow map a single
+        # forward-sensitivity solve instead of four)
+        jac = ca.jacobian(ca.vertcat(flow.s_end, flow.cost), ca.vertcat(s, u))
         seg_jac = dense_fn(
             "seg_jac", [s, u, h], [jac[:nx, :nx], jac[:nx, nx:], jac[nx, :nx].T, jac[nx, nx:].T]
         )
@@ -296,7 +368,6 @@ class Kernels:
             self.path_fn: ca.Function | None = dense_fn("path", [sp, u], [ocp.path(sp, u)])
         else:
             self.path_fn = None
-        self._local = threading.local()
 
     def numeric(self) -> Numeric:
         """This thread's buffer-bound evaluators (buffers are not shared between threads)."""

@@ -345,44 +345,20 @@ class _DiscNLP:
     def __init__(self, ocp: HybridOCP, K: int, max_iter: int = 100) -> None:
         nx = ocp.nx
         n2 = nx // 2
-        s_sym = ca.SX.sym("s", nx)
-        u_sym = ca.SX.sym("u", ocp.nu)
         nu = ocp.nu
+        s_sym = ca.SX.sym("s", nx)
+        u_sym = ca.SX.sym("u", nu)
         self.A = np.asarray(ca.DM(ca.jacobian(ocp.f(s_sym, u_sym), u_sym)))[n2:]
         self.eps = float(ocp.meta["control_weight"])
-        guard_fns = []
-        for j, g in enumerate(ocp.guards):
-            psi = g.psi(s_sym)
-            gs = g.reset(s_sym)
-            guard_fns.append(
-                ca.Function(
-                    f"ev{j}", [s_sym], [psi, ca.gradient(psi, s_sym), gs, ca.jacobian(gs, s_sym)]
-                )
-            )
+        guard_fns = _disc_guard_fns(ocp, s_sym)
         phi_s = ocp.phi(s_sym)
         phi_fn = ca.Function("phi", [s_sym], [phi_s, ca.gradient(phi_s, s_sym)])
-        lam_sym = ca.SX.sym("lam", nx)
-        H_fn = ca.Function(
-            "H",
-            [s_sym, lam_sym, u_sym],
-            [ocp.L(s_sym, u_sym) + ca.dot(lam_sym, ocp.f(s_sym, u_sym))],
-        )
 
         w = ca.SX.sym("w", K + (K + 1) * 2 * nu)
         par = ca.SX.sym("p", nx + 1 + K)
         x0, T, idx = par[:nx], par[nx], par[nx + 1 :]
-
-        def selected(k: int, sm: Any) -> tuple[Any, Any, Any, Any]:
-            parts = [fn(sm) for fn in guard_fns]
-            pick = [idx[k] == j for j in range(len(guard_fns))]
-            return tuple(
-                sum(
-                    (ca.if_else(c, p[m], 0) for c, p in zip(pick, parts, strict=True)),
-                    ca.SX.zeros(parts[0][m].shape),
-                )
-                for m in range(4)
-            )  # type: ignore[return-value]
-
+        # the transcription, in one block: phases, guards, approach and time order read
+        # together as the NLP's constraints
         gam = [w[k] for k in range(K)]
         C = [w[K + 2 * nu * k : K + 2 * nu * (k + 1)] for k in range(K + 1)]
         s: Any = x0
@@ -400,7 +376,7 @@ class _DiscNLP:
             if k == K:
                 s = sm
                 break
-            psi, gpsi, sp, Dg = selected(k, sm)
+            psi, gpsi, sp, Dg = _selected_guard(guard_fns, idx[k], sm)
             g += [psi, ca.dot(gpsi[:n2], sm[n2:])]
             lbg += [0.0, -ca.inf]
             ubg += [0.0, 0.0]
@@ -416,35 +392,82 @@ class _DiscNLP:
         phiT, gphi = phi_fn(s)
         cost += phiT
         nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g) if g else ca.SX(0, 1)}
-        opts = {
-            "ipopt.print_level": 0,
-            "ipopt.sb": "yes",
-            "print_time": False,
-            "ipopt.tol": 1e-12,
-            "ipopt.acceptable_tol": 1e-9,
-            "ipopt.max_iter": max_iter,
-        }
-        self.solver = ca.nlpsol("hmp_nlp", "ipopt", nlp, opts)
+        self.solver = _compile_disc_nlp(nlp, max_iter)
         self.lbg, self.ubg = lbg, ubg
-        # adjoint of the NLP's control, backwards, with the evaluator's jump rule
-        lam = gphi
-        lps: list[Any] = [None] * K
-        pis: list[Any] = [None] * K
-        for k in range(K, -1, -1):
-            lam = ca.vertcat(lam[:n2], lam[n2:] + lam[:n2] * hs[k])
-            if k == 0:
-                break
-            sm, sp, um, up, gpsi, Dg = ends[k - 1]
-            lps[k - 1] = lam
-            fm = ocp.f(sm, um)
-            Hp = H_fn(sp, lam, up)
-            pi = (Hp - ocp.L(sm, um) - ca.dot(lam, ca.mtimes(Dg, fm))) / ca.dot(gpsi, fm)
-            pis[k - 1] = pi
-            lam = ca.mtimes(Dg.T, lam) + pi * gpsi
-        parts = [lam]
-        for k in range(K):
-            parts += [gam[k], pis[k], lps[k]]
-        self.to_z = ca.Function("nlp_to_z", [w, par], [ca.vertcat(*parts)])
+        self.to_z = _disc_adjoint_fn(ocp, w, par, gphi, gam, hs, ends)
+
+
+def _disc_guard_fns(ocp: HybridOCP, s_sym: Any) -> list[ca.Function]:
+    """Disc scenes: per guard, ``s -> (psi, grad psi, g(s), Dg)``."""
+    guard_fns = []
+    for j, g in enumerate(ocp.guards):
+        psi = g.psi(s_sym)
+        gs = g.reset(s_sym)
+        guard_fns.append(
+            ca.Function(
+                f"ev{j}", [s_sym], [psi, ca.gradient(psi, s_sym), gs, ca.jacobian(gs, s_sym)]
+            )
+        )
+    return guard_fns
+
+
+def _selected_guard(guard_fns: list[ca.Function], index: Any, sm: Any) -> tuple[Any, Any, Any, Any]:
+    """Disc scenes: ``(psi, grad psi, g(s), Dg)`` at ``sm`` of guard ``index`` (``if_else``)."""
+    parts = [fn(sm) for fn in guard_fns]
+    pick = [index == j for j in range(len(guard_fns))]
+    return tuple(
+        sum(
+            (ca.if_else(c, p[m], 0) for c, p in zip(pick, parts, strict=True)),
+            ca.SX.zeros(parts[0][m].shape),
+        )
+        for m in range(4)
+    )  # type: ignore[return-value]
+
+
+def _compile_disc_nlp(nlp: dict[str, Any], max_iter: int) -> ca.Function:
+    """Disc scenes: the quiet, tight IPOPT instance of the NLP."""
+    opts = {
+        "ipopt.print_level": 0,
+        "ipopt.sb": "yes",
+        "print_time": False,
+        "ipopt.tol": 1e-12,
+        "ipopt.acceptable_tol": 1e-9,
+        "ipopt.max_iter": max_iter,
+    }
+    return ca.nlpsol("hmp_nlp", "ipopt", nlp, opts)
+
+
+def _disc_adjoint_fn(
+    ocp: HybridOCP, w: Any, par: Any, gphi: Any, gam: list[Any], hs: list[Any], ends: list[Any]
+) -> ca.Function:
+    """Disc scenes: ``(w, p) -> z``, the NLP's adjoint costates with the evaluator's jump rule."""
+    nx, K = ocp.nx, len(gam)
+    n2 = nx // 2
+    s_sym, u_sym, lam_sym = ca.SX.sym("s", nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("lam", nx)
+    H_fn = ca.Function(
+        "H",
+        [s_sym, lam_sym, u_sym],
+        [ocp.L(s_sym, u_sym) + ca.dot(lam_sym, ocp.f(s_sym, u_sym))],
+    )
+    # the costate backwards through phases and jumps, in one block (the jump rule)
+    lam = gphi
+    lps: list[Any] = [None] * K
+    pis: list[Any] = [None] * K
+    for k in range(K, -1, -1):
+        lam = ca.vertcat(lam[:n2], lam[n2:] + lam[:n2] * hs[k])
+        if k == 0:
+            break
+        sm, sp, um, up, gpsi, Dg = ends[k - 1]
+        lps[k - 1] = lam
+        fm = ocp.f(sm, um)
+        Hp = H_fn(sp, lam, up)
+        pi = (Hp - ocp.L(sm, um) - ca.dot(lam, ca.mtimes(Dg, fm))) / ca.dot(gpsi, fm)
+        pis[k - 1] = pi
+        lam = ca.mtimes(Dg.T, lam) + pi * gpsi
+    parts = [lam]
+    for k in range(K):
+        parts += [gam[k], pis[k], lps[k]]
+    return ca.Function("nlp_to_z", [w, par], [ca.vertcat(*parts)])
 
 
 _NLPS: weakref.WeakKeyDictionary[Structure, dict[tuple[int, int], _DiscNLP]] = (
