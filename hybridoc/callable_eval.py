@@ -87,17 +87,24 @@ def evaluate_callable(
     Evaluation
         ``controls`` holds ``u`` at the grid-interval midpoints (for reports).
     """
-    from scipy.integrate import DOP853  # 0.35 s to import: only where it is used
-
     ocp = as_ocp(problem)
     if (control is None) == (state_feedback is None):
         raise ControlsError("give exactly one of control (u(t)) and state_feedback (pi(t, s))")
-    k = kernels(ocp)
-    num = k.numeric()
-    nx, G, T = ocp.nx, len(ocp.guards), ocp.horizon
-    resolver = EventResolver(ocp, num, graze_tol)
-    # the integrator's error adds to the rounding of every detector value
-    integ_factor = 1.0 + rtol / np.finfo(float).eps
+    u_at = _control_function(ocp, control, state_feedback)
+    sim = _Simulation(ocp, u_at, graze_tol, rtol, atol, penetration_tol, max_events)
+    sim.run(breakpoints)
+    return sim.evaluation()
+
+
+_Piece = tuple[float, float, Any, float, float]  # (t0, t1, dense output, lo, hi)
+
+
+def _control_function(
+    ocp: HybridOCP,
+    control: Callable[[float], Any] | None,
+    state_feedback: Callable[[float, np.ndarray], Any] | None,
+) -> Callable[[float, np.ndarray], np.ndarray]:
+    """``u(t, s)`` from ``control`` or ``state_feedback``, checked to be ``nu`` finite floats."""
 
     def u_at(t: float, s: np.ndarray) -> np.ndarray:
         if state_feedback is not None:
@@ -110,103 +117,157 @@ def evaluate_callable(
             raise ControlsError(f"u({t:.6g}) must be {ocp.nu} finite numbers, got {arr}")
         return arr
 
-    stops = sorted({float(b) for b in breakpoints if 0 < b < T} | {T})
-    z = np.concatenate([ocp.x0, [0.0]])
-    t = 0.0
-    times, states = [0.0], [ocp.x0.copy()]
-    events: list[Event] = []
-    pieces: list[tuple[float, float, Any, float, float]] = []  # (t0, t1, dense, lo, hi)
-    a = 0.0
-    n_steps = 0
-    for b in stops:
-        lo, hi = _inside(a, b)
+    return u_at
 
-        def u_piece(tt: float, s: np.ndarray, lo: float = lo, hi: float = hi) -> np.ndarray:
-            return u_at(min(max(tt, lo), hi), s)
 
-        def rhs(tt: float, zz: np.ndarray, u_piece: Any = u_piece) -> np.ndarray:
-            fs, Ls = num.fL(zz[:nx], u_piece(tt, zz[:nx]))
-            return np.concatenate([fs, Ls])
+class _Simulation:
+    """One simulation under ``u(t, s)``: the current point ``(t, z = [s, running cost])`` and
+    the records (trajectory states, events, the integrator's dense pieces)."""
 
-        while t < b:
-            solver = DOP853(rhs, t, z, b, rtol=rtol, atol=atol)
-            restart = False
-            while solver.status == "running":
-                msg = solver.step()
-                n_steps += 1
-                if solver.status == "failed":
-                    raise EvaluationError(f"integration failed at t = {solver.t:.6g}: {msg}")
-                if n_steps > _MAX_STEPS:
-                    raise EvaluationError(f"more than {_MAX_STEPS} integrator steps by t = {t:.6g}")
-                t0, t1 = float(solver.t_old), float(solver.t)
-                dense = solver.dense_output()
-                hit = (
-                    _search_step(
-                        ocp,
-                        num,
-                        k,
-                        dense,
-                        u_piece,
-                        t0,
-                        t1,
-                        graze_tol,
-                        integ_factor,
-                        penetration_tol,
-                    )  # fmt: skip
-                    if G
-                    else None
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        u_at: Callable[[float, np.ndarray], np.ndarray],
+        graze_tol: float,
+        rtol: float,
+        atol: float,
+        penetration_tol: float,
+        max_events: int,
+    ) -> None:
+        self.ocp, self.u_at = ocp, u_at
+        self.graze_tol, self.rtol, self.atol = graze_tol, rtol, atol
+        self.penetration_tol, self.max_events = penetration_tol, max_events
+        self.k = kernels(ocp)
+        self.num = self.k.numeric()
+        self.nx, self.G = ocp.nx, len(ocp.guards)
+        self.resolver = EventResolver(ocp, self.num, graze_tol)
+        # the integrator's error adds to the rounding of every detector value
+        self.integ_factor = 1.0 + rtol / np.finfo(float).eps
+        self.z = np.concatenate([ocp.x0, [0.0]])
+        self.t = 0.0
+        self.times: list[float] = [0.0]
+        self.states: list[np.ndarray] = [ocp.x0.copy()]
+        self.events: list[Event] = []
+        self.pieces: list[_Piece] = []
+        self.n_steps = 0
+
+    def run(self, breakpoints: Sequence[float]) -> None:
+        """Integrate over ``[0, T]``, restarting at every breakpoint and after every jump."""
+        from scipy.integrate import DOP853  # 0.35 s to import: only where it is used
+
+        nx, T, num = self.nx, self.ocp.horizon, self.num
+        stops = sorted({float(b) for b in breakpoints if 0 < b < T} | {T})
+        a = 0.0
+        for b in stops:
+            lo, hi = _inside(a, b)
+
+            def u_piece(tt: float, s: np.ndarray, lo: float = lo, hi: float = hi) -> np.ndarray:
+                return self.u_at(min(max(tt, lo), hi), s)
+
+            def rhs(tt: float, zz: np.ndarray, u_piece: Any = u_piece) -> np.ndarray:
+                fs, Ls = num.fL(zz[:nx], u_piece(tt, zz[:nx]))
+                return np.concatenate([fs, Ls])
+
+            while self.t < b:
+                solver = DOP853(rhs, self.t, self.z, b, rtol=self.rtol, atol=self.atol)
+                if not self._steps(solver, u_piece, lo, hi):
+                    self.t = b
+            a = b
+
+    def _steps(
+        self, solver: Any, u_piece: Callable[[float, np.ndarray], np.ndarray], lo: float, hi: float
+    ) -> bool:
+        """Step ``solver`` to its end or to the first crossing; whether it stopped at one."""
+        ocp, num, nx = self.ocp, self.num, self.nx
+        while solver.status == "running":
+            msg = solver.step()
+            self.n_steps += 1
+            if solver.status == "failed":
+                raise EvaluationError(f"integration failed at t = {solver.t:.6g}: {msg}")
+            if self.n_steps > _MAX_STEPS:
+                raise EvaluationError(
+                    f"more than {_MAX_STEPS} integrator steps by t = {self.t:.6g}"
                 )
-                if hit is None:
-                    pieces.append((t0, t1, dense, lo, hi))
-                    t, z = t1, solver.y.copy()
-                    times.append(t)
-                    states.append(z[:nx].copy())
-                    _check_penetration(ocp, num, z[:nx], u_piece(t, z[:nx]), t, penetration_tol)
-                    continue
-                tau, j = hit
-                t_ev = t0 + tau
-                z_ev = np.asarray(dense(t_ev), dtype=float)
-                pieces.append((t0, t_ev, dense, lo, hi))
-                s_ev = z_ev[:nx]
-                u_ev = u_piece(t_ev, s_ev)
-                times.append(t_ev)
-                states.append(s_ev.copy())
-                s_new, evs = resolver.resolve(t_ev, s_ev, u_ev, {j})
-                t, z = t_ev, z_ev.copy()
-                if evs:
-                    events.extend(evs)
-                    _check_events(events, max_events, T)
-                    z[:nx] = s_new
-                    times.append(t)
-                    states.append(s_new.copy())
-                restart = True
-                break
-            if not restart:
-                t = b
-        a = b
-    s = z[:nx]
-    terminal = float(num.phi_grad(s)[0][0])
-    mids = (np.arange(ocp.steps) + 0.5) * ocp.dt
-    controls = _controls_at(mids, pieces, u_at, nx)
-    bound = ocp.bound_violation(controls)
-    path = 0.0
-    if num.path is not None:
-        for tt, ss in zip(times, states, strict=True):
-            uu = _control_at(tt, pieces, u_at, nx, ss)
-            path = max(path, float(np.max(-num.path(ss, uu)[0], initial=0.0)))
-    return Evaluation(
-        cost=terminal + float(z[nx]),
-        terminal_cost=terminal,
-        running_cost=float(z[nx]),
-        times=np.array(times),
-        states=np.array(states),
-        events=events,
-        controls=controls,
-        final_state=s.copy(),
-        ocp=ocp,
-        bound_violation=bound,
-        path_violation=path,
-    )
+            t0, t1 = float(solver.t_old), float(solver.t)
+            dense = solver.dense_output()
+            hit = (
+                _search_step(
+                    ocp,
+                    num,
+                    self.k,
+                    dense,
+                    u_piece,
+                    t0,
+                    t1,
+                    self.graze_tol,
+                    self.integ_factor,
+                    self.penetration_tol,
+                )  # fmt: skip
+                if self.G
+                else None
+            )
+            if hit is None:
+                self.pieces.append((t0, t1, dense, lo, hi))
+                self.t, self.z = t1, solver.y.copy()
+                self.times.append(self.t)
+                self.states.append(self.z[:nx].copy())
+                s = self.z[:nx]
+                _check_penetration(ocp, num, s, u_piece(self.t, s), self.t, self.penetration_tol)
+                continue
+            tau, j = hit
+            self.pieces.append((t0, t0 + tau, dense, lo, hi))
+            self._jump(t0 + tau, np.asarray(dense(t0 + tau), dtype=float), u_piece, j)
+            return True
+        return False
+
+    def _jump(
+        self,
+        t_ev: float,
+        z_ev: np.ndarray,
+        u_piece: Callable[[float, np.ndarray], np.ndarray],
+        j: int,
+    ) -> None:
+        """Move to the crossing of guard ``j`` at ``t_ev`` and apply the judge's jump rule."""
+        nx = self.nx
+        s_ev = z_ev[:nx]
+        u_ev = u_piece(t_ev, s_ev)
+        self.times.append(t_ev)
+        self.states.append(s_ev.copy())
+        s_new, evs = self.resolver.resolve(t_ev, s_ev, u_ev, {j})
+        self.t, self.z = t_ev, z_ev.copy()
+        if evs:
+            self.events.extend(evs)
+            _check_events(self.events, self.max_events, self.ocp.horizon)
+            self.z[:nx] = s_new
+            self.times.append(self.t)
+            self.states.append(s_new.copy())
+
+    def evaluation(self) -> Evaluation:
+        """The :class:`Evaluation` of the finished simulation."""
+        ocp, num, nx, z = self.ocp, self.num, self.nx, self.z
+        s = z[:nx]
+        terminal = float(num.phi_grad(s)[0][0])
+        mids = (np.arange(ocp.steps) + 0.5) * ocp.dt
+        controls = _controls_at(mids, self.pieces, self.u_at, nx)
+        bound = ocp.bound_violation(controls)
+        path = 0.0
+        if num.path is not None:
+            for tt, ss in zip(self.times, self.states, strict=True):
+                uu = _control_at(tt, self.pieces, self.u_at, nx, ss)
+                path = max(path, float(np.max(-num.path(ss, uu)[0], initial=0.0)))
+        return Evaluation(
+            cost=terminal + float(z[nx]),
+            terminal_cost=terminal,
+            running_cost=float(z[nx]),
+            times=np.array(self.times),
+            states=np.array(self.states),
+            events=self.events,
+            controls=controls,
+            final_state=s.copy(),
+            ocp=ocp,
+            bound_violation=bound,
+            path_violation=path,
+        )
 
 
 def _search_step(

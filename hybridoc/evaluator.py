@@ -500,26 +500,7 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
     segs = ev.segments
     M = len(segs)
     idx = np.array([seg.interval for seg in segs], dtype=int)
-    # all segment Jacobians, chunk by chunk (padding with h = 0)
-    L = k.chunk
-    n_chunks = -(-M // L)
-    S0 = np.zeros((n_chunks * L, nx))
-    S0[:M] = np.array([seg.s0 for seg in segs])
-    U = np.zeros((n_chunks * L, nu))
-    U[:M] = u_all[idx]
-    H = np.zeros(n_chunks * L)
-    H[:M] = [seg.h for seg in segs]
-    FsT, FuT, Cs, Cu = [], [], [], []
-    for c in range(n_chunks):
-        sl = slice(c * L, (c + 1) * L)
-        a, b, cs, cu = num.seg_jac(S0[sl].ravel(), U[sl].ravel(), H[sl])
-        # column-major blocks: row k of the reshape is the transposed Jacobian of segment k
-        FsT.append(a.reshape(L, nx, nx))
-        FuT.append(b.reshape(L, nu, nx))
-        Cs.append(cs.reshape(L, nx))
-        Cu.append(cu.reshape(L, nu))
-    FsT_a, FuT_a = np.concatenate(FsT)[:M], np.concatenate(FuT)[:M]
-    Cs_a, Cu_a = np.concatenate(Cs)[:M], np.concatenate(Cu)[:M]
+    FsT_a, FuT_a, Cs_a, Cu_a = _segment_jacobians(k, num, segs, u_all[idx])
     lam = num.phi_grad(ev.final_state)[1]
     lam_end = np.empty((M, nx))  # lambda at each segment's end, after any jump there
     lam_start = np.empty((M, nx))
@@ -547,20 +528,9 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
             # u_n = pi(t_n, s_n): s_n also acts through the control of its interval
             lam = lam + feedback[idx[i]].T @ d_closed[idx[i]]
         lam_start[i] = lam
-    # in time order: each segment's start, lambda(gamma-) after a segment ending in an
-    # event (lambda(gamma+) is the next segment's start), and lambda(T)
-    has_jump = np.array([seg.event is not None for seg in segs], dtype=bool)
-    pos = np.arange(M) + np.concatenate([[0], np.cumsum(has_jump)[:-1]])
-    n_rec = M + int(has_jump.sum()) + 1
-    lam_rec = np.empty((n_rec, nx))
-    t_rec = np.empty(n_rec)
-    lam_rec[pos] = lam_start
-    t_rec[pos] = [seg.t0 for seg in segs]
-    for i, lj in lam_jump.items():
-        lam_rec[pos[i] + 1] = lj
-        t_rec[pos[i] + 1] = segs[i].t0 + segs[i].h
-    lam_rec[-1] = num.phi_grad(ev.final_state)[1]
-    t_rec[-1] = ocp.horizon
+    t_rec, lam_rec = _costate_record(
+        segs, lam_start, lam_jump, num.phi_grad(ev.final_state)[1], ocp.horizon
+    )
     if feedback is not None:
         d_u = d_closed
     else:
@@ -576,6 +546,61 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
         costates=lam_rec,
         evaluation=ev,
     )
+
+
+def _segment_jacobians(
+    k: Kernels, num: Numeric, segs: list[Segment], U_seg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every segment's transposed flow-map Jacobians ``(Fs^T, Fu^T)`` and cost gradients."""
+    nx, nu = k.nx, k.nu
+    M = len(segs)
+    # chunk by chunk (padding with h = 0)
+    L = k.chunk
+    n_chunks = -(-M // L)
+    S0 = np.zeros((n_chunks * L, nx))
+    S0[:M] = np.array([seg.s0 for seg in segs])
+    U = np.zeros((n_chunks * L, nu))
+    U[:M] = U_seg
+    H = np.zeros(n_chunks * L)
+    H[:M] = [seg.h for seg in segs]
+    FsT, FuT, Cs, Cu = [], [], [], []
+    for c in range(n_chunks):
+        sl = slice(c * L, (c + 1) * L)
+        a, b, cs, cu = num.seg_jac(S0[sl].ravel(), U[sl].ravel(), H[sl])
+        # column-major blocks: row k of the reshape is the transposed Jacobian of segment k
+        FsT.append(a.reshape(L, nx, nx))
+        FuT.append(b.reshape(L, nu, nx))
+        Cs.append(cs.reshape(L, nx))
+        Cu.append(cu.reshape(L, nu))
+    FsT_a, FuT_a = np.concatenate(FsT)[:M], np.concatenate(FuT)[:M]
+    Cs_a, Cu_a = np.concatenate(Cs)[:M], np.concatenate(Cu)[:M]
+    return FsT_a, FuT_a, Cs_a, Cu_a
+
+
+def _costate_record(
+    segs: list[Segment],
+    lam_start: np.ndarray,
+    lam_jump: dict[int, np.ndarray],
+    lam_T: np.ndarray,
+    horizon: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The costate's times and values in time order, both sides of every jump."""
+    M, nx = lam_start.shape
+    # in time order: each segment's start, lambda(gamma-) after a segment ending in an
+    # event (lambda(gamma+) is the next segment's start), and lambda(T)
+    has_jump = np.array([seg.event is not None for seg in segs], dtype=bool)
+    pos = np.arange(M) + np.concatenate([[0], np.cumsum(has_jump)[:-1]])
+    n_rec = M + int(has_jump.sum()) + 1
+    lam_rec = np.empty((n_rec, nx))
+    t_rec = np.empty(n_rec)
+    lam_rec[pos] = lam_start
+    t_rec[pos] = [seg.t0 for seg in segs]
+    for i, lj in lam_jump.items():
+        lam_rec[pos[i] + 1] = lj
+        t_rec[pos[i] + 1] = segs[i].t0 + segs[i].h
+    lam_rec[-1] = lam_T
+    t_rec[-1] = horizon
+    return t_rec, lam_rec
 
 
 def _costate_jump(num: Numeric, seg: Segment, u: np.ndarray, lam: np.ndarray) -> np.ndarray:

@@ -100,7 +100,6 @@ def plot_scene(
 
     scene = load_scene(scene)
     n = scene.n_discs
-    names = [d.name for d in scene.discs]
     radii = np.array([d.radius for d in scene.discs])
     colors = _colors(n)
     p0 = np.array([d.position for d in scene.discs], dtype=float)
@@ -111,6 +110,54 @@ def plot_scene(
         p_final = _positions(np.asarray(evaluation.final_state)[None, :], n)[0]
     events = list(getattr(evaluation, "events", []) or [])
 
+    box, span = _scene_box(scene, p0, radii, path)
+    if ax is None:
+        aspect = (box[3] - box[2]) / (box[1] - box[0])
+        width = 7.5
+        height = float(np.clip(5.2 * aspect, 3.5, 8.0)) + 0.6
+        fig = Figure(figsize=(width, height), layout="constrained")
+        ax = fig.add_subplot()
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    handles: list[Any] = []
+
+    _draw_walls(ax, scene, box, span, handles)
+    _draw_discs(ax, scene, p0, colors, handles)
+    if path is not None:
+        for i in range(n):
+            ax.plot(path[:, i, 0], path[:, i, 1], color=colors[i], lw=1.4)
+            ax.add_patch(
+                Circle(p_final[i], radii[i], fill=False, edgecolor=colors[i], lw=1.3, ls="--")
+            )
+        handles.append(Line2D([], [], color="0.3", lw=1.4, label="path of centre"))
+        handles.append(Patch(facecolor="none", edgecolor="0.3", ls="--", label="position at t = T"))
+    _draw_events(ax, scene, events, colors, handles)
+
+    for i, d in enumerate(scene.discs):
+        if d.target is not None:
+            ax.plot(*d.target, marker="*", ms=16, color=colors[i], mec="k", mew=0.8, zorder=6)
+    if any(d.target is not None for d in scene.discs):
+        handles.append(
+            Line2D([], [], color="0.5", marker="*", ls="none", ms=12, mec="k", label="target")
+        )
+
+    ax.set_xlim(box[0], box[1])
+    ax.set_ylim(box[2], box[3])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.set_title(title if title is not None else scene.name)
+    ax.legend(
+        handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
+    )
+    return fig
+
+
+def _scene_box(
+    scene: Scene, p0: np.ndarray, radii: np.ndarray, path: np.ndarray | None
+) -> tuple[tuple[float, float, float, float], float]:
+    """The padded, square-ish view ``(x0, x1, y0, y1)`` of everything drawn, and its span."""
     # bounding box of everything drawn (discs with their radii, paths, targets)
     pts = [p0 - radii[:, None], p0 + radii[:, None]]
     if path is not None:
@@ -135,18 +182,13 @@ def plot_scene(
     elif size[1] < 0.5 * size[0]:
         extra = (0.5 * size[0] - size[1]) / 2
         lo[1], hi[1] = lo[1] - extra, hi[1] + extra
-    box = (lo[0], hi[0], lo[1], hi[1])
+    return (lo[0], hi[0], lo[1], hi[1]), span
 
-    if ax is None:
-        aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
-        width = 7.5
-        height = float(np.clip(5.2 * aspect, 3.5, 8.0)) + 0.6
-        fig = Figure(figsize=(width, height), layout="constrained")
-        ax = fig.add_subplot()
-    else:
-        fig = ax.figure  # type: ignore[assignment]
-    handles: list[Any] = []
 
+def _draw_walls(
+    ax: Axes, scene: Scene, box: tuple[float, float, float, float], span: float, handles: list[Any]
+) -> None:
+    """Each wall as a thick line across the view, hatched on its solid side."""
     for w in scene.walls:
         line, strip = _wall_geometry(
             np.array(w.point), np.array(w.normal), box, depth=0.04 * span + 0.03
@@ -158,6 +200,11 @@ def plot_scene(
     if scene.walls:
         handles.append(Patch(facecolor="0.85", edgecolor="0.35", hatch="///", label="wall"))
 
+
+def _draw_discs(
+    ax: Axes, scene: Scene, p0: np.ndarray, colors: list[Any], handles: list[Any]
+) -> None:
+    """The discs at their initial positions, filled and named."""
     for i, d in enumerate(scene.discs):
         role = "actuated" if d.actuated else "passive"
         ax.add_patch(
@@ -168,15 +215,14 @@ def plot_scene(
             Patch(facecolor=colors[i], alpha=0.5, edgecolor=colors[i], label=f"{d.name} ({role})")
         )
 
-    if path is not None:
-        for i in range(n):
-            ax.plot(path[:, i, 0], path[:, i, 1], color=colors[i], lw=1.4)
-            ax.add_patch(
-                Circle(p_final[i], radii[i], fill=False, edgecolor=colors[i], lw=1.3, ls="--")
-            )
-        handles.append(Line2D([], [], color="0.3", lw=1.4, label="path of centre"))
-        handles.append(Patch(facecolor="none", edgecolor="0.3", ls="--", label="position at t = T"))
 
+def _draw_events(
+    ax: Axes, scene: Scene, events: list[Any], colors: list[Any], handles: list[Any]
+) -> None:
+    """The discs faintly where they take part in an event and the numbered contact points."""
+    n = scene.n_discs
+    names = [d.name for d in scene.discs]
+    radii = np.array([d.radius for d in scene.discs])
     wall_by_name = {w.name: w for w in scene.walls}
     for k, ev in enumerate(events, start=1):
         s = np.asarray(ev.state_before)
@@ -194,15 +240,7 @@ def plot_scene(
                     ls=":",
                 )
             )
-        contact = None
-        if ev.kind == "disc-disc" and len(involved) == 2:
-            i, j = involved
-            u = pos[j] - pos[i]
-            contact = pos[i] + radii[i] * u / np.linalg.norm(u)
-        elif ev.kind == "disc-wall" and involved:
-            wall = next((wall_by_name[b] for b in ev.bodies if b in wall_by_name), None)
-            if wall is not None:
-                contact = pos[involved[0]] - radii[involved[0]] * np.array(wall.normal)
+        contact = _contact_point(ev, pos, involved, radii, wall_by_name)
         if contact is not None:
             ax.plot(*contact, marker="x", color="k", ms=8, mew=2, zorder=5)
             ax.annotate(
@@ -233,25 +271,21 @@ def plot_scene(
                 )
             )
 
-    for i, d in enumerate(scene.discs):
-        if d.target is not None:
-            ax.plot(*d.target, marker="*", ms=16, color=colors[i], mec="k", mew=0.8, zorder=6)
-    if any(d.target is not None for d in scene.discs):
-        handles.append(
-            Line2D([], [], color="0.5", marker="*", ls="none", ms=12, mec="k", label="target")
-        )
 
-    ax.set_xlim(box[0], box[1])
-    ax.set_ylim(box[2], box[3])
-    ax.set_aspect("equal", adjustable="box")
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
-    ax.grid(True, lw=0.4, alpha=0.5)
-    ax.set_title(title if title is not None else scene.name)
-    ax.legend(
-        handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
-    )
-    return fig
+def _contact_point(
+    ev: Any, pos: np.ndarray, involved: list[int], radii: np.ndarray, wall_by_name: dict[str, Any]
+) -> Any:
+    """Where the bodies of an event touch, an ``(x, y)`` array (``None`` for other events)."""
+    contact = None
+    if ev.kind == "disc-disc" and len(involved) == 2:
+        i, j = involved
+        u = pos[j] - pos[i]
+        contact = pos[i] + radii[i] * u / np.linalg.norm(u)
+    elif ev.kind == "disc-wall" and involved:
+        wall = next((wall_by_name[b] for b in ev.bodies if b in wall_by_name), None)
+        if wall is not None:
+            contact = pos[involved[0]] - radii[involved[0]] * np.array(wall.normal)
+    return contact
 
 
 def _event_lines(

@@ -33,64 +33,16 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     p = [s[2 * i : 2 * i + 2] for i in range(n)]
     v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
     masses = [d.mass for d in scene.discs]
-    e = scene.restitution
 
-    acc = []
-    k = 0
-    for i, d in enumerate(scene.discs):
-        if d.actuated:
-            acc.append(u[k : k + 2] / masses[i])
-            k += 2
-        else:
-            acc.append(ca.SX.zeros(2))
-    a_flat = ca.vertcat(*acc)
+    a_flat = _accelerations(scene, u)
     f = ca.vertcat(s[2 * n :], a_flat)
     L = scene.control_weight * ca.sumsqr(u)
     phi = ca.SX(0)
     for i, d in enumerate(scene.discs):
         if d.target is not None:
             phi += ph.target_cost(p[i], ca.DM(d.target), ops)
-
-    h = ca.SX.sym("h")
-    p_end = s[: 2 * n] + s[2 * n :] * h + 0.5 * a_flat * h**2
-    v_end = s[2 * n :] + a_flat * h
-    flow_map = ca.Function(
-        "flow_map", [s, u, h], [ca.vertcat(p_end, v_end), L * h], ["s", "u", "h"], ["s_end", "cost"]
-    )
-
-    guards: list[Guard] = []
-    for c in ph.contacts(n, len(scene.walls)):
-        i = c.i
-        di = scene.discs[i]
-        new_v = list(v)
-        if c.is_pair:
-            assert c.j is not None
-            j = c.j
-            dj = scene.discs[j]
-            dp = p[i] - p[j]
-            R = di.radius + dj.radius
-            psi, nrm = ph.pair_gap(dp, R, ops)
-            w = ph.normal_speed(v[i] - v[j], nrm, ops)
-            J = ph.impulse(w, 1 / masses[i] + 1 / masses[j], e)
-            new_v[i] = v[i] + J / masses[i] * nrm
-            new_v[j] = v[j] - J / masses[j] * nrm
-            name, kind, bodies = f"{di.name}|{dj.name}", "disc-disc", (di.name, dj.name)
-            detector, degree = ph.pair_detector(dp, R, ops), 4
-        else:
-            assert c.wall is not None
-            wall = scene.walls[c.wall]
-            nw = ca.DM(wall.normal)
-            psi = ph.wall_gap(p[i], ca.DM(wall.point), nw, di.radius, ops)
-            w = ph.normal_speed(v[i], nw, ops)
-            new_v[i] = v[i] + ph.impulse(w, 1 / masses[i], e) / masses[i] * nw
-            name, kind, bodies = f"{di.name}|{wall.name}", "disc-wall", (di.name, wall.name)
-            detector, degree = None, 2
-        reset = ca.vertcat(*p, *new_v)
-        guards.append(
-            Guard.from_expressions(
-                name, s, psi, reset, kind=kind, bodies=bodies, detector=detector, degree=degree
-            )
-        )
+    flow_map = _flow_map(s, u, a_flat, L, n)
+    guards = [_contact_guard(scene, c, s, p, v, masses) for c in ph.contacts(n, len(scene.walls))]
 
     labels = [f"{d.name}.{c}" for d in scene.discs for c in ("x", "y")]
     labels += [f"{d.name}.{c}" for d in scene.discs for c in ("vx", "vy")]
@@ -113,7 +65,67 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
             "disc_names": [d.name for d in scene.discs],
             "masses": np.array(masses),
             "radii": np.array([d.radius for d in scene.discs]),
-            "restitution": e,
+            "restitution": scene.restitution,
             "control_weight": scene.control_weight,
         },
+    )
+
+
+def _accelerations(scene: Scene, u: ca.SX) -> ca.SX:
+    """The discs' accelerations stacked: force / mass for the actuated ones, zero for the rest."""
+    acc = []
+    k = 0
+    for d in scene.discs:
+        if d.actuated:
+            acc.append(u[k : k + 2] / d.mass)
+            k += 2
+        else:
+            acc.append(ca.SX.zeros(2))
+    return ca.vertcat(*acc)
+
+
+def _flow_map(s: ca.SX, u: ca.SX, a_flat: ca.SX, L: ca.SX, n: int) -> ca.Function:
+    """The exact flow over a duration ``h`` under constant forces, and its running cost."""
+    h = ca.SX.sym("h")
+    p_end = s[: 2 * n] + s[2 * n :] * h + 0.5 * a_flat * h**2
+    v_end = s[2 * n :] + a_flat * h
+    return ca.Function(
+        "flow_map", [s, u, h], [ca.vertcat(p_end, v_end), L * h], ["s", "u", "h"], ["s_end", "cost"]
+    )
+
+
+def _contact_guard(
+    scene: Scene, c: ph.Contact, s: ca.SX, p: list[ca.SX], v: list[ca.SX], masses: list[float]
+) -> Guard:
+    """The guard of one contact: its gap, the impulse reset of the velocities and its detector."""
+    ops = ph.CASADI
+    e = scene.restitution
+    i = c.i
+    di = scene.discs[i]
+    new_v = list(v)
+    if c.is_pair:
+        assert c.j is not None
+        j = c.j
+        dj = scene.discs[j]
+        dp = p[i] - p[j]
+        R = di.radius + dj.radius
+        psi, nrm = ph.pair_gap(dp, R, ops)
+        w = ph.normal_speed(v[i] - v[j], nrm, ops)
+        J = ph.impulse(w, 1 / masses[i] + 1 / masses[j], e)
+        new_v[i] = v[i] + J / masses[i] * nrm
+        new_v[j] = v[j] - J / masses[j] * nrm
+        name, kind, bodies = f"{di.name}|{dj.name}", "disc-disc", (di.name, dj.name)
+        detector, degree = ph.pair_detector(dp, R, ops), 4
+    else:
+        assert c.wall is not None
+        wall = scene.walls[c.wall]
+        nw = ca.DM(wall.normal)
+        psi = ph.wall_gap(p[i], ca.DM(wall.point), nw, di.radius, ops)
+        w = ph.normal_speed(v[i], nw, ops)
+        new_v[i] = v[i] + ph.impulse(w, 1 / masses[i], e) / masses[i] * nw
+        name, kind, bodies = f"{di.name}|{wall.name}", "disc-wall", (di.name, wall.name)
+        detector, degree = None, 2
+    reset = ca.vertcat(*p, *new_v)
+    return Guard.from_expressions(
+        name, s, psi, reset, kind=kind, bodies=bodies, detector=detector, degree=degree
     )
