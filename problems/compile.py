@@ -20,7 +20,7 @@ from hybridoc.problems.disc_ocp import DiscOCP
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems.scene import Scene
 
-__all__ = ["scene_to_ocp"]
+__all__ = ["disc_accelerations", "scene_to_ocp"]
 
 
 def scene_to_ocp(scene: Scene) -> DiscOCP:
@@ -34,7 +34,7 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
     masses = [d.mass for d in scene.discs]
 
-    a_flat = _accelerations(scene, u)
+    a_flat = ca.vertcat(*disc_accelerations(scene, u))
     f = ca.vertcat(s[2 * n :], a_flat)
     L = scene.control_weight * ca.sumsqr(u)
     phi = ca.SX(0)
@@ -71,8 +71,9 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     )
 
 
-def _accelerations(scene: Scene, u: ca.SX) -> ca.SX:
-    """The discs' accelerations stacked: force / mass for the actuated ones, zero for the rest."""
+def disc_accelerations(scene: Scene, u: ca.SX) -> list[ca.SX]:
+    """Each disc's acceleration, a 2-vector of the control symbols ``u`` (the actuated discs'
+    forces in scene order): force / mass for the actuated discs, zero for the others."""
     acc = []
     k = 0
     for d in scene.discs:
@@ -81,7 +82,7 @@ def _accelerations(scene: Scene, u: ca.SX) -> ca.SX:
             k += 2
         else:
             acc.append(ca.SX.zeros(2))
-    return ca.vertcat(*acc)
+    return acc
 
 
 def _flow_map(s: ca.SX, u: ca.SX, a_flat: ca.SX, L: ca.SX, n: int) -> ca.Function:

@@ -24,6 +24,7 @@ import numpy as np
 
 from hybridoc.errors import SceneError
 from hybridoc.problems import physics as ph
+from hybridoc.problems.compile import disc_accelerations
 from hybridoc.solvers.contacts.base import INTEGRATORS, SIGN_TOLERANCE, TOI_MODES, contact_model
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -103,15 +104,7 @@ def disc_kinematics(scene: Scene, s: Any, u: Any) -> tuple[list[Any], list[Any],
     n = scene.n_discs
     p = [s[2 * i : 2 * i + 2] for i in range(n)]
     v = [s[2 * n + 2 * i : 2 * n + 2 * i + 2] for i in range(n)]
-    a = []
-    k = 0
-    for d in scene.discs:
-        if d.actuated:
-            a.append(u[k : k + 2] / d.mass)
-            k += 2
-        else:
-            a.append(ca.DM.zeros(2))
-    return p, v, a
+    return p, v, disc_accelerations(scene, u)
 
 
 def enumeration_unsupported(label: str, scene: Scene) -> str | None:
