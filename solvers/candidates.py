@@ -1,11 +1,25 @@
 """The solvers' candidate sources for the reference (:mod:`hybridoc.reference.sources`).
 
 * :class:`TranscriptionSource` (``"transcription"``): the direct transcription from the
-  initial guess proposes its event sequence and two known controls (its continuous ``u(t)``
-  and its grid control); with a sequence fixed it gives the shooting a warm start (its
-  multipliers as :class:`~hybridoc.reference.sources.PhaseCostates`).
-* :class:`MultiStartSource` (``"multi-start"``): a cheap batched multi-start of the
-  differentiable simulator on a coarse grid proposes the event sequences it reaches.
+  initial guess (and, on a :func:`rich_scene` with several actuated discs or passive discs
+  already moving, from the two cheapest aimed starts of :func:`diverse_controls
+  <hybridoc.solvers.multistart.diverse_controls>`) proposes its event sequences, each with
+  its own event times (the modelled sequence with the NLP's, the re-simulated one with the
+  judge's), and two known controls (its continuous ``u(t)`` and its grid control); with a
+  sequence fixed it gives the shooting a warm start (its multipliers as
+  :class:`~hybridoc.reference.sources.PhaseCostates`).
+* :class:`MultiStartSource` (``"multi-start"``): a batched multi-start of the
+  differentiable simulator on a coarse grid proposes every distinct event sequence it
+  reaches (each judged result also as a known control). On an ordinary problem it is cheap
+  (``context.multistart`` starts, :data:`MULTISTART_ITERS` iterations); on a
+  :func:`rich_scene` (a disc scene with walls, several actuated discs or passive discs
+  already moving) it is gradient descent's multi-start with diverse starts
+  (:func:`~hybridoc.solvers.multistart.diverse_starts`: aimed at each body and each wall,
+  bounce-first, every actuated disc and pairs of them), :data:`DIVERSE_FACTOR` times as
+  many starts.
+
+Both honour ``context.budget_s``: the descent stops where it is and fewer results are judged
+(a partial result is still proposals); the transcription's further guesses are skipped.
 
 :func:`register_builtin_sources` registers both; importing :mod:`hybridoc.solvers` calls it,
 so ``hybridoc.solve(problem, "reference")``, the command line and ``hybridoc.solve_reference``
@@ -27,12 +41,14 @@ if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
 
 __all__ = [
+    "DIVERSE_FACTOR",
     "MULTISTART_ITERS",
     "MULTISTART_STEPS",
     "MultiStartSource",
     "TranscriptionSource",
     "phase_costates",
     "register_builtin_sources",
+    "rich_scene",
 ]
 
 # the multi-start's coarse grid: at 40 steps two impacts 0.1 T apart fell into one or two
@@ -44,6 +60,61 @@ MULTISTART_ITERS = 20
 """Descent iterations of each start."""
 MULTISTART_JUDGED = 4
 """Distinct results of the multi-start judged at the problem's resolution."""
+
+# measured on the scenes of tests/scenes (issue #21, 2 cores): 16 diverse starts, 60 steps
+# and 40 iterations reached the optimum's sequence on all four (channel, two strikers, bank
+# shot, corner pocket) in 0.2-0.5 s each; 24 starts leave a margin
+DIVERSE_FACTOR = 3
+"""On a :func:`rich_scene`, the multi-start runs this many times ``context.multistart``
+diverse starts."""
+DIVERSE_STEPS = 60
+"""Grid steps of the diverse multi-start (gradient descent's multi-start grid)."""
+DIVERSE_ITERS = 40
+"""Descent iterations of each diverse start."""
+DIVERSE_JUDGED = 6
+"""Distinct results of the diverse multi-start judged at the problem's resolution."""
+DT_GUESSES = 2
+"""Further guesses of the transcription on a scene with several actuated discs or passive
+discs already moving (:class:`TranscriptionSource`)."""
+DT_GUESS_LIMIT_S = 5.0
+"""No further guess when the transcription from the initial guess took longer than this
+(the channel's took 19 s on 2 busy cores; the multi-start covers it); each further guess
+gets at most twice that first run's time (at least 1 s)."""
+
+
+def rich_scene(ocp: HybridOCP) -> str:
+    """Why ``ocp`` gets the diverse multi-start (``""``: it does not): a disc scene with
+    walls (bounce-first sequences), several actuated discs, or passive discs already moving
+    (sequences that add a strike to a body's own events)."""
+    from hybridoc.problems.disc_ocp import DiscOCP
+
+    if not isinstance(ocp, DiscOCP):
+        return ""
+    scene = ocp.scene
+    act = set(scene.actuated_indices)
+    why = []
+    if len(act) > 1:
+        why.append("several actuated discs")
+    if any(
+        i not in act and any(abs(float(x)) > 0 for x in d.velocity)
+        for i, d in enumerate(scene.discs)
+    ):
+        why.append("passive discs in motion")
+    if scene.walls:
+        why.append("walls")
+    return ", ".join(why)
+
+
+def _deadline(context: SourceContext, t0: float) -> float | None:
+    return None if context.budget_s is None else t0 + float(context.budget_s)
+
+
+def _spent(deadline: float | None, share: float = 0.0, t0: float = 0.0) -> bool:
+    """The budget is spent (or, with ``share``, that share of it since ``t0``)."""
+    if deadline is None:
+        return False
+    now = time.perf_counter()
+    return now > deadline if not share else now - t0 > share * (deadline - t0)
 
 
 def phase_costates(r: Any) -> PhaseCostates:
@@ -63,53 +134,112 @@ def phase_costates(r: Any) -> PhaseCostates:
 
 
 class TranscriptionSource:
-    """The direct transcription: a competitor from the initial guess, and a warm start of the
-    shooting of a given sequence (module notes)."""
+    """The direct transcription: a competitor from the initial guess (and aimed guesses),
+    and a warm start of the shooting of a given sequence (module notes)."""
 
     name = "transcription"
 
     def propose(self, ocp: HybridOCP, context: SourceContext) -> list[Proposal]:
-        """The transcription's sequence and its two controls, from the initial guess."""
+        """The transcription's sequences and its two controls, from each guess."""
+        import numpy as np
+
+        t0 = time.perf_counter()
+        deadline = _deadline(context, t0)
+        ev = context.evaluation
+        out: list[Proposal] = []
+        if len(ev.events) > context.max_events:
+            context.say("transcription from the guess: not run, its events are too many")
+        elif _spent(deadline):
+            context.say("transcription from the guess: not run, the time budget is spent")
+            return []
+        else:
+            context.progress.stage(
+                f"direct transcription from the initial guess ({len(ev.events)} events)"
+            )
+            out += self._from(ocp, context, context.controls, "the initial guess", deadline)
+        first = time.perf_counter() - t0
+        why = rich_scene(ocp)
+        if not why or why == "walls" or not DT_GUESSES or first > DT_GUESS_LIMIT_S:
+            return out
+        for label, u in _dt_guesses(ocp, context, DT_GUESSES):
+            if _spent(deadline, 0.5, t0):
+                context.say(f"transcription from {label}: not run, the time budget is spent")
+                break
+            context.progress.stage(f"direct transcription from {label}")
+            limit = time.perf_counter() + max(2 * first, 1.0)
+            cap = limit if deadline is None else min(deadline, limit)
+            out += self._from(ocp, context, np.asarray(u), label, cap)
+        return out
+
+    def _from(
+        self,
+        ocp: HybridOCP,
+        context: SourceContext,
+        guess: np.ndarray,
+        label: str,
+        deadline: float | None,
+    ) -> list[Proposal]:
+        """The proposals of one transcription from ``guess`` (module notes): each
+        sequence with its own event times."""
+        import numpy as np
+
         from hybridoc.errors import HybridocError
         from hybridoc.evaluator import evaluate
         from hybridoc.solvers.transcription import solve_dt
 
-        ev = context.evaluation
-        if len(ev.events) > context.max_events:
-            context.say("transcription from the guess: not run, its events are too many")
-            return []
-        context.progress.stage(
-            f"direct transcription from the initial guess ({len(ev.events)} events)"
-        )
         t0 = time.perf_counter()
+        limit = None if deadline is None else max(deadline - t0, 1e-3)
         try:
-            dt = solve_dt(ocp, initial=context.controls)
+            dt = solve_dt(ocp, initial=guess, time_limit=limit)
         except HybridocError as exc:
-            context.say(f"transcription from the guess failed: {exc}")
+            context.say(f"transcription from {label} failed: {exc}")
             return []
         took = time.perf_counter() - t0
-        context.say(f"transcription: cost {dt.cost:.12g}, events {dt.sequence} ({took:.2f} s)")
+        context.say(
+            f"transcription from {label}: cost {dt.cost:.12g}, events {dt.sequence} ({took:.2f} s)"
+        )
         try:
             dt_ev = evaluate(ocp, dt.controls)
         except HybridocError:
             dt_ev = None
+        which = "the direct transcription"
+        if label != "the initial guess":
+            which += f" from {label}"
         out = []
+        # the judge's events of the continuous u(t): dt.sequence, at the judge's times
+        judged = list(dt.sequence)
+        judged_times = np.array([float(e["time"]) for e in dt.events])
         if dt.success:
             # the transcription's control itself (continuous u(t)): its judged cost
             out.append(
-                Proposal(self.name, dt.sequence, dt.controls, dt_ev, cost=dt.cost,
-                         label="the direct transcription", solve=False)
+                Proposal(self.name, judged, dt.controls, dt_ev, cost=dt.cost, label=which,
+                         solve=False, event_times=judged_times)
             )  # fmt: skip
         if dt_ev is not None:
             out.append(
                 Proposal(self.name, dt_ev.sequence, dt.controls, dt_ev,
-                         label="the transcription's grid control", solve=False)
+                         label=f"the grid control of {which}", solve=False)
             )  # fmt: skip
-            out.append(
-                Proposal(self.name, dt.sequence, dt.controls, dt_ev, known=False, retry=True,
-                         event_times=dt.info.get("event_times"))
-            )  # fmt: skip
-        return out
+            # the modelled sequence (the NLP's) with the NLP's event times; the judged one,
+            # when it differs, with the judge's (issue #21: pairing the judged sequence
+            # with the modelled times crashed the shooting)
+            modelled = dt.info.get("sequence")
+            times = dt.info.get("event_times")
+            if modelled is not None and times is not None and len(times) == len(modelled):
+                out.append(
+                    Proposal(self.name, list(modelled), dt.controls, dt_ev, known=False,
+                             retry=True, event_times=np.asarray(times, dtype=float))
+                )  # fmt: skip
+            if modelled is None or list(modelled) != judged:
+                out.append(
+                    Proposal(self.name, judged, dt.controls, dt_ev, known=False, retry=True,
+                             event_times=judged_times)
+                )  # fmt: skip
+            if list(dt_ev.sequence) not in (judged, list(modelled or [])):
+                out.append(
+                    Proposal(self.name, dt_ev.sequence, dt.controls, dt_ev, known=False)
+                )  # fmt: skip
+        return [p for p in out if len(p.sequence or ()) <= context.max_events or not p.solve]
 
     def start(
         self, ocp: HybridOCP, sequence: Sequence[str], guess: Evaluation, controls: np.ndarray
@@ -124,9 +254,41 @@ class TranscriptionSource:
         )  # fmt: skip
 
 
+def _dt_guesses(ocp: HybridOCP, context: SourceContext, count: int) -> list[tuple[str, np.ndarray]]:
+    """The transcription's further guesses: of the aimed and bounce-first starts
+    (:func:`~hybridoc.solvers.multistart.diverse_controls`), the ``count`` the judge rates
+    cheapest, of distinct kinds and with events other than the initial guess's."""
+    from hybridoc.errors import HybridocError
+    from hybridoc.evaluator import evaluate
+    from hybridoc.solvers.multistart import diverse_controls
+
+    rated = []
+    for kind, u in diverse_controls(ocp, context.evaluation):
+        try:
+            ev = evaluate(ocp, u)
+        except HybridocError:
+            continue
+        if ev.sequence == context.evaluation.sequence or len(ev.events) > context.max_events:
+            continue
+        rated.append((float(ev.cost), kind, u))
+    rated.sort(key=lambda r: r[0])
+    out: list[tuple[str, np.ndarray]] = []
+    kinds: set[str] = set()
+    for _, kind, u in rated:
+        if kind[0] in kinds:
+            continue
+        kinds.add(kind[0])
+        out.append((f"an aimed start ({kind[0]})", u))
+        if len(out) >= count:
+            break
+    return out
+
+
 class MultiStartSource:
     """A batched multi-start of the differentiable simulator on a coarse grid
-    (:func:`hybridoc.solvers.multistart.explore`) from ``context.multistart`` starts."""
+    (:func:`hybridoc.solvers.multistart.explore`) from ``context.multistart`` starts, or
+    :data:`DIVERSE_FACTOR` times as many diverse ones on a :func:`rich_scene` (module
+    notes)."""
 
     name = "multi-start"
 
@@ -135,19 +297,31 @@ class MultiStartSource:
         from hybridoc.errors import HybridocError
         from hybridoc.solvers.contacts import contact_model
         from hybridoc.solvers.gd import make_loss
-        from hybridoc.solvers.multistart import explore
-
-        model = contact_model("direct", toi="both")
+        from hybridoc.solvers.multistart import diverse_starts, explore
 
         count = context.multistart
         if not count:
             return []
-        context.progress.stage(f"multi-start of the simulator ({count} starts)")
         t0 = time.perf_counter()
+        deadline = _deadline(context, t0)
+        if _spent(deadline):
+            context.say("multi-start: not run, the time budget is spent")
+            return []
+        model = contact_model("direct", toi="both")
+        why = rich_scene(ocp)
+        starts = None
+        steps, iters, judge = MULTISTART_STEPS, MULTISTART_ITERS, MULTISTART_JUDGED
+        what = f"{count} starts"
+        if why:
+            count *= DIVERSE_FACTOR
+            steps, iters, judge = DIVERSE_STEPS, DIVERSE_ITERS, DIVERSE_JUDGED
+            starts = diverse_starts(ocp, count, evaluation=context.evaluation)
+            what = f"{count} diverse starts: {why}"
+        context.progress.stage(f"multi-start of the simulator ({what})")
         try:
             found = explore(
-                ocp, count, steps=min(ocp.steps, MULTISTART_STEPS), iters=MULTISTART_ITERS,
-                judge=MULTISTART_JUDGED,
+                ocp, count, steps=min(ocp.steps, steps), iters=iters, judge=judge,
+                starts=starts, deadline=deadline,
                 # gd's cached loss (the default's function): built once per problem
                 # structure, not once per call (datasets call the reference per draw)
                 loss_for=lambda coarse: make_loss(coarse, model, "exact")[0],
@@ -155,13 +329,16 @@ class MultiStartSource:
         except HybridocError as exc:
             context.say(f"multi-start failed: {exc}")
             return []
-        context.say(f"multi-start: {len(found)} results in {time.perf_counter() - t0:.2f} s")
+        context.say(
+            f"multi-start ({what}): {len(found)} results in {time.perf_counter() - t0:.2f} s"
+        )
         out, seen = [], set()
         for r in found:
             key = tuple(r["sequence"])
+            solve = key not in seen and len(key) <= context.max_events
             out.append(
                 Proposal(self.name, list(key), r["controls"], r["evaluation"], cost=r["cost"],
-                         label="a multi-start of the simulator", solve=key not in seen)
+                         label="a multi-start of the simulator", solve=solve)
             )  # fmt: skip
             seen.add(key)
         return out

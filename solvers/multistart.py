@@ -12,6 +12,7 @@ pairs and its own backtracking step.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -23,6 +24,8 @@ from hybridoc.problems.disc_ocp import DiscOCP
 __all__ = [
     "EXPLORE_SMOOTHING",
     "batched_lbfgs",
+    "diverse_controls",
+    "diverse_starts",
     "exploration_loss",
     "explore",
     "resample",
@@ -131,6 +134,202 @@ def starting_controls(ocp: HybridOCP, count: int, *, seed: int | None = 0) -> np
     return U
 
 
+AIM_FRACTIONS = (0.3, 0.5, 0.7, 0.85)
+"""When an aimed start (:func:`diverse_controls`) reaches its aim: fractions of the time
+left after its force starts."""
+
+
+def _contact_aim(scene: Any, i: int, j: int, q: np.ndarray) -> np.ndarray:
+    """Where disc ``i``'s centre should be to strike disc ``j`` (at ``q``) towards ``j``'s
+    target: behind ``j`` on the line from its target (``j``'s centre when it has none)."""
+    target = getattr(scene.discs[j], "target", None)
+    if target is None:
+        return q
+    d = q - np.asarray(target, dtype=float)
+    norm = float(np.linalg.norm(d))
+    if norm < 1e-12:
+        return q
+    return q + (scene.discs[i].radius + scene.discs[j].radius) * d / norm
+
+
+class _Aimer:
+    """Constant-force aims of a disc scene's actuated discs, read off the guess's
+    trajectory (:func:`diverse_controls`)."""
+
+    def __init__(self, ocp: DiscOCP, ev: Any) -> None:
+        self.ocp, self.ev, self.scene = ocp, ev, ocp.scene
+        self.n = self.scene.n_discs
+        self.grid = ocp.time_grid()
+        self.T, self.N = ocp.horizon, ocp.steps
+        self.e = float(getattr(self.scene, "restitution", 1.0))
+
+    def state(self, t: float, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Disc ``i``'s position and velocity at ``t`` on the guess's trajectory."""
+        s = self.ev.sample([t])[0]
+        n = self.n
+        return s[2 * i : 2 * i + 2].copy(), s[2 * n + 2 * i : 2 * n + 2 * i + 2].copy()
+
+    def cell(self, t: float) -> int:
+        return min(int(np.searchsorted(self.grid, t, side="right")) - 1, self.N - 1) if t > 0 else 0
+
+    def push(
+        self,
+        u: np.ndarray,
+        k: int,
+        m: float,
+        p: np.ndarray,
+        v: np.ndarray,
+        q: np.ndarray,
+        t_s: float,
+        t_a: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Write into ``u`` (column pair ``k``) the constant force that takes a disc of mass
+        ``m`` from ``p``, ``v`` at ``t_s`` to ``q`` at ``t_a``; zero after. Returns the
+        velocity it arrives with and ``q``."""
+        dt = max(t_a - t_s, 1e-9)
+        F = m * 2 * (q - p - v * dt) / dt**2
+        n_s, n_a = self.cell(t_s), min(int(np.searchsorted(self.grid, t_a, side="right")), self.N)
+        u[n_s:, 2 * k : 2 * k + 2] = 0.0
+        u[n_s : max(n_a, n_s + 1), 2 * k : 2 * k + 2] = F
+        return 2 * (q - p) / dt - v, q
+
+    def wall_contact(self, i: int, wall: Any, p: np.ndarray) -> np.ndarray:
+        """Disc ``i``'s centre touching ``wall`` at the foot of ``p``."""
+        nrm = np.asarray(wall.normal, dtype=float)
+        nrm = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
+        d = float((p - np.asarray(wall.point, dtype=float)) @ nrm)
+        return p - (d - self.scene.discs[i].radius) * nrm
+
+    def body_aim(self, i: int, j: int, t: float) -> np.ndarray:
+        return _contact_aim(self.scene, i, j, self.state(t, j)[0])
+
+
+def diverse_controls(
+    ocp: HybridOCP, evaluation: Any = None
+) -> list[tuple[tuple[str, ...], np.ndarray]]:
+    """Structured starting controls of a disc scene, each with its kind (empty for other
+    problems): for every actuated disc, a constant force aimed at each other disc (behind
+    it, seen from its target, when it has one) and at each wall, from the start and from
+    each event of the guess on (a late strike of a body already in motion); bounce-first
+    starts (at a wall first, then off it at each disc); and with several actuated discs,
+    combinations (one strikes a disc, then another strikes it). The bodies' positions are
+    read off the guess's trajectory (``evaluation``, default the judge's)."""
+    from hybridoc.errors import HybridocError
+    from hybridoc.evaluator import evaluate
+
+    if not isinstance(ocp, DiscOCP):
+        return []
+    try:
+        ev = evaluation if evaluation is not None else evaluate(ocp)
+        if not ev.segments:
+            return []
+    except HybridocError:
+        return []
+    a = _Aimer(ocp, ev)
+    scene, T, n = a.scene, a.T, a.n
+    u0 = np.array(ocp.u_guess, dtype=float)
+    zero = np.zeros_like(u0)
+    act = list(scene.actuated_indices)
+    out: list[tuple[tuple[str, ...], np.ndarray]] = []
+    late = sorted({float(e.time) for e in ev.events if 0 < e.time < 0.8 * T})
+    for k, i in enumerate(act):
+        m = scene.discs[i].mass
+        name = scene.discs[i].name
+        others = [j for j in range(n) if j != i]
+        # aimed from the start (the guess's own control for the other discs: zero)
+        for t_s in [0.0, *late]:
+            p, v = a.state(t_s, i)
+            for t_a in t_s + np.asarray(AIM_FRACTIONS) * (T - t_s):
+                aims = [
+                    (f"aim {name}>{scene.discs[j].name}", a.body_aim(i, j, t_a)) for j in others
+                ]
+                if t_s == 0.0:
+                    aims += [(f"aim {name}>{w.name}", a.wall_contact(i, w, p)) for w in scene.walls]
+                for kind, q in aims:
+                    u = (u0 if t_s > 0 else zero).copy()
+                    a.push(u, k, m, p, v, q, t_s, float(t_a))
+                    out.append(((kind, "late" if t_s > 0 else "early"), u))
+        # bounce-first: a wall, then off it at each disc
+        p0, v0 = a.state(0.0, i)
+        for w in scene.walls:
+            nrm = np.asarray(w.normal, dtype=float)
+            nrm = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
+            c = a.wall_contact(i, w, p0)
+            for f_w in (0.2, 0.35, 0.5):
+                t_w = f_w * T
+                u = zero.copy()
+                v1, _ = a.push(u, k, m, p0, v0, c, 0.0, t_w)
+                vn = float(v1 @ nrm)
+                if vn >= 0:
+                    continue  # it would not reach the wall moving towards it
+                v1 = v1 - (1 + a.e) * vn * nrm
+                for j in others:
+                    for f_a in (0.5, 0.8):
+                        t_a = t_w + f_a * (T - t_w)
+                        ub = u.copy()
+                        a.push(ub, k, m, c, v1, a.body_aim(i, j, t_a), t_w, t_a)
+                        out.append(((f"bounce {name}>{w.name}>{scene.discs[j].name}",), ub))
+    # several actuated discs: one strikes a disc, then another strikes it
+    for k1, i1 in enumerate(act):
+        for k2, i2 in enumerate(act):
+            if i1 == i2:
+                continue
+            for j in (j for j in range(n) if j not in (i1, i2)):
+                for f1, f2 in ((0.4, 0.6), (0.5, 0.7), (0.6, 0.8), (0.5, 0.55)):
+                    u = zero.copy()
+                    for k, i, f in ((k1, i1, f1), (k2, i2, f2)):
+                        p, v = a.state(0.0, i)
+                        a.push(u, k, scene.discs[i].mass, p, v, a.body_aim(i, j, f * T), 0.0, f * T)
+                    names = (scene.discs[i1].name, scene.discs[i2].name, scene.discs[j].name)
+                    out.append((("pair {}+{}>{}".format(*names),), u))
+    return out
+
+
+def diverse_starts(
+    ocp: HybridOCP,
+    count: int,
+    *,
+    seed: int | None = 0,
+    evaluation: Any = None,
+    structured: float = 0.75,
+) -> np.ndarray:
+    """``count`` starting controls ``(count, N, nu)``: the guess first, then the
+    :func:`diverse_controls` (a ``structured`` share of the starts), taken in turn from each
+    kind (each actuated disc, each aim, bounce-first, pairs) so that every kind is
+    represented before any is repeated, then perturbations of the guess and random smooth
+    controls. Generic problems: :func:`starting_controls`. Deterministic for a ``seed``."""
+    found = diverse_controls(ocp, evaluation)
+    if not found:
+        return starting_controls(ocp, count, seed=seed)
+    rng = np.random.default_rng(seed)
+    u0 = np.array(ocp.u_guess, dtype=float)
+    N, nu = u0.shape
+    scale = _control_scale(ocp)
+    groups: dict[tuple[str, ...], list[np.ndarray]] = {}
+    for kind, u in found:
+        groups.setdefault(kind, []).append(u)
+    queues = [[g[int(x)] for x in rng.permutation(len(g))] for g in groups.values()]
+    order = [queues[int(x)] for x in rng.permutation(len(queues))]
+    picked: list[np.ndarray] = []
+    want = max(int(round(structured * (count - 1))), 0)
+    while len(picked) < want and any(order):
+        for q in order:
+            if q and len(picked) < want:
+                picked.append(q.pop(0))
+    pool = [u0] + [u + 0.02 * scale * smooth_noise(rng, N, nu) for u in picked]
+    k = 0
+    while len(pool) < count:
+        if k % 2 == 0:
+            pool.append(u0 + 0.3 * scale * smooth_noise(rng, N, nu))
+        else:
+            pool.append(scale * smooth_noise(rng, N, nu))
+        k += 1
+    U = np.stack(pool[:count])
+    if ocp.has_bounds:
+        U = np.clip(U, ocp.u_min, ocp.u_max)
+    return U
+
+
 def resample(u: np.ndarray, steps: int) -> np.ndarray:
     """Piecewise-constant controls ``(..., N, nu)`` on ``steps`` equal cells (midpoint rule)."""
     N = u.shape[-2]
@@ -174,6 +373,7 @@ def batched_lbfgs(
     history: int = 20,
     lower: np.ndarray | None = None,
     upper: np.ndarray | None = None,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """L-BFGS with backtracking on a batch of starts, one batched call per trial point.
 
@@ -189,6 +389,9 @@ def batched_lbfgs(
         Curvature pairs kept per start.
     lower, upper
         Optional bounds (projected after every step).
+    deadline
+        A :func:`time.perf_counter` time after which no further iteration starts (the
+        points reached so far are returned).
 
     Returns
     -------
@@ -217,6 +420,8 @@ def batched_lbfgs(
     active = np.isfinite(f)
     failures = np.zeros(B, dtype=int)
     for _ in range(iters):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
         d = _direction(g, S, Yh)
         slope = np.einsum("bi,bi->b", d, g)
         step = np.ones(B)
@@ -284,6 +489,8 @@ def explore(
     judge: int | None = None,
     report: list[dict[str, Any]] | None = None,
     loss_for: Callable[[HybridOCP], Any] | None = None,
+    starts: np.ndarray | None = None,
+    deadline: float | None = None,
 ) -> list[dict[str, Any]]:
     """Batched descent from ``count`` diverse starts on a coarse grid, the best judged.
 
@@ -309,6 +516,12 @@ def explore(
     loss_for
         ``loss_for(coarse_ocp)``: the loss object to descend, with ``value_and_grad_batch``;
         default :func:`exploration_loss`.
+    starts
+        The starting controls ``(B, N, nu)`` on the problem's grid (``count`` is then
+        ignored); default :func:`starting_controls`.
+    deadline
+        A :func:`time.perf_counter` time after which the descent stops where it is and no
+        further result is judged (the best one always is): a partial result.
 
     Returns
     -------
@@ -319,7 +532,9 @@ def explore(
     N = ocp.steps
     coarse = ocp if steps is None or steps >= N else ocp.replace(steps=int(steps))
     loss = (loss_for or exploration_loss)(coarse)
-    U0 = resample(starting_controls(ocp, count, seed=seed), coarse.steps)
+    if starts is None:
+        starts = starting_controls(ocp, count, seed=seed)
+    U0 = resample(np.asarray(starts, dtype=float), coarse.steps)
 
     def make_vg(mu: float) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         # mu: the control-smoothness penalty that weakens the kinks of the loss (an event
@@ -339,10 +554,14 @@ def explore(
     lower = upper = None
     if ocp.has_bounds:
         lower, upper = ocp.u_min, ocp.u_max
-    X, f, _ = batched_lbfgs(make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper)
-    X, f, _ = batched_lbfgs(make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper)
+    X, f, _ = batched_lbfgs(
+        make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper, deadline=deadline
+    )
+    X, f, _ = batched_lbfgs(
+        make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper, deadline=deadline
+    )
     picked = _distinct(f, judge)
-    out, rows = _judged(ocp, X, f, picked, coarse.dt)
+    out, rows = _judged(ocp, X, f, picked, coarse.dt, deadline)
     if report is not None:
         report.extend(rows)
     out.sort(key=lambda r: r["cost"])
@@ -368,7 +587,12 @@ def _distinct(f: np.ndarray, judge: int | None) -> list[int]:
 
 
 def _judged(
-    ocp: HybridOCP, X: np.ndarray, f: np.ndarray, picked: list[int], dt: float
+    ocp: HybridOCP,
+    X: np.ndarray,
+    f: np.ndarray,
+    picked: list[int],
+    dt: float,
+    deadline: float | None = None,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """The picked results resampled to the problem's grid and judged, and one report row
     per start (:func:`explore`)."""
@@ -381,7 +605,10 @@ def _judged(
         {"start": b, "loss": float(f[b]) * dt if np.isfinite(f[b]) else None}
         for b in range(len(f))
     ]
-    for b in picked:
+    for i, b in enumerate(picked):
+        if i and deadline is not None and time.perf_counter() > deadline:
+            rows[b]["not_judged"] = "the time budget was spent"
+            continue
         u = resample(X[b], ocp.steps)
         try:
             ev = evaluate(ocp, u)
@@ -391,7 +618,7 @@ def _judged(
         rows[b].update(cost=ev.cost, sequence=ev.sequence)
         out.append({"controls": u, "cost": ev.cost, "sequence": ev.sequence, "evaluation": ev})
     for b, row in enumerate(rows):
-        if "cost" in row or "error" in row:
+        if "cost" in row or "error" in row or "not_judged" in row:
             continue
         if row["loss"] is None:
             row["error"] = "the descent diverged"
