@@ -32,7 +32,9 @@ The pieces of a run
     :func:`checked_options` validates the options and fills in their defaults; hops
     (:func:`_hop`) and the multi-start (:func:`_multistart`) wrap the continuation
     (:func:`_continuation`: the smoothing stages, then the real problem), which runs single
-    descents (:func:`_descend`, the optimiser loop in :class:`_Run`). One
+    descents (:func:`_descend`, the optimiser loop in :class:`_Run`, with the numpy
+    optimisers of :mod:`hybridoc.solvers.optimizers`: torch is imported only by the torch
+    simulator, ``path="torch"``). One
     :class:`~hybridoc.progress.Progress` serves the whole run: a stage per smoothing weight,
     hop round and multi-start phase, a count per iteration.
 """
@@ -66,7 +68,6 @@ from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.problems.paper import PAPER_SETTINGS
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status
-from hybridoc.solvers.threads import torch_threads
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.evaluation import Evaluation
@@ -249,9 +250,10 @@ def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
     Plain ``gd`` uses the paper's settings on the paper's problems
     (:data:`hybridoc.problems.paper.PAPER_SETTINGS`) and otherwise a learning rate of
     ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``) for 1000
-    iterations; ``adam`` uses 0.05 for 1000 iterations; ``lbfgs`` a step of 0.1 (the first
-    trial step of its strong-Wolfe line search) for at most 300 iterations: with 1.0 it
-    leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
+    iterations; ``adam`` uses 0.05 for 1000 iterations; ``lbfgs`` a step of 0.1 (the trial
+    step of its line search, taken when it lowers the loss:
+    :data:`~hybridoc.solvers.optimizers.GD_LINE_SEARCH_EVALS`) for at most 300 iterations:
+    with 1.0 it leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
     """
     if optimizer == "gd":
         return PAPER_SETTINGS.get(problem.name, (0.1 / problem.dt, 1000))
@@ -305,8 +307,10 @@ def make_loss(
     Returns
     -------
     tuple
-        The loss object, with ``loss(controls, x0=None)`` (torch, differentiable), and the
-        path taken. Compiled losses are kept per problem structure and settings: building
+        The loss object and the path taken. A compiled loss has numpy
+        ``value_and_grad(controls, x0=None)`` (what gd calls: no torch) and a torch
+        ``loss``; the torch simulator only ``loss(controls, x0=None)`` (torch,
+        differentiable). Compiled losses are kept per problem structure and settings: building
         one takes milliseconds, but continuation stages and repeated solves reuse it.
     """
     from hybridoc.solvers.contacts import contact_model
@@ -342,6 +346,9 @@ def make_loss(
         use_compiled = True
     if not use_compiled:
         from hybridoc.solvers.simulator import Simulator
+        from hybridoc.solvers.threads import torch_threads
+
+        torch_threads()  # one torch thread unless HYBRIDOC_THREADS says otherwise
 
         return Simulator(ocp, contact=model, integrator=integrator), "torch"
     from hybridoc.solvers.compiled import CompiledLoss
@@ -494,8 +501,10 @@ def solve_gd(
         Euler otherwise (the other settings have no exact form).
     optimizer
         ``"gd"`` (plain gradient descent, as in the paper), ``"adam"`` or ``"lbfgs"``
-        (``torch.optim.LBFGS`` with a strong-Wolfe line search; SciPy's L-BFGS-B when the
-        problem has control bounds; default).
+        (default: L-BFGS with a strong-Wolfe line search, a numpy port of
+        ``torch.optim.LBFGS``, :class:`~hybridoc.solvers.optimizers.LBFGS`; SciPy's
+        L-BFGS-B when the problem has control bounds). All run on numpy arrays: on the
+        compiled path a solve imports no torch.
     smoothing
         Continuation weights ``mu_1 > mu_2 > ...``: before the real problem, solve it with the
         penalty ``mu sum_n |u_{n+1} - u_n|^2 / dt`` (about ``mu int |du/dt|^2 dt``) added, for
@@ -556,7 +565,6 @@ def solve_gd(
         For options out of range or that do not apply to the problem (one line).
     """
     ocp = as_ocp(problem)
-    torch_threads()  # the optimisers run in torch: one thread unless HYBRIDOC_THREADS says
     opts = checked_options(
         ocp,
         GDOptions(
@@ -931,7 +939,14 @@ loss history."""
 
 
 class _Run:
-    """One optimisation of :func:`solve_gd` (no continuation)."""
+    """One optimisation of :func:`solve_gd` (no continuation), on numpy buffers.
+
+    The objective (the loss with the smoothing and path penalties) and its gradient come
+    from the compiled loss's ``value_and_grad`` as numpy arrays (the torch simulator's
+    through its autograd: :func:`_torch_value_and_grad`); the optimisers are those of
+    :mod:`hybridoc.solvers.optimizers` (``torch.optim``'s, ported), or SciPy's L-BFGS-B
+    with bounds.
+    """
 
     def __init__(
         self,
@@ -953,178 +968,142 @@ class _Run:
         self.n_evals = 0
         self.restarts = 0
         self.t_loop = time.perf_counter()
-        # the torch loop's state (optimise)
-        self.u: Any = None
-        self.opt: Any = None
-        self.fresh = True
+        self.shape = (ocp.steps, ocp.nu)
         self.scale = 1.0
-        self.best: dict[str, Any] = {}
-        self.last: dict[str, Any] = {}
+        self.best: dict[str, Any] = {"loss": math.inf, "u": None}
+        self.last: tuple[np.ndarray, float] | None = None
+        if hasattr(loss_obj, "value_and_grad"):
+            self.loss_grad: Callable[[np.ndarray], tuple[float, np.ndarray]] = lambda u: (
+                loss_obj.value_and_grad(u)[:2]
+            )
+        else:
+            self.loss_grad = _torch_value_and_grad(loss_obj)
 
-    def value(self, u: Any) -> Any:
-        """The objective (with the smoothing and path penalties) of torch controls ``u``."""
-        import torch
-
+    def value_and_grad(self, u: np.ndarray) -> tuple[float, np.ndarray]:
+        """The objective (with the smoothing and path penalties) of controls ``u`` and its
+        gradient; keeps the best and the last evaluation."""
         self.n_evals += 1
-        if not bool(torch.isfinite(u).all()):
+        if not np.isfinite(u).all():
             raise _NonFinite("the controls became NaN or infinite")
-        value = self.loss_obj.loss(u)
+        value, grad = self.loss_grad(u)
+        value = float(value)
         if self.penalty:
-            value = value + self.penalty * ((u[1:] - u[:-1]) ** 2).sum() / self.ocp.dt
-        val = float(value.detach())
-        if not math.isfinite(val):
-            raise _NonFinite(f"the loss became {val}")
-        return value
+            dt = self.ocp.dt
+            diff = u[1:] - u[:-1]
+            value = value + self.penalty * float((diff * diff).sum()) / dt
+            grad = np.array(grad, dtype=float)
+            w = 2.0 * self.penalty / dt
+            grad[1:] += w * diff
+            grad[:-1] -= w * diff
+        if not math.isfinite(value):
+            raise _NonFinite(f"the loss became {value}")
+        if value < self.best["loss"]:
+            self.best["loss"], self.best["u"] = value, u.copy()
+        self.last = (u.copy(), value)
+        if not np.isfinite(grad).all():
+            raise _NonFinite("the gradient became NaN or infinite")
+        return value, grad
+
+    def fun(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """The scaled objective of flat controls, for the optimisers."""
+        value, grad = self.value_and_grad(x.reshape(self.shape))
+        return value * self.scale, np.ravel(grad) * self.scale
+
+    def loss_here(self, u: np.ndarray) -> float:
+        """The loss at ``u`` (the last evaluation when it was there: no second rollout)."""
+        if self.last is not None and np.array_equal(self.last[0], u):
+            return self.last[1]
+        return self.value_and_grad(u)[0]
 
     def report(self, k: int, loss: float, controls: Callable[[], np.ndarray]) -> bool:
         """Iteration ``k`` is done: count it, call the callback; whether the callback stops."""
         self.progress.count(k, self.iters, f"loss {loss:.6g}")
         return self.callback is not None and bool(self.callback(k, loss, controls()))
 
-    # ------------------------------------------------------------------ the torch loop
-    def evaluate_loss(self) -> Any:
-        """The objective at the current controls; keeps the best and the last."""
-        value = self.value(self.u)
-        val = float(value.detach())
-        if val < self.best["loss"]:
-            self.best["loss"], self.best["u"] = val, self.u.detach().numpy().copy()
-        self.last["u"], self.last["value"] = self.u.detach().clone(), val
-        return value
-
-    def loss_here(self) -> float:
-        """The loss at the current controls (the line search's last evaluation when it was
-        there: no second rollout)."""
-        import torch
-
-        if self.last["u"] is not None and torch.equal(self.last["u"], self.u.detach()):
-            return float(self.last["value"])
-        return float(self.evaluate_loss().detach())
-
-    def closure(self) -> Any:
-        """The optimiser's closure: the scaled objective, its gradient in ``u.grad``."""
-        import torch
-
-        self.opt.zero_grad()
-        value = self.evaluate_loss() * self.scale
-        value.backward()
-        if not bool(torch.isfinite(self.u.grad).all()):
-            raise _NonFinite("the gradient became NaN or infinite")
-        return value
-
-    def make_optimizer(self) -> Any:
-        """A fresh torch optimiser on ``u`` (an empty curvature history for L-BFGS)."""
-        import torch
-
-        if self.optimizer == "gd":
-            return torch.optim.SGD([self.u], lr=self.lr)
-        if self.optimizer == "adam":
-            return torch.optim.Adam([self.u], lr=self.lr)
-        return torch.optim.LBFGS(
-            [self.u],
-            lr=self.lr,
-            max_iter=1,
-            history_size=50,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=1e-12,
-            tolerance_change=1e-15,
-        )
-
-    def project(self) -> None:
-        """Clip ``u`` to the control bounds (``gd`` and ``adam``)."""
-        import torch
-
-        ocp = self.ocp
-        if ocp.has_bounds:
-            with torch.no_grad():
-                lower, upper = torch.as_tensor(ocp.u_min), torch.as_tensor(ocp.u_max)
-                self.u.copy_(torch.clamp(self.u, lower, upper))
-
-    def lbfgs_step(self, history: list[float]) -> bool:
-        """One L-BFGS iteration; appends the loss to ``history``. True: converged (a fresh
-        start made no progress)."""
-        import torch
-
-        u = self.u
-        if not history:
-            history.append(self.loss_here())
-        before = u.detach().clone()
-        self.opt.step(self.closure)
-        jump = float((u.detach() - before).abs().max())
-        if jump > self.max_step:
-            # a quasi-Newton step can leap into another event sequence: cut it back (inf-norm)
-            # and reset the curvature history
-            with torch.no_grad():
-                u.copy_(before + (u - before) * (self.max_step / jump))
-            self.opt, self.fresh = self.make_optimizer(), True
-            self.restarts += 1
-            value = float(self.evaluate_loss().detach())
-            if value > history[-1]:
-                with torch.no_grad():
-                    u.copy_(before)
-                value = history[-1]
-            history.append(value)
-        elif torch.equal(before, u.detach()):
-            # kinks of the loss (a contact moving to another step) can spoil the quasi-Newton
-            # model: restart from here with an empty history; stop when a fresh start makes
-            # no progress either
-            history.append(history[-1])
-            if self.fresh:
-                return True
-            self.opt, self.fresh = self.make_optimizer(), True
-            self.restarts += 1
-        else:
-            history.append(self.loss_here())
-            self.fresh = False
-        return False
-
     def optimise(self, u0: np.ndarray) -> _Result:
         """Run the optimiser; returns controls, loss, iterations, message, NaN stop, history."""
-        import torch
-
         self.t_loop = time.perf_counter()
         if self.optimizer == "lbfgs" and self.ocp.has_bounds:
             return self.lbfgsb(u0)
-        self.u = u = torch.tensor(u0, dtype=torch.float64, requires_grad=True)
+        u0 = np.array(u0, dtype=float)
         self.best = {"loss": math.inf, "u": u0.copy()}
-        self.last = {"u": None, "value": None}
-        # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
-        # the gradient with respect to one control value scales with dt: it sees loss / dt
-        self.scale = 1.0 / self.ocp.dt if self.optimizer == "lbfgs" else 1.0
-        self.opt, self.fresh = self.make_optimizer(), True
         history: list[float] = []
-        message = "finished the requested iterations"
+        state = {"u": u0}
         k = 0
         try:
-            for k in range(self.iters):
-                if self.optimizer == "lbfgs":
-                    if self.lbfgs_step(history):
-                        message = "converged: L-BFGS made no further progress"
-                        k += 1
-                        break
-                else:
-                    history.append(float(self.closure().detach()))
-                    self.opt.step()
-                    self.project()
-                if self.report(k + 1, history[-1], lambda: u.detach().numpy().copy()):
-                    message = "stopped by the callback"
-                    k += 1
-                    break
+            if self.optimizer == "lbfgs":
+                message, k = self.lbfgs(u0, history, state)
             else:
-                k = self.iters
+                message, k = self.first_order(u0, history, state)
+            u = state["u"]
             if self.optimizer != "lbfgs" or not history:
-                history.append(float(self.evaluate_loss().detach()))
-            return u.detach().numpy().copy(), history[-1], k, message, False, history
+                history.append(self.loss_here(u))
+            return u.copy(), history[-1], k, message, False, history
         except _NonFinite as exc:
-            best = self.best
+            best, k = self.best, state.get("k", k)
             message = (
                 f"stopped early at iteration {k}: {exc}; returning the best iterate "
                 f"(discrete loss {best['loss']:.6g}); try a smaller learning rate"
             )
             return best["u"], best["loss"], k, message, True, history or [best["loss"]]
 
+    def first_order(
+        self, u: np.ndarray, history: list[float], state: dict[str, Any]
+    ) -> tuple[str, int]:
+        """Plain gradient descent or Adam, projected on the control bounds."""
+        from hybridoc.solvers.optimizers import SGD, Adam
+
+        opt = SGD(self.lr) if self.optimizer == "gd" else Adam(self.lr)
+        ocp = self.ocp
+        for k in range(self.iters):
+            state["k"] = k
+            value, grad = self.value_and_grad(u)
+            history.append(value)
+            u = opt.step(u, grad)
+            if ocp.has_bounds:
+                u = np.clip(u, ocp.u_min, ocp.u_max)
+            state["u"] = u
+            if self.report(k + 1, history[-1], lambda u=u: u.copy()):
+                return "stopped by the callback", k + 1
+        state["k"] = self.iters
+        return "finished the requested iterations", self.iters
+
+    def lbfgs(self, u0: np.ndarray, history: list[float], state: dict[str, Any]) -> tuple[str, int]:
+        """L-BFGS with the max-step cut-back and restarts at kinks
+        (:func:`~hybridoc.solvers.optimizers.lbfgs_iterations`)."""
+        from hybridoc.solvers.optimizers import GD_LINE_SEARCH_EVALS, lbfgs_iterations
+
+        # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
+        # the gradient with respect to one control value scales with dt: it sees loss / dt
+        self.scale = 1.0 / self.ocp.dt
+        state["k"] = 0
+        if self.iters == 0:
+            return "finished the requested iterations", 0
+        start = self.fun(u0.ravel())
+        history.append(self.loss_here(u0))
+        steps = lbfgs_iterations(
+            self.fun, u0.ravel(), lr=self.lr, max_step=self.max_step,
+            max_ls=GD_LINE_SEARCH_EVALS, start=start,
+        )  # fmt: skip
+        for k, it in zip(range(self.iters), steps, strict=False):
+            state["k"] = k
+            u = it.x.reshape(self.shape)
+            state["u"] = u
+            if it.event in ("restart", "converged", "cut-rejected"):
+                history.append(history[-1])
+            else:
+                history.append(self.loss_here(u))
+            if it.event in ("cut", "cut-rejected", "restart"):
+                self.restarts += 1
+            if it.event == "converged":
+                return "converged: L-BFGS made no further progress", k + 1
+            if self.report(k + 1, history[-1], lambda u=u: u.copy()):
+                return "stopped by the callback", k + 1
+        state["k"] = self.iters
+        return "finished the requested iterations", self.iters
+
     def lbfgsb(self, u0: np.ndarray) -> _Result:
         """SciPy's L-BFGS-B on the same objective (problems with control bounds)."""
-        import torch
         from scipy.optimize import minimize
 
         ocp = self.ocp
@@ -1133,10 +1112,13 @@ class _Run:
         k = 0
 
         def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-            u = torch.tensor(x.reshape(shape), dtype=torch.float64, requires_grad=True)
-            value = self.value(u)
-            value.backward()
-            return float(value.detach()) / ocp.dt, u.grad.numpy().ravel() / ocp.dt
+            u = x.reshape(shape)
+            if self.last is not None and np.array_equal(self.last[0], u):
+                value = self.last[1]  # the callback's point: SciPy has just evaluated it
+                return value / ocp.dt, self.last_grad
+            value, grad = self.value_and_grad(u)
+            self.last_grad = np.ravel(grad) / ocp.dt
+            return value / ocp.dt, self.last_grad
 
         def cb(x: np.ndarray) -> None:
             nonlocal k
@@ -1146,6 +1128,7 @@ class _Run:
                 raise StopIteration
 
         bounds = list(zip(np.tile(ocp.u_min, shape[0]), np.tile(ocp.u_max, shape[0]), strict=True))
+        self.last_grad = np.zeros(u0.size)
         history.append(fun(u0.ravel())[0] * ocp.dt)
         try:
             res = minimize(
@@ -1164,6 +1147,22 @@ class _Run:
         final = fun(x)[0] * ocp.dt
         history.append(final)
         return x.reshape(shape), final, k, msg, False, history
+
+
+def _torch_value_and_grad(loss_obj: Any) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+    """``u -> (loss, gradient)`` of a torch loss (the torch simulator) on numpy arrays."""
+    import torch
+
+    def value_and_grad(u: np.ndarray) -> tuple[float, np.ndarray]:
+        ut = torch.tensor(u, dtype=torch.float64, requires_grad=True)
+        value = loss_obj.loss(ut)
+        val = float(value.detach())
+        if not math.isfinite(val):
+            return val, np.zeros_like(u)
+        value.backward()
+        return val, ut.grad.numpy().copy()
+
+    return value_and_grad
 
 
 # ---------------------------------------------------------------------- the Method

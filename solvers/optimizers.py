@@ -1,0 +1,401 @@
+"""Numpy optimisers of gradient descent (:mod:`hybridoc.solvers.gd`): no torch needed.
+
+The compiled loss (:class:`~hybridoc.solvers.compiled.CompiledLoss`) hands out numpy values
+and gradients, so the optimisers of :func:`~hybridoc.solvers.gd.solve_gd` run on numpy
+buffers: importing torch (seconds) is left to the torch simulator, policies and training.
+
+:class:`LBFGS`
+    One L-BFGS iteration at a time: the two-loop recursion over at most ``history_size``
+    curvature pairs (a pair with ``y.s <= 1e-10`` is dropped), the scaled identity
+    ``y.s / y.y`` as the initial inverse Hessian, and the strong-Wolfe line search
+    :func:`strong_wolfe` (bracketing, then zoom by safeguarded cubic interpolation). It is a
+    port of ``torch.optim.LBFGS`` (itself after minFunc), so that gd's iterates are those of
+    the torch optimiser it replaces, up to rounding. ``max_ls`` is the number of line-search
+    evaluations after the first trial step: ``torch.optim.LBFGS(max_iter=1)``, as gd used
+    it, allows ``max_eval - 1 = 0`` of them, which makes the line search one trial step of
+    ``lr`` (``min(1, 1 / |g|_1) lr`` on a fresh start) taken when it lowers the loss;
+    :data:`GD_LINE_SEARCH_EVALS` keeps that.
+:func:`lbfgs_iterations`
+    The L-BFGS loop of gd, as a generator of iterations: the max-step cut-back (a step that
+    changes some coordinate by more than ``max_step`` is shortened to it, in the inf-norm,
+    and the curvature history is reset; if the shortened step raises the loss, the iterate
+    stays) and restarts at kinks (a step that does not move restarts from steepest descent
+    with an empty history; a fresh start that does not move either has converged).
+:class:`SGD`, :class:`Adam`
+    ``torch.optim.SGD`` and ``torch.optim.Adam`` (their defaults) on numpy arrays.
+
+Every objective is a callable ``fun(x) -> (f, g)`` of a flat float array (``g`` a flat
+array of the same size).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "GD_LINE_SEARCH_EVALS",
+    "LBFGS",
+    "SGD",
+    "Adam",
+    "Iteration",
+    "lbfgs_iterations",
+    "strong_wolfe",
+]
+
+Objective = Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+GD_LINE_SEARCH_EVALS = 0
+"""Line-search evaluations after the first trial step in gd's L-BFGS: none, as in
+``torch.optim.LBFGS(max_iter=1)`` that gd used before (its ``max_eval`` of 1 left the
+strong-Wolfe search no evaluation beyond the trial step)."""
+
+
+def _cubic_interpolate(
+    x1: float,
+    f1: float,
+    g1: float,
+    x2: float,
+    f2: float,
+    g2: float,
+    bounds: tuple[float, float] | None = None,
+) -> float:
+    """The minimiser of the cubic through ``(x1, f1, g1)`` and ``(x2, f2, g2)``, clipped to
+    ``bounds`` (default: the interval between the points); its midpoint without a real
+    minimiser."""
+    if bounds is not None:
+        lo, hi = bounds
+    else:
+        lo, hi = (x1, x2) if x1 <= x2 else (x2, x1)
+    d1 = g1 + g2 - 3 * (f1 - f2) / (x1 - x2)
+    d2_square = d1**2 - g1 * g2
+    if d2_square >= 0:
+        d2 = math.sqrt(d2_square)
+        if x1 <= x2:
+            pos = x2 - (x2 - x1) * ((g2 + d2 - d1) / (g2 - g1 + 2 * d2))
+        else:
+            pos = x1 - (x1 - x2) * ((g1 + d2 - d1) / (g1 - g2 + 2 * d2))
+        return min(max(pos, lo), hi)
+    return (lo + hi) / 2.0
+
+
+def strong_wolfe(
+    fun: Objective,
+    x: np.ndarray,
+    t: float,
+    d: np.ndarray,
+    f: float,
+    g: np.ndarray,
+    gtd: float,
+    *,
+    c1: float = 1e-4,
+    c2: float = 0.9,
+    tolerance_change: float = 1e-9,
+    max_ls: int = 25,
+) -> tuple[float, np.ndarray, float, int]:
+    """A step along ``d`` from ``x`` that meets the strong Wolfe conditions.
+
+    ``f(x + t d) <= f + c1 t gtd`` (sufficient decrease) and ``|g(x + t d).d| <= c2 |gtd|``
+    (curvature), found by bracketing from the trial step ``t`` (extrapolating by cubic
+    interpolation, at most tenfold) and zooming into the bracket (safeguarded cubic
+    interpolation), after minFunc and ``torch.optim.lbfgs._strong_wolfe``.
+
+    Parameters
+    ----------
+    fun
+        The objective, ``fun(x) -> (f, g)``.
+    x, d
+        The point and the descent direction.
+    t
+        The first trial step.
+    f, g, gtd
+        The value and gradient at ``x``, and the slope ``g.d < 0``.
+    c1, c2
+        The constants of the conditions.
+    tolerance_change
+        The zoom stops once the bracket is shorter than this (times ``max |d|``).
+    max_ls
+        Evaluations after the first trial step. With none, the search returns the trial
+        step when its value is below ``f``, else 0.
+
+    Returns
+    -------
+    f_new, g_new, t, evaluations
+        The value and gradient at ``x + t d``, the step (0: no step lowered the loss) and
+        the number of evaluations of ``fun``.
+    """
+    d_norm = float(np.abs(d).max())
+    f_new, g_new = fun(x + t * d)
+    evals = 1
+    gtd_new = float(g_new @ d)
+    t_prev, f_prev, g_prev, gtd_prev = 0.0, f, g, gtd
+    done = False
+    ls_iter = 0
+    bracket: list[float] = []
+    bracket_f: list[float] = []
+    bracket_g: list[np.ndarray] = []
+    bracket_gtd: list[float] = []
+    while ls_iter < max_ls:
+        if f_new > f + c1 * t * gtd or (ls_iter > 1 and f_new >= f_prev):
+            bracket, bracket_f = [t_prev, t], [f_prev, f_new]
+            bracket_g, bracket_gtd = [g_prev, g_new], [gtd_prev, gtd_new]
+            break
+        if abs(gtd_new) <= -c2 * gtd:
+            bracket, bracket_f, bracket_g = [t], [f_new], [g_new]
+            done = True
+            break
+        if gtd_new >= 0:
+            bracket, bracket_f = [t_prev, t], [f_prev, f_new]
+            bracket_g, bracket_gtd = [g_prev, g_new], [gtd_prev, gtd_new]
+            break
+        # extrapolate: a longer step, by cubic interpolation within [1.01 t, 10 t]
+        lo, hi = t + 0.01 * (t - t_prev), t * 10
+        t_next = _cubic_interpolate(t_prev, f_prev, gtd_prev, t, f_new, gtd_new, bounds=(lo, hi))
+        t_prev, f_prev, g_prev, gtd_prev = t, f_new, g_new, gtd_new
+        t = t_next
+        f_new, g_new = fun(x + t * d)
+        evals += 1
+        gtd_new = float(g_new @ d)
+        ls_iter += 1
+    if ls_iter == max_ls:
+        bracket, bracket_f, bracket_g = [0.0, t], [f, f_new], [g, g_new]
+        bracket_gtd = [gtd, gtd_new]
+    # zoom: shrink the bracket until a point meets the conditions
+    insufficient = False
+    low, high = (0, 1) if bracket_f[0] <= bracket_f[-1] else (1, 0)
+    while not done and ls_iter < max_ls:
+        if abs(bracket[1] - bracket[0]) * d_norm < tolerance_change:
+            break
+        t = _cubic_interpolate(
+            bracket[0], bracket_f[0], bracket_gtd[0], bracket[1], bracket_f[1], bracket_gtd[1]
+        )
+        # too close to an end of the bracket (twice in a row, or at it): a tenth inside
+        b_lo, b_hi = min(bracket), max(bracket)
+        eps = 0.1 * (b_hi - b_lo)
+        if min(b_hi - t, t - b_lo) < eps:
+            if insufficient or t >= b_hi or t <= b_lo:
+                t = b_hi - eps if abs(t - b_hi) < abs(t - b_lo) else b_lo + eps
+                insufficient = False
+            else:
+                insufficient = True
+        else:
+            insufficient = False
+        f_new, g_new = fun(x + t * d)
+        evals += 1
+        gtd_new = float(g_new @ d)
+        ls_iter += 1
+        if f_new > f + c1 * t * gtd or f_new >= bracket_f[low]:
+            # no sufficient decrease, or not below the low end: the new high end
+            bracket[high], bracket_f[high] = t, f_new
+            bracket_g[high], bracket_gtd[high] = g_new, gtd_new
+            low, high = (0, 1) if bracket_f[0] <= bracket_f[1] else (1, 0)
+        else:
+            if abs(gtd_new) <= -c2 * gtd:
+                done = True
+            elif gtd_new * (bracket[high] - bracket[low]) >= 0:
+                # the old low end becomes the high end
+                bracket[high], bracket_f[high] = bracket[low], bracket_f[low]
+                bracket_g[high], bracket_gtd[high] = bracket_g[low], bracket_gtd[low]
+            bracket[low], bracket_f[low] = t, f_new
+            bracket_g[low], bracket_gtd[low] = g_new, gtd_new
+    return bracket_f[low], bracket_g[low], bracket[low], evals
+
+
+class LBFGS:
+    """L-BFGS, one iteration per :meth:`step` (see the module notes).
+
+    Parameters
+    ----------
+    lr
+        The first trial step of the line search (``min(1, 1 / |g|_1) lr`` after a reset).
+    history_size
+        Curvature pairs kept.
+    tolerance_grad
+        No step once ``max |g| <= tolerance_grad``.
+    tolerance_change
+        No step once the slope ``g.d > -tolerance_change``; the line search's bracket
+        tolerance.
+    max_ls
+        Line-search evaluations after the first trial step (:func:`strong_wolfe`).
+    """
+
+    def __init__(
+        self,
+        lr: float = 1.0,
+        *,
+        history_size: int = 50,
+        tolerance_grad: float = 1e-12,
+        tolerance_change: float = 1e-15,
+        max_ls: int = 25,
+    ) -> None:
+        self.lr = lr
+        self.history_size = history_size
+        self.tolerance_grad = tolerance_grad
+        self.tolerance_change = tolerance_change
+        self.max_ls = max_ls
+        self.evaluations = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the curvature history: the next step is along steepest descent."""
+        self.n_iter = 0
+        self.dirs: list[np.ndarray] = []  # the gradient changes y
+        self.steps: list[np.ndarray] = []  # the steps s
+        self.ro: list[float] = []
+        self.h_diag = 1.0
+        self.d: np.ndarray | None = None
+        self.t = 0.0
+        self.prev_g: np.ndarray | None = None
+
+    def direction(self, g: np.ndarray) -> np.ndarray:
+        """The search direction at gradient ``g`` (updating the curvature history with the
+        last step): ``-H g`` by the two-loop recursion."""
+        if self.n_iter == 1 or self.d is None or self.prev_g is None:
+            self.dirs, self.steps, self.ro, self.h_diag = [], [], [], 1.0
+            return -g
+        y = g - self.prev_g
+        s = self.d * self.t
+        ys = float(y @ s)
+        if ys > 1e-10:
+            if len(self.dirs) == self.history_size:
+                self.dirs.pop(0)
+                self.steps.pop(0)
+                self.ro.pop(0)
+            self.dirs.append(y)
+            self.steps.append(s)
+            self.ro.append(1.0 / ys)
+            self.h_diag = ys / float(y @ y)
+        n = len(self.dirs)
+        al = [0.0] * n
+        q = -g
+        for i in range(n - 1, -1, -1):
+            al[i] = float(self.steps[i] @ q) * self.ro[i]
+            q = q - al[i] * self.dirs[i]
+        r = q * self.h_diag
+        for i in range(n):
+            be = float(self.dirs[i] @ r) * self.ro[i]
+            r = r + (al[i] - be) * self.steps[i]
+        return r
+
+    def step(
+        self, fun: Objective, x: np.ndarray, f: float, g: np.ndarray
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """One iteration from ``x`` (value ``f``, gradient ``g``): the new point, its value
+        and gradient (``x``, ``f``, ``g`` themselves when it does not move)."""
+        if float(np.abs(g).max()) <= self.tolerance_grad:
+            return x, f, g
+        self.n_iter += 1
+        d = self.direction(g)
+        self.d, self.prev_g = d, g.copy()
+        t = min(1.0, 1.0 / float(np.abs(g).sum())) * self.lr if self.n_iter == 1 else self.lr
+        gtd = float(g @ d)
+        if gtd > -self.tolerance_change:
+            self.t = t
+            return x, f, g
+        f_new, g_new, t, evals = strong_wolfe(fun, x, t, d, f, g, gtd, max_ls=self.max_ls)
+        self.evaluations += evals
+        self.t = t
+        if t == 0:
+            return x, f, g
+        return x + t * d, f_new, g_new
+
+
+@dataclass
+class Iteration:
+    """One iteration of :func:`lbfgs_iterations`: the iterate, its value and gradient, and
+    what happened: ``"step"``, ``"cut"`` (a step shortened to ``max_step``), ``"cut-rejected"``
+    (the shortened step raised the loss: the iterate stayed), ``"restart"`` (no step: the
+    history is reset) or ``"converged"`` (no step from a fresh start; the last iteration)."""
+
+    x: np.ndarray
+    f: float
+    g: np.ndarray
+    event: str
+
+
+def lbfgs_iterations(
+    fun: Objective,
+    x0: np.ndarray,
+    *,
+    lr: float = 1.0,
+    max_step: float = math.inf,
+    history_size: int = 50,
+    max_ls: int = 25,
+    tolerance_grad: float = 1e-12,
+    tolerance_change: float = 1e-15,
+    start: tuple[float, np.ndarray] | None = None,
+) -> Iterator[Iteration]:
+    """L-BFGS with the max-step cut-back and restarts at kinks (module notes), one
+    :class:`Iteration` per iteration, endless until it converges; ``start`` is ``(f, g)`` at
+    ``x0`` when known. ``fun`` may raise to stop it."""
+    opt = LBFGS(
+        lr, history_size=history_size, tolerance_grad=tolerance_grad,
+        tolerance_change=tolerance_change, max_ls=max_ls,
+    )  # fmt: skip
+    x = np.array(x0, dtype=float)
+    f, g = fun(x) if start is None else start
+    fresh = True
+    while True:
+        x_new, f_new, g_new = opt.step(fun, x, f, g)
+        jump = float(np.abs(x_new - x).max()) if x_new is not x else 0.0
+        if jump > max_step:
+            # a quasi-Newton step can leap into another event sequence: cut it back and
+            # forget the curvature history
+            x_cut = x + (x_new - x) * (max_step / jump)
+            opt.reset()
+            fresh = True
+            f_cut, g_cut = fun(x_cut)
+            if f_cut > f:
+                yield Iteration(x, f, g, "cut-rejected")
+                continue
+            x, f, g = x_cut, f_cut, g_cut
+            yield Iteration(x, f, g, "cut")
+        elif jump == 0.0:
+            # kinks of the loss can spoil the quasi-Newton model: restart from here with an
+            # empty history; a fresh start that makes no progress either has converged
+            if fresh:
+                yield Iteration(x, f, g, "converged")
+                return
+            opt.reset()
+            fresh = True
+            yield Iteration(x, f, g, "restart")
+        else:
+            x, f, g, fresh = x_new, f_new, g_new, False
+            yield Iteration(x, f, g, "step")
+
+
+class SGD:
+    """Plain gradient descent, ``x - lr g`` (``torch.optim.SGD`` without momentum)."""
+
+    def __init__(self, lr: float) -> None:
+        self.lr = lr
+
+    def step(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
+        return x - self.lr * g
+
+
+class Adam:
+    """Adam with bias correction (``torch.optim.Adam``'s defaults: betas 0.9 and 0.999,
+    eps 1e-8, no weight decay)."""
+
+    def __init__(
+        self, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
+        self.lr = lr
+        self.b1, self.b2 = betas
+        self.eps = eps
+        self.k = 0
+        self.m: Any = 0.0
+        self.v: Any = 0.0
+
+    def step(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
+        self.k += 1
+        self.m = self.m + (1 - self.b1) * (g - self.m)
+        self.v = self.v * self.b2 + (1 - self.b2) * g * g
+        step_size = self.lr / (1 - self.b1**self.k)
+        denom = np.sqrt(self.v) / math.sqrt(1 - self.b2**self.k) + self.eps
+        return x - step_size * (self.m / denom)
