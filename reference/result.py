@@ -49,6 +49,12 @@ class ReferenceResult:
         True if some event has approach speed below ``GRAZE_FLAG`` in magnitude.
     path
         How Newton was started: ``"costate-estimate"``, ``"nlp"`` or ``"feasibility"``.
+    coverage
+        What the search that chose this extremal covered (the sources, the sequences
+        proposed, solved and pruned, the exhaustive length, whether the budget stopped it,
+        the best cost of each number of events), set by
+        :func:`~hybridoc.reference.solve.solve_reference` on the extremal it returns and
+        copied to ``info["coverage"]``; ``None`` for an extremal solved on its own.
     """
 
     ocp: HybridOCP
@@ -73,6 +79,7 @@ class ReferenceResult:
     path: str
     system: ShootingSystem = field(repr=False)
     z: np.ndarray = field(repr=False)
+    coverage: dict[str, Any] | None = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ dense evaluation
     def _phase_of(self, t: np.ndarray) -> np.ndarray:
@@ -232,6 +239,8 @@ class ReferenceResult:
             "approach_speeds": [float(a) for a in self.approach_speeds],
             "start": self.path,
         }
+        if self.coverage is not None:
+            base_info["coverage"] = self.coverage
         base_info.update(info or {})
         sol = Solution(
             method="reference",

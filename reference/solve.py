@@ -64,6 +64,7 @@ from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
 from hybridoc.reference.candidates import (
+    default_depth,
     enumerate_sequences,
     guess_candidates,
     guess_times,
@@ -83,11 +84,14 @@ from hybridoc.reference.sources import (
 from hybridoc.solution import Solution, Status
 
 __all__ = [
+    "DEFAULT_BUDGET",
     "MAX_EVENTS",
     "MAX_SEARCH",
     "METHOD",
     "MULTISTART",
     "ReferenceOptions",
+    "coverage_line",
+    "parse_budget",
     "parse_search",
     "reference_supports",
     "solve_reference",
@@ -111,6 +115,9 @@ MULTISTART = 8
 """Starts of the batched multi-start source that proposes sequences (0 to skip it)."""
 MAX_WORKERS = 8
 """Worker processes of the search over sequences, at most (one per usable core)."""
+DEFAULT_BUDGET = 30.0
+"""Seconds the default reference (without ``sequence``) may spend: its sources get what is
+left of it, and the enumeration stops when it is spent (``budget``)."""
 
 
 def reference_supports(ocp: HybridOCP) -> str | None:
@@ -142,6 +149,23 @@ def parse_search(text: str) -> int:
     return k
 
 
+def parse_budget(text: str) -> float:
+    """The ``--budget SECONDS`` value: a positive number of seconds.
+
+    Raises
+    ------
+    ValueError
+        With a one-line reason.
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"budget must be a number of seconds > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"budget must be a number of seconds > 0, got {text!r}")
+    return value
+
+
 @dataclass(frozen=True)
 class ReferenceOptions:
     """The options of :func:`solve_reference` (method ``"reference"``)."""
@@ -158,6 +182,14 @@ class ReferenceOptions:
         f"landscape of extremals (K at most {MAX_SEARCH})",
         parse=parse_search,
         metavar="K",
+    )
+    budget: float = option(
+        DEFAULT_BUDGET,
+        "seconds the search for the optimum may take (the sources get what is left; the "
+        "enumeration of sequences stops when it is spent, and the coverage says so); "
+        f"default {DEFAULT_BUDGET:g}",
+        parse=parse_budget,
+        metavar="SECONDS",
     )
     verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
     tol: float = option(1e-10, "max-norm of the HMP residual required", cli=False)
@@ -178,12 +210,31 @@ class ReferenceOptions:
     )
 
 
+def coverage_line(coverage: dict[str, Any] | None) -> str:
+    """One line of what the reference covered (``info["coverage"]``): the sources, the
+    sequences proposed and solved, the exhaustive length and whether the budget stopped it."""
+    if not coverage:
+        return "(none recorded)"
+    ex = coverage.get("exhaustive_length")
+    text = (
+        f"{coverage['proposed']} sequence(s) proposed, {coverage['solved']} solved, "
+        f"{coverage['pruned']} pruned by bounds; "
+        + (f"every sequence of up to {ex} events" if ex is not None else "no enumeration")
+        + f"; sources: {', '.join(coverage['sources']) or 'none'}"
+    )
+    if coverage.get("budget_stopped"):
+        text += f"; stopped by the budget of {coverage['budget_s']:g} s"
+    return text
+
+
 def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
-    """What ``hybridoc solve`` prints about a reference solution: the HMP residual and the
-    settings."""
+    """What ``hybridoc solve`` prints about a reference solution: the HMP residual, the
+    coverage and the settings."""
     lines = []
     if "residual" in sol.info:
         lines.append(("residual", f"{sol.info['residual']:.2e} (HMP, max norm)"))
+    if "coverage" in sol.info:
+        lines.append(("coverage", coverage_line(sol.info["coverage"])))
     settings = ", ".join(f"{k} {v}" for k, v in sol.settings.items() if v is not None)
     if settings:
         lines.append(("settings", settings))
@@ -219,6 +270,22 @@ class _Book:
     verify_time: float = 0.0
     progress: Progress = field(default_factory=NullProgress)
     sources: list[dict[str, Any]] = field(default_factory=list)
+    deadline: float = math.inf  # perf_counter() time at which the budget is spent
+    pruned: set[tuple[str, ...]] = field(default_factory=set)
+    proposed: set[tuple[str, ...]] = field(default_factory=set)
+    depth: int = 0  # the enumeration's target length
+    exhaustive: int | None = None  # every feasible sequence up to this length covered
+    budget_stopped: bool = False
+
+    def left(self) -> float:
+        """Seconds of the budget left (0 when spent)."""
+        return max(0.0, self.deadline - time.perf_counter())
+
+    def best_bound(self) -> float:
+        """The cheapest verified extremal or known control: a sequence whose lower bound
+        is not below it cannot hold a cheaper optimum."""
+        verified = [r.cost for k, r in self.results.items() if self.verdicts.get(k, (False,))[0]]
+        return min([*verified, *(k.cost for k in self.known)], default=math.inf)
 
     def say(self, text: str) -> None:
         if self.verbose:
@@ -251,12 +318,16 @@ class _Book:
         """Solve one sequence (once; again with ``retry`` when it failed before or a better
         start is at hand) and keep the cheaper result."""
         key = tuple(sequence)
+        self.proposed.add(key)
         if key in self.results and not retry:
             return self.results[key]
         if self.skip_long(key, origin) or (key in self.reasons and not retry):
             return None
         self.progress.stage(f"shooting on a {len(key)}-event sequence ({origin})")
         t0 = time.perf_counter()
+        if np.size(gamma0) != len(key):
+            self.say(f"{list(key)} ({origin}): event times of another length, guessed anew")
+            gamma0 = guess_times(self.ocp, key, guess_ev)
         try:
             res, why = solve_sequence(
                 self.ocp, list(key), gamma0, u_guess, estimate=estimate, grad=grad,
@@ -374,19 +445,13 @@ def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
     return ocp.check_controls(controls, what="initial"), True
 
 
-def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
-    if initial is None:
-        return np.asarray(ocp.u_guess, dtype=float), False
-    controls = getattr(initial, "controls", initial)
-    return ocp.check_controls(controls, what="initial"), True
-
-
 def solve_reference(
     problem: ProblemLike,
     *,
     sequence: Sequence[str] | str | None = None,
     initial: ControlsLike | None = None,
     search: int | None = None,
+    budget: float = DEFAULT_BUDGET,
     verbose: bool = False,
     tol: float = 1e-10,
     verify: bool = True,
@@ -413,6 +478,14 @@ def solve_reference(
     search
         Also solve every feasible sequence of up to this many events (at most
         :data:`MAX_SEARCH`) and report the landscape of extremals (``info["landscape"]``).
+        The sequences of up to ``search`` events are enumerated whatever the budget.
+    budget
+        Seconds (default :data:`DEFAULT_BUDGET`) the search for the optimum may take: each
+        candidate source is given what is left of it
+        (:attr:`~hybridoc.reference.sources.SourceContext.budget_s`; one not started when
+        nothing is left), and the default enumeration stops when it is spent
+        (``info["coverage"]["budget_stopped"]``). What follows (the verification, the
+        sequences of cheaper controls met) is not cut short.
     verbose
         Print Newton's iterations and the candidates to stderr.
     tol
@@ -439,8 +512,11 @@ def solve_reference(
     Returns
     -------
     hybridoc.solution.Solution
-        Method ``"reference"``; ``status`` ``success`` (the optimum as far as the discovery
-        and search reach), ``extremal`` (the extremal of a given ``sequence``, not compared
+        Method ``"reference"``; ``status`` ``success`` (the best extremal over the coverage
+        below, confirmed by the HMP: it satisfies the HMP conditions, re-simulates to its own
+        events, and no sequence proposed or enumerated, nor any control met, is cheaper;
+        sequences beyond the exhaustive length that no source proposed are not covered),
+        ``extremal`` (the extremal of a given ``sequence``, not compared
         with other sequences; with ``search`` as well, the search runs without the sequence
         and makes it ``success`` when it finds nothing cheaper), ``not-optimal`` (a cheaper
         control is known: named in ``message`` and ``info["cheaper"]``) or ``infeasible``
@@ -449,7 +525,14 @@ def solve_reference(
         tried and its outcome), ``sources`` (each source used: ``name``, ``kind``
         ``"reference"``, ``"registered"`` or ``"given"``, ``proposals``, ``time_s``, and
         ``failed`` where it raised), ``warm_starts`` (the sources that may start Newton on
-        a sequence) and with ``search`` the ``landscape``.
+        a sequence), ``coverage`` (what the search covered: ``sources``, the numbers of
+        distinct sequences ``proposed``, ``attempted``, ``solved`` (an extremal found) and
+        ``pruned`` (skipped by a lower bound), ``depth`` (the enumeration's target length),
+        ``exhaustive_length`` (every feasible sequence of up to this many events was
+        attempted or pruned by a valid bound; ``None`` without an enumeration),
+        ``budget_s``, ``budget_stopped``, and ``families``: the best extremal of each
+        sequence family, a family being the sequences of one number of events) and with
+        ``search`` the ``landscape``.
 
     Raises
     ------
@@ -464,9 +547,16 @@ def solve_reference(
     t_start = time.perf_counter()
     ocp = as_ocp(problem)
     seq = _check_arguments(ocp, sequence, tol, search)
+    if (
+        isinstance(budget, bool)
+        or not isinstance(budget, numbers.Real)
+        or not (math.isfinite(budget) and budget > 0)
+    ):
+        raise SceneError(f"budget must be a number of seconds > 0, got {budget!r}")
     proposers, starters, kind = _active_sources(sources, transcription, multistart)
     run = _Run(
-        seq=seq, initial=initial, search=search, verbose=verbose, tol=tol, verify=verify,
+        seq=seq, initial=initial, search=search, budget=float(budget), verbose=verbose, tol=tol,
+        verify=verify,
         transcription=transcription, multistart=multistart, sources=sources,
         proposers=proposers, starters=starters, kind=kind, t_start=t_start,
     )  # fmt: skip
@@ -481,6 +571,7 @@ class _Run:
     seq: list[str] | None
     initial: Any
     search: int | None
+    budget: float
     verbose: bool
     tol: float
     verify: bool
@@ -496,7 +587,7 @@ class _Run:
         """The options of a second run of the same problem (the search without a given
         sequence)."""
         return dict(
-            initial=self.initial, verbose=self.verbose, tol=self.tol,
+            initial=self.initial, verbose=self.verbose, tol=self.tol, budget=self.budget,
             transcription=self.transcription, multistart=self.multistart, sources=self.sources,
         )  # fmt: skip
 
@@ -585,7 +676,10 @@ def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
     u0, given = _initial_controls(ocp, run.initial)
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
     guess = _Guess(u_used, ev, grad, given or grad is not None)
-    book = _Book(ocp, run.tol, run.verbose, run.starters, progress=progress)
+    book = _Book(
+        ocp, run.tol, run.verbose, run.starters, progress=progress,
+        deadline=run.t_start + run.budget,
+    )  # fmt: skip
     book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
     if run.seq is not None:
         best = _solve_given(ocp, run, book, guess)
@@ -649,26 +743,44 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         )  # fmt: skip
     _note_source(book, "initial guess", "reference", len(cands), t0)
     for source in run.proposers:
+        if book.left() <= 0:
+            book.budget_stopped = True
+            book.say(f"source {source.name!r}: not run, the budget of {run.budget:g} s is spent")
+            _note_source(book, source.name, run.kind, 0, time.perf_counter(), skipped=True)
+            continue
         _run_source(ocp, run, book, guess, source)
-    # every one-event sequence too: a guess that never comes near a guard (a cart at rest
-    # before a wall) proposes no event at all, and neither may a multi-start
-    _search(ocp, book, max(run.search or 0, DEFAULT_DEPTH), guess.controls, ev)
+    # every sequence of up to the scene's depth (or the search's) too, by lower bound: a
+    # guess that never comes near a guard (a cart at rest before a wall) proposes no event
+    # at all, and neither may the sources reach a sequence that starts with a bounce
+    _enumerate(ocp, run, book, guess)
     book.best_verified()
     book.follow_resimulations()
 
 
 def _note_source(
-    book: _Book, name: str, kind: str, proposals: int, t0: float, failed: str = ""
+    book: _Book,
+    name: str,
+    kind: str,
+    proposals: int,
+    t0: float,
+    failed: str = "",
+    *,
+    skipped: bool = False,
+    **extra: Any,
 ) -> None:
-    """Record a source used in ``info["sources"]``."""
+    """Record a source used (or, ``skipped``, not started: the budget was spent) in
+    ``info["sources"]``."""
     row: dict[str, Any] = {
         "name": name,
         "kind": kind,
         "proposals": int(proposals),
         "time_s": time.perf_counter() - t0,
+        **extra,
     }
     if failed:
         row["failed"] = failed
+    if skipped:
+        row["skipped"] = "not run: the budget was spent"
     book.sources.append(row)
 
 
@@ -679,6 +791,7 @@ def _run_source(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess, source: A
         controls=guess.controls, evaluation=guess.evaluation, progress=book.progress,
         multistart=int(run.multistart), max_events=MAX_EVENTS,
         best_cost=min((k.cost for k in book.known), default=math.inf), say=book.say,
+        budget_s=book.left(),
     )  # fmt: skip
     try:
         proposals = list(source.propose(ocp, context))
@@ -710,11 +823,17 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
     key = tuple(seq)
     own = p.controls is not None  # the proposal's own control starts Newton
     ev = p.evaluation if p.evaluation is not None else guess.evaluation
-    times = (
-        np.asarray(p.event_times, dtype=float)
-        if p.event_times is not None
-        else guess_times(ocp, seq, ev)
-    )
+    times = None if p.event_times is None else np.asarray(p.event_times, dtype=float).ravel()
+    if times is not None and times.size != len(seq):
+        # event times of another sequence (a source's slip): the times must match the
+        # sequence, or the shooting's unknowns do not fit
+        book.say(
+            f"{p.source}: {times.size} event times for the {len(seq)}-event sequence {seq}: "
+            "guessed from its evaluation instead"
+        )
+        times = None
+    if times is None:
+        times = guess_times(ocp, seq, ev)
     retry = p.retry and key in book.reasons
     if (key in book.results and not retry) or (key in book.reasons and not retry):
         return  # solved or failed before: nothing new to try
@@ -855,12 +974,48 @@ def _finish(
         info["cheaper"] = cheapest
     if landscape is not None:
         info["landscape"] = landscape
+    best.coverage = _coverage(run, book)
+    if best.coverage["budget_stopped"] and status is Status.SUCCESS and not message:
+        ex = best.coverage["exhaustive_length"]
+        message = (
+            f"the best over the coverage: the budget of {run.budget:g} s stopped the "
+            "enumeration"
+            + ("" if ex is None else f" (every sequence of up to {ex} events covered)")
+            + "; --budget gives it more time"
+        )
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
     sol.settings = {
         "tol": run.tol, "sequence": run.seq, "search": run.search, "multistart": run.multistart
     }  # fmt: skip
     sol.timings = {"solve_time_s": time.perf_counter() - run.t_start, **sol.timings}
     return sol.set_status(status, message)
+
+
+def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
+    """``info["coverage"]``: what the search covered (:func:`solve_reference`)."""
+    # the cheapest extremal of each length that re-simulates to its own events
+    families: dict[int, tuple[float, tuple[str, ...]]] = {}
+    for key, res in sorted(book.results.items(), key=lambda kv: kv[1].cost):
+        if len(key) not in families and book.verify(key):
+            families[len(key)] = (float(res.cost), key)
+    attempted = {k for k in [*book.results, *book.reasons] if k not in book.pruned}
+    attempted -= {k for k, why in book.reasons.items() if why == _too_long(len(k))}
+    return {
+        "sources": [row["name"] for row in book.sources if "skipped" not in row],
+        "proposed": len(book.proposed | set(book.results) | set(book.reasons)),
+        "attempted": len(attempted),
+        "solved": len(book.results),
+        "pruned": len(book.pruned),
+        "depth": book.depth,
+        "exhaustive_length": book.exhaustive,
+        "budget_s": run.budget,
+        "budget_stopped": bool(book.budget_stopped),
+        "family": "the number of events",
+        "families": [
+            {"events": k, "best_cost": c, "sequence": list(key)}
+            for k, (c, key) in sorted(families.items())
+        ],
+    }
 
 
 def _extremal_message(seq: list[str], verify: bool, search: int | None) -> str:
@@ -1006,9 +1161,6 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 
 _SEARCH_STATE: dict[str, Any] = {}
 
-DEFAULT_DEPTH = 1
-"""Sequences of up to this many events that the default discovery always solves."""
-
 
 def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, float]:
     """A worker: Newton from the disc NLP (or the transcription) for one sequence."""
@@ -1024,65 +1176,137 @@ def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, floa
     return seq, (None if res is None else res.z), why, time.perf_counter() - t0
 
 
-def _search(ocp: HybridOCP, book: _Book, depth: int, u0: np.ndarray, ev: Evaluation) -> None:
-    """Every feasible sequence of up to ``depth`` events, with the lower-bound pruning, in
-    worker processes (one per core, at most :data:`MAX_WORKERS`) where the platform can
-    fork."""
+def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
+    """Every feasible sequence, length by length, up to the scene's depth
+    (:func:`~hybridoc.reference.candidates.default_depth`) or ``search`` if longer: within
+    one length in the order of the lower bound, each skipped where the bound is not below
+    the cheapest verified extremal or known control, solved in worker processes (one per
+    core, at most :data:`MAX_WORKERS`) where the platform can fork. Lengths beyond
+    ``search`` stop when the budget is spent; ``book.exhaustive`` is the longest length
+    completed."""
     t0 = time.perf_counter()
-    verified = [r.cost for k, r in book.results.items() if book.verdicts.get(k, (False,))[0]]
-    best = min(verified, default=math.inf)
-    todo = []
+    explicit = run.search or 0
+    depth = max(explicit, default_depth(ocp))
+    book.depth = depth
+    by_length: list[list[list[str]]] = [[] for _ in range(depth + 1)]
     for seq in enumerate_sequences(ocp, depth):
-        key = tuple(seq)
-        if key in book.results or key in book.reasons:
-            continue
-        lb = lower_bound(ocp, seq)
-        if lb >= best:
-            book.reasons[key] = f"pruned: its cost is at least {lb:.6g} >= {best:.6g}"
-            book.origins[key] = "search"
-            book.times[key] = 0.0
-            continue
-        todo.append(seq)
-    book.progress.stage(f"search: {len(todo)} sequences of up to {depth} events")
-    for seq, z, why, took in _search_outcomes(ocp, book, todo, u0, ev):
-        key = tuple(seq)
-        book.origins[key] = "search"
-        book.times[key] = took
-        if z is None:
-            book.reasons[key] = why
-            book.say(f"{seq} (search): {why}")
-            continue
-        S = shooting_system(ocp, seq)
-        nr = newton(S, z, tol=book.tol)  # polishes in one step: rebuilds the result here
-        if not nr.converged:
-            book.reasons[key] = f"Newton from the search's point: residual {nr.residual:.2e}"
-            continue
-        book.results[key] = make_result(S, nr, "search")
-        book.say(f"{seq} (search): cost {book.results[key].cost:.12g}")
-    name = "one-event sequences" if depth == DEFAULT_DEPTH else f"search of up to {depth} events"
-    _note_source(book, name, "reference", len(todo), t0)
-    for key in list(book.results):
-        book.verify(key)
+        by_length[len(seq)].append(seq)
+    book.best_verified()  # the cheapest verified extremal so far bounds the enumeration
+    solved = 0
+    for length, seqs in enumerate(by_length):
+        bounded = length > explicit  # the budget may stop this length
+        if bounded and book.left() <= 0:
+            book.budget_stopped = True
+            break
+        best = book.best_bound()
+        todo: list[tuple[float, list[str]]] = []
+        for seq in seqs:
+            key = tuple(seq)
+            book.proposed.add(key)
+            if key in book.results or key in book.reasons:
+                continue  # proposed and solved (or failed) before
+            lb = lower_bound(ocp, seq)
+            if lb >= best:
+                book.pruned.add(key)
+                book.reasons[key] = (
+                    "pruned: no control has these events (two bodies that cannot move "
+                    "themselves never meet)"
+                    if math.isinf(lb)
+                    else f"pruned: its cost is at least {lb:.6g} >= {best:.6g}"
+                )
+                book.origins[key] = "enumeration"
+                book.times[key] = 0.0
+                continue
+            todo.append((lb, seq))
+        todo.sort(key=lambda item: item[0])
+        book.progress.stage(f"enumeration: {len(todo)} sequences of {length} events")
+        outcomes = _search_outcomes(
+            ocp, book, [seq for _, seq in todo], guess.controls, guess.evaluation,
+            deadline=book.deadline if bounded else None,
+        )  # fmt: skip
+        solved += len(outcomes)
+        for seq, z, why, took in outcomes:
+            _record(ocp, book, seq, z, why, took)
+        if len(outcomes) < len(todo):
+            book.budget_stopped = True
+            book.say(
+                f"enumeration: the budget of {run.budget:g} s is spent after {len(outcomes)} "
+                f"of {len(todo)} sequences of {length} events"
+            )
+            break
+        book.exhaustive = length
+        if run.search is not None:
+            for key in list(book.results):
+                book.verify(key)  # the landscape's verdicts
+        else:
+            book.best_verified()
+    _note_source(book, "enumeration", "reference", solved, t0, depth=depth)
+
+
+def _record(
+    ocp: HybridOCP, book: _Book, seq: list[str], z: np.ndarray | None, why: str, took: float
+) -> None:
+    """One enumerated sequence's outcome: its extremal (Newton polishes the worker's point
+    here, in one step) or the reason it has none."""
+    key = tuple(seq)
+    book.origins[key] = "enumeration"
+    book.times[key] = took
+    if z is None:
+        book.reasons[key] = why
+        book.say(f"{seq} (enumeration): {why}")
+        return
+    S = shooting_system(ocp, seq)
+    nr = newton(S, z, tol=book.tol)
+    if not nr.converged:
+        book.reasons[key] = f"Newton from the enumeration's point: residual {nr.residual:.2e}"
+        return
+    book.results[key] = make_result(S, nr, "search")
+    book.say(f"{seq} (enumeration): cost {book.results[key].cost:.12g}")
 
 
 def _search_outcomes(
-    ocp: HybridOCP, book: _Book, todo: list[list[str]], u0: np.ndarray, ev: Evaluation
+    ocp: HybridOCP,
+    book: _Book,
+    todo: list[list[str]],
+    u0: np.ndarray,
+    ev: Evaluation,
+    *,
+    deadline: float | None = None,
 ) -> list[tuple[list[str], np.ndarray | None, str, float]]:
-    """:func:`_search_one` on every sequence of ``todo``, counted on ``book.progress``."""
+    """:func:`_search_one` on the sequences of ``todo`` in order, counted on
+    ``book.progress``; with a ``deadline`` (``time.perf_counter()``), no sequence starts
+    after it (the outcomes then stop short of ``todo``)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    def spent() -> bool:
+        return deadline is not None and time.perf_counter() >= deadline
+
     _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol, starters=book.starters)
     workers = min(usable_cores(), MAX_WORKERS)
-    outcomes = []
+    outcomes: list[tuple[list[str], np.ndarray | None, str, float]] = []
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
-                for out in pool.map(_search_one, todo, chunksize=4):
-                    outcomes.append(out)
+                # a few sequences ahead of the workers, so that the deadline stops soon
+                pending = [pool.submit(_search_one, seq) for seq in todo[: 2 * workers]]
+                nxt = len(pending)
+                while pending:
+                    outcomes.append(pending.pop(0).result())
                     book.progress.count(len(outcomes), len(todo), "sequences")
+                    if spent():
+                        for f in pending:
+                            f.cancel()
+                        # what already ran still counts, in order
+                        outcomes += [f.result() for f in pending if not f.cancelled()]
+                        break
+                    if nxt < len(todo):
+                        pending.append(pool.submit(_search_one, todo[nxt]))
+                        nxt += 1
         else:
             for seq in todo:
+                if spent():
+                    break
                 outcomes.append(_search_one(seq))
                 book.progress.count(len(outcomes), len(todo), "sequences")
     finally:

@@ -24,7 +24,7 @@ from hybridoc.reference import (
     solve_reference,
     unregister_source,
 )
-from hybridoc.reference.solve import METHOD, ReferenceOptions, parse_search
+from hybridoc.reference.solve import METHOD, ReferenceOptions, parse_budget, parse_search
 from hybridoc.solvers.candidates import MultiStartSource, TranscriptionSource
 
 REFERENCE = Path(__file__).resolve().parents[1] / "reference"
@@ -92,7 +92,7 @@ def test_a_source_passed_in_proposes_the_optimal_sequence() -> None:
     origins = {tuple(c["sequence"]): c["origin"] for c in sol.info["candidates"]}
     assert origins[tuple(OPTIMAL_SEQUENCE)] == "oracle"
     names = [s["name"] for s in sol.info["sources"]]
-    assert names == ["initial guess", "oracle", "one-event sequences"]
+    assert names == ["initial guess", "oracle", "enumeration"]
     row = sol.info["sources"][1]
     assert row["kind"] == "given" and row["proposals"] == 1
     assert sol.info["warm_starts"] == []  # no source given that starts the shooting
@@ -132,7 +132,8 @@ def test_a_proposed_control_is_known_and_leads_to_the_optimum() -> None:
 
 def test_registered_sources_are_the_default_and_recorded() -> None:
     names = [s.name for s in registered_sources()]
-    assert names[:2] == ["transcription", "multi-start"]
+    # both built in, in the order solvers/candidates.py registers them
+    assert set(names[:2]) == {"transcription", "multi-start"}
     sol = solve_reference("single-collision")
     assert sol.cost == pytest.approx(0.31141687035847165, rel=1e-9)
     used = [(s["name"], s["kind"]) for s in sol.info["sources"]]
@@ -140,7 +141,7 @@ def test_registered_sources_are_the_default_and_recorded() -> None:
     assert sol.info["warm_starts"] == ["transcription"]
     # the legacy switches turn the built-in sources off
     off = solve_reference("single-collision", transcription=False, multistart=0)
-    assert [s["name"] for s in off.info["sources"]] == ["initial guess", "one-event sequences"]
+    assert [s["name"] for s in off.info["sources"]] == ["initial guess", "enumeration"]
     assert off.info["warm_starts"] == []
 
 
@@ -151,7 +152,7 @@ def test_an_empty_registry_warns(monkeypatch: pytest.MonkeyPatch) -> None:
             unregister_source(s.name)
         with pytest.warns(UserWarning, match="no candidate sources are registered"):
             sol = solve_reference("single-collision")
-        assert [s["name"] for s in sol.info["sources"]] == ["initial guess", "one-event sequences"]
+        assert [s["name"] for s in sol.info["sources"]] == ["initial guess", "enumeration"]
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             solve_reference("single-collision", sources=[])  # an explicit choice: no warning
@@ -191,7 +192,11 @@ def test_the_method_declares_its_options() -> None:
     assert METHOD.name == "reference" and METHOD.tolerance == 1e-9
     assert METHOD.options is ReferenceOptions
     cli = [s.name for s in METHOD.specs() if s.cli]
-    assert cli == ["sequence", "search", "verbose"]
+    assert cli == ["sequence", "search", "budget", "verbose"]
+    assert parse_budget("2.5") == 2.5
+    for bad in ("0", "-1", "x", "inf", "nan"):
+        with pytest.raises(ValueError, match="budget must be"):
+            parse_budget(bad)
     assert parse_search("3") == 3
     for bad, match in (("-1", ">= 0"), ("x", ">= 0"), ("9", "at most 8")):
         with pytest.raises(ValueError, match=match):
@@ -217,3 +222,22 @@ def test_the_built_in_sources_serve_every_entry_point() -> None:
         capture_output=True, text=True, timeout=300, check=True,
     ).stdout.splitlines()  # fmt: skip
     assert "transcription" in out[0] and "multi-start" in out[0]
+
+
+class _WrongTimes:
+    """Proposes the optimal sequence (3 events) with the event times of another one (issue
+    #21: the transcription paired its judged sequence with its modelled times)."""
+
+    name = "wrong-times"
+
+    def propose(self, ocp, context):
+        return [Proposal(self.name, OPTIMAL_SEQUENCE, event_times=np.array([0.3, 0.6]))]
+
+
+def test_event_times_of_another_length_are_guessed_anew(capsys) -> None:
+    # before issue #21 the shooting's to_z raised a CasADi RuntimeError (4-by-1 vs 9-by-1)
+    ocp, zero = _at_rest()
+    sol = solve_reference(ocp, initial=zero, sources=[_WrongTimes()], verbose=True)
+    assert sol.success and sol.sequence == OPTIMAL_SEQUENCE
+    assert sol.cost == pytest.approx(OPTIMUM, rel=1e-9)
+    assert "2 event times for the 3-event sequence" in capsys.readouterr().err

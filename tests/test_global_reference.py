@@ -85,9 +85,7 @@ OPTIMA: dict[str, tuple[list[str], float, list[float]]] = {
 
 #: scenes on which the default reference misses the optimum today (issue #21)
 WRONG_TODAY = {
-    "two-strikers": "issue #21: the default reference returns s1|puck, s1|s2 (0.24830)",
     "channel": "issue #21: the default reference returns the no-strike extremal (0.36)",
-    "corner-pocket": "issue #21: the default reference answers not-optimal at 0.5 (no event)",
 }
 #: scenes whose default reference takes more than about 20 s
 SLOW = {"channel"}
@@ -135,12 +133,6 @@ def _bank_variant():
     return dataclasses.replace(scene, discs=tuple(discs))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=RuntimeError,
-    reason="issue #21: the transcription source proposes dt.sequence (judged) with "
-    "dt.info['event_times'] (modelled): 'nlp_to_z' shape error 4-by-1 vs 9-by-1",
-)
 def test_wall_behind_a_disc_does_not_crash_the_reference() -> None:
     from hybridoc import Status
     from hybridoc.reference import solve_reference

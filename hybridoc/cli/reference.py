@@ -37,6 +37,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     reported; a result that is not the optimum it would claim to be exits with code 1.
     """
     from hybridoc.reference import solve_reference
+    from hybridoc.reference.solve import coverage_line
 
     ocp = load_problem_arg(args.problem)
     initial = None
@@ -45,7 +46,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve_reference(
         ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
-        progress=True,
+        budget=args.budget, progress=True,
     )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
@@ -58,6 +59,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     details = [
         ("residual", f"{sol.info['residual']:.2e} (HMP, max norm; {its} Newton iterations)"),
         ("tried", f"{len(sol.info.get('candidates', []))} sequence(s)"),
+        ("coverage", coverage_line(sol.info.get("coverage"))),
     ]
     print_solution(args, sol, ocp, details)
     if sol.info.get("grazing"):
@@ -78,6 +80,16 @@ def cmd_reference(args: argparse.Namespace) -> int:
     for f in files:
         say(args, f"wrote {f}")
     return exit_code(sol.status, sol.message)
+
+
+def _budget(text: str) -> float:
+    """``--budget``: a positive number of seconds (argparse's error otherwise)."""
+    from hybridoc.reference.solve import parse_budget
+
+    try:
+        return parse_budget(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _short(text: str, width: int = 72) -> str:
@@ -151,7 +163,7 @@ def register(sub: Any) -> None:
 
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
-    from hybridoc.reference.solve import MAX_SEARCH
+    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH
 
     problem_arg(p)
     p.add_argument(
@@ -168,6 +180,15 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="also enumerate every feasible event sequence of up to K events and print the "
         f"landscape of extremals (K at most {MAX_SEARCH})",
+    )
+    p.add_argument(
+        "--budget",
+        metavar="SECONDS",
+        type=_budget,
+        default=DEFAULT_BUDGET,
+        help="seconds the search for the optimum may take: the sources get what is left, "
+        "the enumeration of sequences stops when it is spent and the coverage line says "
+        f"so (default {DEFAULT_BUDGET:g})",
     )
     add_initial_arg(p)
     p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")
