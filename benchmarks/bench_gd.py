@@ -327,6 +327,16 @@ def cli_has_starts() -> bool:
     return "--starts" in res.stdout
 
 
+def _imports_torch(cmd: list[str], env: dict[str, str]) -> bool | None:
+    """Whether the solve ``cmd`` imports torch: one more run under ``python -X importtime``
+    (not timed); ``None`` when it fails."""
+    prog = cmd[1:] if cmd[0] == sys.executable else cmd
+    res = run_process([sys.executable, "-X", "importtime", *prog], env=env, timeout=900)
+    if res.returncode not in (0, 1) or res.timed_out:
+        return None
+    return any(line.rstrip().endswith("| torch") for line in res.stderr.splitlines())
+
+
 def whole_solves(repeats: int) -> list[dict[str, Any]]:
     """Each case: one cold run (empty C cache), then ``repeats`` warm runs."""
     has_starts = cli_has_starts()
@@ -353,6 +363,7 @@ def whole_solves(repeats: int) -> list[dict[str, Any]]:
                 solve_s.append(payload.get("timings", {}).get("solve_time_s", float("nan")))
                 peak = max(peak, res.maxrss_mb)
             libs = len(list(Path(cache).glob("*.so")))
+            torch_imported = _imports_torch(cmd, env) if not errors else None
         row: dict[str, Any] = {
             "problem": name,
             "cmd": shown,
@@ -360,6 +371,7 @@ def whole_solves(repeats: int) -> list[dict[str, Any]]:
             "target_gap": target_gap,
             "errors": errors,
             "libs": libs,
+            "torch": torch_imported,
         }
         if walls and payload is not None:
             warm = walls[1:] or walls[:1]
@@ -382,7 +394,7 @@ def print_solves(rows: list[dict[str, Any]], repeats: int) -> None:
     table = []
     for r in rows:
         if "warm" not in r:
-            table.append([r["problem"], "failed", *[""] * 9])
+            table.append([r["problem"], "failed", *[""] * 10])
             continue
         ok_t, ok_gap = r["warm"] < r["target_s"], abs(r["gap"]) <= r["target_gap"]
         table.append(
@@ -396,6 +408,7 @@ def print_solves(rows: list[dict[str, Any]], repeats: int) -> None:
                 f"{100 * r['gap']:+.4f}%",
                 f"<= {100 * r['target_gap']:g}% {verdict(ok_gap)}",
                 r["status"],
+                {None: "?", True: "yes", False: "no"}[r["torch"]],
                 f"{r['peak']:.0f}",
                 verdict(r["peak"] < PEAK_TARGET_MB),
             ]
@@ -417,16 +430,18 @@ def print_solves(rows: list[dict[str, Any]], repeats: int) -> None:
                 "gap",
                 "gap target",
                 "status",
+                "torch",
                 "peak MB",
                 f"< {PEAK_TARGET_MB:.0f} MB",
             ],
             table,
-            right=[False, True, True, True, False, True, True, False, False, True, False],
+            right=[False, True, True, True, False, True, True, False, False, False, True, False],
         )
     )
     print(
         "solve s: the solver's own solve_time_s (warm), without interpreter start-up and "
-        "imports; gap: cost / HMP optimum - 1; peak MB: the process's ru_maxrss (max over runs)"
+        "imports; gap: cost / HMP optimum - 1; torch: whether the solve imports torch (one "
+        "more run under python -X importtime); peak MB: the process's ru_maxrss (max over runs)"
     )
     for r in rows:
         print(f"{r['problem']}: {r['cmd']} ({r['libs']} C libraries cached after the runs)")
