@@ -14,8 +14,10 @@ not grow with N) and the gradient is the discrete adjoint, a backward ``mapaccum
 Evaluation runs in CasADi's virtual machine until the same functions compiled to C are ready
 (:mod:`hybridoc.solvers.codegen`: in the background, cached on disk, bit for bit the same
 numbers); a batch of B controls (and initial states) is one call of the function mapped
-over B. :meth:`CompiledLoss.loss` exposes it to torch as an autograd function,
-so it plugs into torch optimisers.
+over B. Gradient descent (:mod:`hybridoc.solvers.gd`) calls :meth:`CompiledLoss.value_and_grad`
+on numpy arrays, with the numpy optimisers of :mod:`hybridoc.solvers.optimizers`: torch is
+never imported. :meth:`CompiledLoss.loss` exposes the same function to torch as an autograd
+function (imported on first use), so it plugs into torch optimisers and policy training.
 """
 
 from __future__ import annotations
