@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "plot_controls",
     "plot_costates",
+    "plot_landscape",
     "plot_scene",
     "plot_states",
     "plot_trajectories",
@@ -555,6 +556,73 @@ def plot_trajectories(
     if scene is not None:
         return _scene_overlay(scene, evaluations, title=title or ocp.name)
     return plot_states(evaluations, list(ocp.state_labels), title=title)
+
+
+def plot_landscape(
+    landscape: Sequence[Mapping[str, Any]],
+    chosen: Sequence[str] | None = None,
+    *,
+    title: str = "",
+    label_limit: int = 12,
+) -> Figure:
+    """The extremal landscape of a reference search: the cost of every extremal found, one
+    per event sequence, sorted, with the chosen optimum marked.
+
+    Parameters
+    ----------
+    landscape
+        Rows with ``"sequence"`` (guard names) and ``"cost"`` (``None`` where no extremal
+        was found: left out), e.g. ``info["landscape"]`` of ``solve_reference(..., search=K)``;
+        rows with a ``"verdict"`` that starts ``"not verified:"`` (an extremal whose
+        re-simulation has other events) are drawn hollow.
+    chosen
+        The sequence of the reference's answer, marked in red.
+    label_limit
+        Label each point with its sequence when there are at most this many; otherwise
+        only the chosen one is named.
+    """
+    rows = [r for r in landscape if r.get("cost") is not None]
+    rows.sort(key=lambda r: float(r["cost"]))
+    fig = Figure(figsize=(7.0, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    costs = np.array([float(r["cost"]) for r in rows])
+    ranks = np.arange(1, len(rows) + 1)
+    names = [", ".join(r["sequence"]) or "(no event)" for r in rows]
+    bad = np.array([str(r.get("verdict", "")).startswith("not verified:") for r in rows], bool)
+    hit = np.array([list(r["sequence"]) == list(chosen or ()) for r in rows], bool)
+    if chosen is None:
+        hit[:] = False
+    ok = ~bad & ~hit
+    ax.plot(ranks, costs, color="0.7", lw=0.8, zorder=1)
+    ax.scatter(ranks[ok], costs[ok], s=30, color="C0", zorder=2, label="extremal")
+    if bad.any():
+        other = bad & ~hit
+        ax.scatter(ranks[other], costs[other], s=30, facecolors="none", edgecolors="C0",
+                   zorder=2, label="extremal (other events re-simulated)")  # fmt: skip
+    if hit.any():
+        ax.scatter(ranks[hit], costs[hit], s=90, marker="*", color="C3", zorder=3,
+                   label="the reference's optimum")  # fmt: skip
+    for i, name in enumerate(names):
+        if len(rows) <= label_limit or hit[i]:
+            ax.annotate(name, (ranks[i], costs[i]), textcoords="offset points", xytext=(6, -3),
+                        fontsize=7, rotation=20, color="C3" if hit[i] else "0.25")  # fmt: skip
+    if len(costs) and costs.min() > 0 and costs.max() / costs.min() > 30:
+        ax.set_yscale("log")
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.margins(y=0.12)
+    ax.set_xlabel("extremals, cheapest first (one per event sequence)")
+    ax.set_ylabel("cost J")
+    ax.set_xlim(0.5, max(len(rows), 1) + 0.5 + 0.25 * max(len(rows), 1))
+    ax.grid(alpha=0.3)
+    if len(rows):
+        ax.legend(fontsize=8, loc="upper left")
+    else:
+        ax.text(0.5, 0.5, "no extremal found", ha="center", va="center",
+                transform=ax.transAxes)  # fmt: skip
+    ax.set_title(title or f"extremal landscape ({len(rows)} sequences)", fontsize=10)
+    return fig
 
 
 def figure_path(path: str | Path) -> Path:

@@ -395,7 +395,8 @@ class _Book:
         for key in keys:
             res = self.results.get(key)
             if res is None:
-                verdict = "failed: " + self.reasons.get(key, "")
+                why = self.reasons.get(key, "")
+                verdict = why if key in self.pruned else "failed: " + why
             elif key in self.verdicts:
                 ok, msg = self.verdicts[key]
                 verdict = "verified" if ok else f"not verified: {msg}"

@@ -140,3 +140,108 @@ def test_wall_behind_a_disc_does_not_crash_the_reference() -> None:
     ref = solve_reference(_bank_variant())
     assert ref.status in (Status.SUCCESS, Status.NOT_OPTIMAL), (ref.status, ref.message)
     assert np.isfinite(ref.cost)
+
+
+# ---------------------------------------------------------------- the bounds and the coverage
+
+
+def _scene(name: str):
+    from hybridoc import as_ocp, load_scene
+
+    return as_ocp(load_scene(SCENES / f"{name}.toml") if (SCENES / f"{name}.toml").exists()
+                  else name)  # fmt: skip
+
+
+def test_reachability_bound_closed_form() -> None:
+    # a disc at rest, a wall d away: reaching it by T costs at least eps 3 m^2 d^2 / T^3,
+    # which the control u(s) ~ (T - s) attains (the Cauchy-Schwarz equality)
+    from hybridoc import Disc, Scene, Wall
+    from hybridoc.reference.candidates import lower_bound, reach_bound
+
+    d, m, eps, T = 0.7, 2.0, 0.01, 1.5
+    scene = Scene(
+        horizon=T, control_weight=eps, steps=50,
+        discs=(Disc("a", (0.0, 0.0), 0.2, mass=m, actuated=True, target=(0.0, 0.0)),),
+        walls=(Wall((d + 0.2, 0.0), (-1.0, 0.0), name="w"),),
+    )  # fmt: skip
+    ocp = scene.to_ocp()
+    exact = eps * 3 * m**2 * d**2 / T**3
+    assert reach_bound(ocp, ["a|w"]) == pytest.approx(exact, rel=1e-12)
+    assert lower_bound(ocp, ["a|w", "a|w"]) == pytest.approx(exact, rel=1e-12)
+    assert reach_bound(ocp, []) == 0.0
+
+
+@pytest.mark.parametrize(
+    ("name", "depth"), [("multiple-collision", 3), ("two-strikers", 2), ("corner-pocket", 2)]
+)
+def test_lower_bounds_never_exceed_a_solved_extremal(name: str, depth: int) -> None:
+    # the property the pruning rests on: every extremal the search solves costs at least its
+    # sequence's lower bound (the passive-disc terminal bound plus the reachability bound of
+    # its fresh events), and the first event's bound alone is below it too
+    from hybridoc.reference import solve_reference
+    from hybridoc.reference.candidates import lower_bound, reach_bound
+
+    ocp = _scene(name)
+    sol = solve_reference(ocp, search=depth)
+    solved = [r for r in sol.info["landscape"] if r["cost"] is not None]
+    assert len(solved) >= 3
+    for row in solved:
+        seq = row["sequence"]
+        assert lower_bound(ocp, seq) <= row["cost"] * (1 + 1e-12), (seq, row["cost"])
+        assert reach_bound(ocp, seq[:1]) <= row["cost"] * (1 + 1e-12), (seq, row["cost"])
+    assert reach_bound(ocp, sol.sequence) <= sol.running_cost * (1 + 1e-12)
+
+
+def _check_coverage(sol, *, depth_at_least: int = 0) -> dict:
+    cov = sol.info["coverage"]
+    keys = {"sources", "proposed", "attempted", "solved", "pruned", "depth",
+            "exhaustive_length", "budget_s", "budget_stopped", "family", "families"}  # fmt: skip
+    assert keys <= set(cov)
+    assert cov["solved"] <= cov["attempted"] <= cov["proposed"]
+    assert cov["pruned"] <= cov["proposed"]
+    assert cov["depth"] >= depth_at_least
+    if cov["exhaustive_length"] is not None:
+        assert 0 <= cov["exhaustive_length"] <= cov["depth"]
+    used = [s["name"] for s in sol.info["sources"] if "skipped" not in s]
+    assert cov["sources"] == used
+    fams = cov["families"]
+    assert [f["events"] for f in fams] == sorted({f["events"] for f in fams})
+    for f in fams:
+        assert len(f["sequence"]) == f["events"]
+        assert f["best_cost"] >= sol.cost * (1 - 1e-12)
+    assert any(f["sequence"] == list(sol.sequence) for f in fams)
+    return cov
+
+
+def test_every_result_carries_its_coverage() -> None:
+    from hybridoc import Status
+    from hybridoc.reference import solve_reference
+
+    sol = solve_reference("multiple-collision")
+    cov = _check_coverage(sol, depth_at_least=2)
+    assert sol.status is Status.SUCCESS and not cov["budget_stopped"]
+    assert cov["exhaustive_length"] == cov["depth"]
+    assert "enumeration" in cov["sources"]
+    searched = solve_reference("single-collision", search=2)
+    assert _check_coverage(searched, depth_at_least=2)["exhaustive_length"] >= 2
+    given = solve_reference("single-collision", sequence=["ball1|ball2"])
+    assert given.info["coverage"]["solved"] >= 1
+
+
+def test_a_tiny_budget_stops_early_and_says_so() -> None:
+    from hybridoc import Status
+    from hybridoc.reference import solve_reference
+
+    sol = solve_reference(_scene("two-strikers"), budget=1e-3)
+    cov = _check_coverage(sol)
+    assert cov["budget_stopped"] and cov["budget_s"] == 1e-3
+    # the sources got nothing left: not run, and not counted as used
+    skipped = [s["name"] for s in sol.info["sources"] if "skipped" in s]
+    assert skipped and not set(skipped) & set(cov["sources"])
+    assert cov["exhaustive_length"] is None or cov["exhaustive_length"] < cov["depth"]
+    # honest: the best over that coverage, confirmed by the HMP (or a cheaper control named)
+    assert sol.status in (Status.SUCCESS, Status.NOT_OPTIMAL)
+    if sol.status is Status.SUCCESS:
+        assert "budget" in sol.message
+    with pytest.raises(Exception, match="budget must be"):
+        solve_reference("single-collision", budget=0)

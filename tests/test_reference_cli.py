@@ -104,3 +104,47 @@ def test_given_sequence_beaten_by_a_known_control():
     sol = solve_reference("single-collision", sequence="")
     assert sol.status is hybridoc.Status.NOT_OPTIMAL and abs(sol.cost - 2.0) < 1e-12
     assert sol.info["cheaper"]["source"] == "the initial guess"
+
+
+def test_reference_search_out_writes_the_landscape(tmp_path, capsys):
+    rc = main(["reference", "single-collision", "--search", "2", "--out", str(tmp_path)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "landscape of extremals" in text
+    assert "coverage" in text and "every sequence of up to" in text
+    png = tmp_path / "single-collision_reference_landscape.png"
+    assert png.stat().st_size > 10_000
+    # without --search there is no landscape, and no figure of it
+    main(["reference", "head-on", "--out", str(tmp_path / "plain")])
+    capsys.readouterr()
+    assert not list((tmp_path / "plain").glob("*_landscape.png"))
+
+
+def test_reference_budget_flag(capsys):
+    rc = main(["reference", "single-collision", "--budget", "0.001", "--json"])
+    data = json.loads(capsys.readouterr().out)
+    cov = data["info"]["coverage"]
+    assert cov["budget_s"] == 0.001 and cov["budget_stopped"] is True
+    assert rc == (0 if data["status"] == "success" else 1)
+    try:
+        main(["reference", "single-collision", "--budget", "0"])
+    except SystemExit as exc:
+        assert exc.code == 2
+    assert "budget must be" in capsys.readouterr().err
+
+
+def test_landscape_figure_marks_the_chosen_sequence():
+    from hybridoc.plotting import plot_landscape
+
+    rows = [
+        {"sequence": ["a|b"], "cost": 0.3, "verdict": "verified"},
+        {"sequence": [], "cost": 0.9, "verdict": "verified"},
+        {"sequence": ["a|b", "a|w"], "cost": None, "verdict": "failed: x"},
+        {"sequence": ["a|w"], "cost": 0.2, "verdict": "not verified: re-simulation ..."},
+    ]
+    fig = plot_landscape(rows, ["a|b"], title="t")
+    ax = fig.axes[0]
+    texts = [t.get_text() for t in ax.texts]
+    assert texts == ["a|w", "a|b", "(no event)"]  # sorted by cost, failed ones left out
+    labels = ax.get_legend_handles_labels()[1]
+    assert "the reference's optimum" in labels

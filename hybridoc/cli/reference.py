@@ -24,7 +24,7 @@ from hybridoc.cli._util import (
     solution_payload,
 )
 
-__all__ = ["register", "write_reference_outputs"]
+__all__ = ["register", "write_landscape", "write_reference_outputs"]
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
@@ -148,7 +148,25 @@ def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
         title=f"{ocp.name}: costates (jumps at events)",
     )  # fmt: skip
     files.append(save(fig, f"{stem}_costates.png"))
+    files += write_landscape(ocp, sol, stem)
     return files
+
+
+def write_landscape(ocp: Any, sol: Any, stem: Path) -> list[Path]:
+    """``<stem>_landscape.png`` when ``sol`` has a landscape (``--search K``): the cost of
+    every extremal found, sorted, the chosen optimum marked; else nothing."""
+    from hybridoc.cli.evaluate import save
+    from hybridoc.plotting import plot_landscape
+
+    landscape = sol.info.get("landscape")
+    if not landscape:
+        return []
+    found = sum(r["cost"] is not None for r in landscape)
+    fig = plot_landscape(
+        landscape, sol.sequence,
+        title=f"{ocp.name}: extremal landscape ({found} of {len(landscape)} sequences have one)",
+    )  # fmt: skip
+    return [save(fig, f"{stem}_landscape.png")]
 
 
 def register(sub: Any) -> None:
@@ -192,4 +210,8 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_initial_arg(p)
     p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")
-    add_json_out(p, out_help="write DIR/<problem>_reference.npz + .json and three figures")
+    add_json_out(
+        p,
+        out_help="write DIR/<problem>_reference.npz + .json and three figures (four with "
+        "--search: the extremal landscape)",
+    )
