@@ -8,13 +8,19 @@ What it tries
     dropped, or with one near-touch added, and no event at all); the proposals of the
     candidate sources (:mod:`hybridoc.reference.sources`; by default the registered ones:
     the event sequence of the direct transcription started from the same guess, and those
-    of a cheap batched multi-start of the differentiable simulator on a coarse grid); every
-    sequence of one event (a guess that never nears a guard proposes none); and with
-    ``search=K`` every feasible sequence of up to K events
-    (:mod:`hybridoc.reference.candidates`). Each sequence is solved by
-    :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate estimate, the
-    disc NLP, or the warm start of a source such as the transcription with the sequence
-    fixed). ``info["sources"]`` lists the sources used.
+    of a cheap batched multi-start of the differentiable simulator on a coarse grid), each
+    given what is left of the ``budget``; then the enumeration: every feasible sequence,
+    length by length up to the scene's depth
+    (:func:`~hybridoc.reference.candidates.default_depth`) or ``search=K`` if longer,
+    within a length by lower bound, skipping those whose bound
+    (:func:`~hybridoc.reference.candidates.lower_bound`: the passive-disc terminal bound
+    and the reachability bound) is not below the best cost met, and stopping when the
+    budget is spent (lengths beyond ``search`` only). Each sequence is solved by
+    :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate estimate,
+    the disc NLP, or the warm start of a source such as the transcription with the
+    sequence fixed). ``info["sources"]`` lists the sources used, ``info["coverage"]`` what
+    the search covered; ``success`` means the best over that coverage, confirmed by the
+    HMP (:func:`solve_reference`).
 
 What it checks before it answers
     1. The HMP residual (transversality, guards, costate jumps, Hamiltonian continuity) is
