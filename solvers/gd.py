@@ -501,10 +501,12 @@ def solve_gd(
         Euler otherwise (the other settings have no exact form).
     optimizer
         ``"gd"`` (plain gradient descent, as in the paper), ``"adam"`` or ``"lbfgs"``
-        (default: L-BFGS with a strong-Wolfe line search, a numpy port of
-        ``torch.optim.LBFGS``, :class:`~hybridoc.solvers.optimizers.LBFGS`; SciPy's
-        L-BFGS-B when the problem has control bounds). All run on numpy arrays: on the
-        compiled path a solve imports no torch.
+        (default: :class:`~hybridoc.solvers.optimizers.LBFGS`, a numpy port of
+        ``torch.optim.LBFGS`` with its strong-Wolfe line search, as gd has always run it:
+        one trial step of ``lr`` per iteration, taken when it lowers the loss,
+        :data:`~hybridoc.solvers.optimizers.GD_LINE_SEARCH_EVALS`; SciPy's L-BFGS-B when
+        the problem has control bounds). All run on numpy arrays: on the compiled path a
+        solve imports no torch.
     smoothing
         Continuation weights ``mu_1 > mu_2 > ...``: before the real problem, solve it with the
         penalty ``mu sum_n |u_{n+1} - u_n|^2 / dt`` (about ``mu int |du/dt|^2 dt``) added, for
