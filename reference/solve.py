@@ -742,7 +742,11 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
     book.progress.stage(
         f"discovering sequences: {len(cands)} from the initial guess ({len(ev.events)} events)"
     )
-    for cand in cands:
+    for i, cand in enumerate(cands):
+        if i and book.left() <= 0:
+            book.budget_stopped = True
+            book.say(f"initial guess: {len(cands) - i} candidate(s) left, the budget is spent")
+            break
         key = [n for n, _ in cand]
         book.attempt(
             key, np.array([t for _, t in cand]), guess.controls, "initial guess",

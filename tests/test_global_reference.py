@@ -38,8 +38,9 @@ Coverage of each confirmation (what "optimum" means here):
 The default reference today (before the fix of issue #21; 2 busy cores): bank-shot right
 (0.0148962570, 1.3 s); two-strikers wrong (0.2482975891 ``s1|puck, s1|s2``, success, 4 s);
 channel wrong (0.36, the no-strike extremal, success, 33 s); corner-pocket ``not-optimal`` at
-0.5 (no event), 2 s. Those three are ``xfail(strict=True)``: remove the marks when the fix
-lands.
+0.5 (no event), 2 s. Those three were ``xfail(strict=True)`` until the fix: the default now
+enumerates every feasible sequence of up to 2 events on these scenes (two-strikers,
+corner-pocket) and the multi-start's diverse starts propose the channel's strike.
 """
 
 from __future__ import annotations
@@ -84,9 +85,7 @@ OPTIMA: dict[str, tuple[list[str], float, list[float]]] = {
 }
 
 #: scenes on which the default reference misses the optimum today (issue #21)
-WRONG_TODAY = {
-    "channel": "issue #21: the default reference returns the no-strike extremal (0.36)",
-}
+WRONG_TODAY: dict[str, str] = {}
 #: scenes whose default reference takes more than about 20 s
 SLOW = {"channel"}
 
