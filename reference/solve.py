@@ -996,7 +996,8 @@ def _finish(
         )
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
     sol.settings = {
-        "tol": run.tol, "sequence": run.seq, "search": run.search, "multistart": run.multistart
+        "tol": run.tol, "sequence": run.seq, "search": run.search, "multistart": run.multistart,
+        "budget": run.budget,
     }  # fmt: skip
     sol.timings = {"solve_time_s": time.perf_counter() - run.t_start, **sol.timings}
     return sol.set_status(status, message)
