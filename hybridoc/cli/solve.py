@@ -87,6 +87,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
         stem = output_stem(out, ocp.name, "solve", method.name)
         written += list(sol.save(stem))
         written += write_figures(ocp, evaluate(ocp, sol.controls), stem, label=method.name)
+        if sol.info.get("landscape"):  # any method that reports extremals by sequence
+            from hybridoc.cli.reference import write_landscape
+
+            written += write_landscape(ocp, sol, stem)
         hist = sol.arrays.get("loss_history")
         if hist is not None and len(hist):
             fig = _learning_curve_figure(
