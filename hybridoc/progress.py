@@ -209,7 +209,7 @@ class ProgressMeter:
                 rate = f", {(total - done) / per_s:.0f} s left"
         stage = f" {self._stage}" if self._stage else ""
         tail = f" {text}" if text else ""
-        return f"{self.label}{stage} [{bar}] {done}/{total}{tail}{rate} [{now:.0f} s]"
+        return f"{self.label}:{stage} [{bar}] {done}/{total}{tail}{rate} [{now:.0f} s]"
 
     def _end_bar(self) -> None:
         if self._open_bar:

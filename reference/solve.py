@@ -126,6 +126,11 @@ DEFAULT_BUDGET = 30.0
 left of it, and the enumeration stops when it is spent (``budget``)."""
 
 
+def _events(k: int) -> str:
+    """``"1 event"``, ``"3 events"``: for messages."""
+    return f"{k} event{'' if k == 1 else 's'}"
+
+
 def reference_supports(ocp: HybridOCP) -> str | None:
     """``None`` when the reference can solve ``ocp``, else the one-line reason."""
     if ocp.path is not None:
@@ -740,7 +745,7 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
     else:
         cands = guess_candidates(ocp, ev)
     book.progress.stage(
-        f"discovering sequences: {len(cands)} from the initial guess ({len(ev.events)} events)"
+        f"discovering sequences: {len(cands)} from the initial guess ({_events(len(ev.events))})"
     )
     for i, cand in enumerate(cands):
         if i and book.left() <= 0:
@@ -1231,7 +1236,9 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
                 continue
             todo.append((lb, seq))
         todo.sort(key=lambda item: item[0])
-        book.progress.stage(f"enumeration: {len(todo)} sequences of {length} events")
+        if not todo:
+            continue
+        book.progress.stage(f"enumeration of {_events(length)}: {len(todo)} to solve")
         outcomes = _search_outcomes(
             ocp, book, [seq for _, seq in todo], guess.controls, guess.evaluation,
             deadline=book.deadline if bounded else None,

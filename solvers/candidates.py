@@ -160,7 +160,8 @@ class TranscriptionSource:
             return []
         else:
             context.progress.stage(
-                f"direct transcription from the initial guess ({len(ev.events)} events)"
+                f"direct transcription from the initial guess "
+                f"({len(ev.events)} event{'' if len(ev.events) == 1 else 's'})"
             )
             out += self._from(ocp, context, context.controls, "the initial guess", first_deadline)
         first = time.perf_counter() - t0

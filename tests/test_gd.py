@@ -146,7 +146,7 @@ def test_cli_solve_json(
     assert data["success"] is False and "iteration limit (3)" in data["message"]
     assert data["info"]["iterations"] == 3 and "loss" in data["info"]
     assert data["info"]["converged"] is False
-    assert "gd descent (gd)" in out.err and "3/3 loss" in out.err  # progress: on stderr
+    assert "gd: descent (gd) [" in out.err and "3/3 loss" in out.err  # progress: on stderr
     assert out.err.splitlines()[-1].startswith("hybridoc: error: not-converged: stopped at")
 
 

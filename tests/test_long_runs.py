@@ -228,7 +228,7 @@ def test_meter_bar_draws_in_place_on_a_terminal(monkeypatch: pytest.MonkeyPatch)
     text = out.getvalue()
     # each draw returns to the line start; only the final one ends the line
     assert text.count("\r") == 3 and text.count("\n") == 1 and text.endswith("\n"), text
-    assert text.startswith("\rx [") and "] 3/3 loss 1" in text
+    assert text.startswith("\rx: [") and "] 3/3 loss 1" in text
 
 
 def test_meter_bar_writes_plain_lines_in_a_log(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -241,5 +241,5 @@ def test_meter_bar_writes_plain_lines_in_a_log(monkeypatch: pytest.MonkeyPatch) 
     text = out.getvalue()
     lines = text.splitlines()
     assert "\r" not in text and len(lines) == 3, text
-    assert all(line.startswith("x [") for line in lines)
+    assert all(line.startswith("x: [") for line in lines)
     assert [line.split("] ")[1].split()[0] for line in lines] == ["1/3", "2/3", "3/3"]

@@ -30,7 +30,7 @@ def test_the_time_left_is_per_stage(clock: list[float]) -> None:
         meter.count(10, 100)  # 10 per second in this stage: 9 s left, not 99
     text = out.getvalue()
     assert "50/100, 10 s left" in text
-    assert "gd next [##" in text and "10/100, 9 s left" in text
+    assert "gd: next [##" in text and "10/100, 9 s left" in text
     assert text.endswith("\n")  # close ends the bar's line
 
 
