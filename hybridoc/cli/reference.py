@@ -37,7 +37,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     reported; a result that is not the optimum it would claim to be exits with code 1.
     """
     from hybridoc.reference import solve_reference
-    from hybridoc.reference.solve import coverage_line
+    from hybridoc.reference.solve import coverage_line, families_line
 
     ocp = load_problem_arg(args.problem)
     initial = None
@@ -60,6 +60,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
         ("residual", f"{sol.info['residual']:.2e} (HMP, max norm; {its} Newton iterations)"),
         ("tried", f"{len(sol.info.get('candidates', []))} sequence(s)"),
         ("coverage", coverage_line(sol.info.get("coverage"))),
+        ("by events", families_line(sol.info.get("coverage"))),
     ]
     print_solution(args, sol, ocp, details)
     if sol.info.get("grazing"):
