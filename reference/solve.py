@@ -261,7 +261,7 @@ def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
         lines.append(("residual", f"{sol.info['residual']:.2e} (HMP, max norm)"))
     if "coverage" in sol.info:
         lines.append(("coverage", coverage_line(sol.info["coverage"])))
-        lines.append(("by events", families_line(sol.info["coverage"])))
+        lines.append(("families", families_line(sol.info["coverage"])))
     settings = ", ".join(f"{k} {v}" for k, v in sol.settings.items() if v is not None)
     if settings:
         lines.append(("settings", settings))

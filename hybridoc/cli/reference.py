@@ -60,7 +60,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
         ("residual", f"{sol.info['residual']:.2e} (HMP, max norm; {its} Newton iterations)"),
         ("tried", f"{len(sol.info.get('candidates', []))} sequence(s)"),
         ("coverage", coverage_line(sol.info.get("coverage"))),
-        ("by events", families_line(sol.info.get("coverage"))),
+        ("families", families_line(sol.info.get("coverage"))),
     ]
     print_solution(args, sol, ocp, details)
     if sol.info.get("grazing"):
