@@ -37,6 +37,15 @@ EXPLORE_SMOOTHING = 1e-3
 """Weight of the smoothness penalty in the first stage of :func:`explore`."""
 
 
+def _stacked(ocp: HybridOCP, pool: list[np.ndarray], count: int) -> np.ndarray:
+    """The first ``count`` starts of ``pool`` as one ``(count, N, nu)`` array, clipped to the
+    control bounds."""
+    U = np.stack(pool[:count])
+    if ocp.has_bounds:
+        U = np.clip(U, ocp.u_min, ocp.u_max)
+    return U
+
+
 def smooth_noise(rng: np.random.Generator, N: int, nu: int, modes: int = 4) -> np.ndarray:
     """A random smooth control shape on N cells (a few cosine modes), unit scale."""
     t = (np.arange(N) + 0.5) / N
@@ -128,10 +137,7 @@ def starting_controls(ocp: HybridOCP, count: int, *, seed: int | None = 0) -> np
         else:
             pool.append(scale * smooth_noise(rng, N, nu))
         k += 1
-    U = np.stack(pool[:count])
-    if ocp.has_bounds:
-        U = np.clip(U, ocp.u_min, ocp.u_max)
-    return U
+    return _stacked(ocp, pool, count)
 
 
 AIM_FRACTIONS = (0.3, 0.5, 0.7, 0.85)
@@ -324,10 +330,7 @@ def diverse_starts(
         else:
             pool.append(scale * smooth_noise(rng, N, nu))
         k += 1
-    U = np.stack(pool[:count])
-    if ocp.has_bounds:
-        U = np.clip(U, ocp.u_min, ocp.u_max)
-    return U
+    return _stacked(ocp, pool, count)
 
 
 def resample(u: np.ndarray, steps: int) -> np.ndarray:
