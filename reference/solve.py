@@ -121,6 +121,8 @@ horizons."""
 MULTISTART = 8
 """Starts of the batched multi-start source that proposes sequences (0 to skip it)."""
 MAX_WORKERS = 8
+FAILED_SHOWN = 4
+"""The failed sequences ``info["coverage"]["failed"]`` lists (all are counted)."""
 """Worker processes of the search over sequences, at most (one per usable core)."""
 DEFAULT_BUDGET = 30.0
 """Seconds the default reference (without ``sequence``) may spend: its sources get what is
@@ -228,11 +230,25 @@ def coverage_line(coverage: dict[str, Any] | None) -> str:
     if not coverage:
         return "(none recorded)"
     ex = coverage.get("exhaustive_length")
+    failed = coverage.get("failed") or {}
+    if ex is not None:
+        reach = f"every sequence of up to {_events(ex)}"
+    elif coverage.get("depth") and failed.get("count"):
+        reach = "no length covered exhaustively"
+    else:
+        reach = "no enumeration"
     text = (
         f"{coverage['proposed']} sequence(s) proposed, {coverage['solved']} solved, "
-        f"{coverage['pruned']} pruned by bounds; "
-        + (f"every sequence of up to {ex} events" if ex is not None else "no enumeration")
-        + f"; sources: {', '.join(coverage['sources']) or 'none'}"
+        f"{coverage['pruned']} pruned by bounds"
+        + (
+            f", {failed['count']} failed ("
+            + "; ".join(",".join(q) or "no event" for q in failed.get("sequences", []))
+            + (", ..." if failed["count"] > len(failed.get("sequences", [])) else "")
+            + ")"
+            if failed.get("count")
+            else ""
+        )
+        + f"; {reach}; sources: {', '.join(coverage['sources']) or 'none'}"
     )
     if coverage.get("budget_stopped"):
         text += f"; stopped by the budget of {coverage['budget_s']:g} s"
@@ -301,7 +317,9 @@ class _Book:
     pruned: set[tuple[str, ...]] = field(default_factory=set)
     proposed: set[tuple[str, ...]] = field(default_factory=set)
     depth: int = 0  # the enumeration's target length
-    exhaustive: int | None = None  # every feasible sequence up to this length covered
+    exhaustive: int | None = None  # the longest length the enumeration went through
+    # the feasible sequences of each length the enumeration went through
+    enumerated: list[list[tuple[str, ...]]] = field(default_factory=list)
     budget_stopped: bool = False
 
     def left(self) -> float:
@@ -557,7 +575,10 @@ def solve_reference(
         distinct sequences ``proposed``, ``attempted``, ``solved`` (an extremal found) and
         ``pruned`` (skipped by a lower bound), ``depth`` (the enumeration's target length),
         ``exhaustive_length`` (every feasible sequence of up to this many events was
-        attempted or pruned by a valid bound; ``None`` without an enumeration),
+        solved, an extremal found, or pruned by a valid bound: a sequence whose solve failed
+        leaves its length uncovered; ``None`` without an enumeration, or when not even the
+        empty sequence is covered), ``failed`` (the sequences attempted whose solve failed
+        and that no bound prunes: ``count`` and the first few ``sequences``),
         ``budget_s``, ``budget_stopped``, and ``families``: the best extremal of each
         sequence family, a family being the sequences of one number of events) and with
         ``search`` the ``landscape``.
@@ -1033,6 +1054,7 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
             families[len(key)] = (float(res.cost), key)
     attempted = {k for k in [*book.results, *book.reasons] if k not in book.pruned}
     attempted -= {k for k, why in book.reasons.items() if why == _too_long(len(k))}
+    failed = sorted((k for k in attempted if k not in book.results), key=lambda k: (len(k), k))
     return {
         "sources": [row["name"] for row in book.sources if "skipped" not in row],
         "proposed": len(book.proposed | set(book.results) | set(book.reasons)),
@@ -1040,7 +1062,8 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
         "solved": len(book.results),
         "pruned": len(book.pruned),
         "depth": book.depth,
-        "exhaustive_length": book.exhaustive,
+        "exhaustive_length": _exhaustive(book),
+        "failed": {"count": len(failed), "sequences": [list(k) for k in failed[:FAILED_SHOWN]]},
         "budget_s": run.budget,
         "budget_stopped": bool(book.budget_stopped),
         "family": "the number of events",
@@ -1049,6 +1072,21 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
             for k, (c, key) in sorted(families.items())
         ],
     }
+
+
+def _exhaustive(book: _Book) -> int | None:
+    """The largest ``L`` such that every feasible sequence of up to ``L`` events was solved
+    (an extremal found, verified or not) or pruned by a valid bound; ``None`` when not even
+    the empty sequence is covered (or there was no enumeration). A sequence whose solve
+    failed leaves its length uncovered."""
+    if book.exhaustive is None:
+        return None
+    covered = None
+    for length, keys in enumerate(book.enumerated[: book.exhaustive + 1]):
+        if any(k not in book.results and k not in book.pruned for k in keys):
+            break
+        covered = length
+    return covered
 
 
 def _extremal_message(seq: list[str], verify: bool, search: int | None) -> str:
@@ -1224,6 +1262,7 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
     by_length: list[list[list[str]]] = [[] for _ in range(depth + 1)]
     for seq in enumerate_sequences(ocp, depth):
         by_length[len(seq)].append(seq)
+    book.enumerated = [[tuple(q) for q in seqs] for seqs in by_length]
     book.best_verified()  # the cheapest verified extremal so far bounds the enumeration
     solved = 0
     for length, seqs in enumerate(by_length):
@@ -1236,9 +1275,18 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         for seq in seqs:
             key = tuple(seq)
             book.proposed.add(key)
-            if key in book.results or key in book.reasons:
-                continue  # proposed and solved (or failed) before
+            if key in book.results:
+                continue  # proposed and solved before
             lb = lower_bound(ocp, seq)
+            if key in book.reasons:
+                # failed before (a source's start): a valid bound still covers it; else the
+                # enumeration's own start gets a try
+                if lb >= best and book.reasons[key] != _too_long(len(key)):
+                    book.pruned.add(key)
+                    book.reasons[key] = f"pruned: its cost is at least {lb:.6g} >= {best:.6g}"
+                    continue
+                if key in book.pruned or book.reasons[key] == _too_long(len(key)):
+                    continue
             if lb >= best:
                 book.pruned.add(key)
                 book.reasons[key] = (
@@ -1284,8 +1332,8 @@ def _record(
     """One enumerated sequence's outcome: its extremal (Newton polishes the worker's point
     here, in one step) or the reason it has none."""
     key = tuple(seq)
-    book.origins[key] = "enumeration"
-    book.times[key] = took
+    book.origins.setdefault(key, "enumeration")
+    book.times[key] = book.times.get(key, 0.0) + took
     if z is None:
         book.reasons[key] = why
         book.say(f"{seq} (enumeration): {why}")

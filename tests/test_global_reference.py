@@ -201,6 +201,11 @@ def _check_coverage(sol, *, depth_at_least: int = 0) -> dict:
     assert cov["depth"] >= depth_at_least
     if cov["exhaustive_length"] is not None:
         assert 0 <= cov["exhaustive_length"] <= cov["depth"]
+    # honest: a length with a failed sequence is not covered
+    failed = cov["failed"]
+    assert failed["count"] >= len(failed["sequences"])
+    ex = cov["exhaustive_length"]
+    assert all(ex is None or len(q) > ex for q in failed["sequences"]), (ex, failed)
     used = [s["name"] for s in sol.info["sources"] if "skipped" not in s]
     assert cov["sources"] == used
     fams = cov["families"]
@@ -219,7 +224,15 @@ def test_every_result_carries_its_coverage() -> None:
     sol = solve_reference("multiple-collision")
     cov = _check_coverage(sol, depth_at_least=2)
     assert sol.status is Status.SUCCESS and not cov["budget_stopped"]
-    assert cov["exhaustive_length"] == cov["depth"]
+    # every length the enumeration went through is covered, but for the lengths of
+    # sequences whose solve failed (multiple-collision: ball1|ball2 alone has no extremal
+    # that Newton reaches, so not even one event is covered)
+    failed = cov["failed"]
+    if failed["count"]:
+        shortest = min(len(q) for q in failed["sequences"])
+        assert cov["exhaustive_length"] == (min(shortest - 1, cov["depth"]) if shortest else None)
+    else:
+        assert cov["exhaustive_length"] == cov["depth"]
     assert "enumeration" in cov["sources"]
     searched = solve_reference("single-collision", search=2)
     assert _check_coverage(searched, depth_at_least=2)["exhaustive_length"] >= 2
@@ -244,3 +257,22 @@ def test_a_tiny_budget_stops_early_and_says_so() -> None:
         assert "budget" in sol.message
     with pytest.raises(Exception, match="budget must be"):
         solve_reference("single-collision", budget=0)
+
+
+def test_a_failed_solve_leaves_its_length_uncovered() -> None:
+    """fuzz-2 (one striker, one puck): from the enumeration's own start alone (no source),
+    Newton fails on ``s1|p1``; that length is then not covered, and the coverage says which
+    sequences failed (issue #21: it reported every sequence of up to 3 events)."""
+    from hybridoc.problems import load_scene
+    from hybridoc.reference import solve_reference
+    from hybridoc.reference.solve import coverage_line
+
+    scene = load_scene(Path(__file__).resolve().parent / "scenes" / "fuzz-2.toml")
+    sol = solve_reference(scene, multistart=0, transcription=False)
+    cov = _check_coverage(sol)
+    failed = cov["failed"]
+    assert ["s1|p1"] in failed["sequences"], failed
+    assert cov["exhaustive_length"] is not None and cov["exhaustive_length"] < 1
+    line = coverage_line(cov)
+    assert f"{failed['count']} failed (s1|p1;" in line, line
+    assert "every sequence of up to 0 events" in line, line

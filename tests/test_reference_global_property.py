@@ -56,7 +56,7 @@ GD_STARTS = 32
 #: coverage fields every reference result carries (``solve_reference``'s docstring)
 COVERAGE_FIELDS = {
     "sources", "proposed", "attempted", "solved", "pruned", "depth", "exhaustive_length",
-    "budget_s", "budget_stopped", "family", "families",
+    "budget_s", "budget_stopped", "family", "families", "failed",
 }  # fmt: skip
 
 
@@ -149,6 +149,10 @@ def check_coverage(sol: Any) -> None:
     assert isinstance(cov["sources"], list) and all(isinstance(s, str) for s in cov["sources"])
     ex = cov["exhaustive_length"]
     assert ex is None or (isinstance(ex, int) and 0 <= ex <= cov["depth"]), cov
+    # a length with a failed solve is not covered
+    failed = cov["failed"]
+    assert failed["count"] >= len(failed["sequences"]), failed
+    assert all(ex is None or len(q) > ex for q in failed["sequences"]), (ex, failed)
     lengths = [f["events"] for f in cov["families"]]
     assert lengths == sorted(set(lengths)), cov["families"]
     for fam in cov["families"]:
