@@ -121,9 +121,12 @@ horizons."""
 MULTISTART = 8
 """Starts of the batched multi-start source that proposes sequences (0 to skip it)."""
 MAX_WORKERS = 8
+"""Worker processes of the search over sequences, at most (one per usable core)."""
 FAILED_SHOWN = 4
 """The failed sequences ``info["coverage"]["failed"]`` lists (all are counted)."""
-"""Worker processes of the search over sequences, at most (one per usable core)."""
+KNOWN_STARTS = 2
+"""A sequence whose solve failed is started again from at most this many known controls
+with its events (the cheapest)."""
 DEFAULT_BUDGET = 30.0
 """Seconds the default reference (without ``sequence``) may spend: its sources get what is
 left of it, and the enumeration stops when it is spent (``budget``)."""
@@ -321,6 +324,8 @@ class _Book:
     # the feasible sequences of each length the enumeration went through
     enumerated: list[list[tuple[str, ...]]] = field(default_factory=list)
     budget_stopped: bool = False
+    # the known controls (by id) a failed sequence was started from (from_known)
+    known_tried: dict[tuple[str, ...], set[int]] = field(default_factory=dict)
 
     def left(self) -> float:
         """Seconds of the budget left (0 when spent)."""
@@ -359,9 +364,11 @@ class _Book:
         guess_ev: Evaluation | None = None,
         retry: bool = False,
         warm_start: PhaseCostates | None = None,
+        fallback: bool = True,
     ) -> ReferenceResult | None:
         """Solve one sequence (once; again with ``retry`` when it failed before or a better
-        start is at hand) and keep the cheaper result."""
+        start is at hand) and keep the cheaper result; where it fails (and ``fallback``),
+        start it again from the known controls with these events (:meth:`from_known`)."""
         key = tuple(sequence)
         self.proposed.add(key)
         if key in self.results and not retry:
@@ -391,6 +398,28 @@ class _Book:
         elif res is None and old is None:
             self.reasons[key] = why
         self.say(f"{list(key)} ({origin}): " + (f"cost {res.cost:.12g}" if res else why))
+        if key not in self.results and fallback:
+            return self.from_known(key)
+        return self.results.get(key)
+
+    def from_known(self, key: tuple[str, ...]) -> ReferenceResult | None:
+        """A sequence whose solve failed, started again from the known controls whose
+        judged events are that sequence (the multi-start's, the transcription's), cheapest
+        first, at most :data:`KNOWN_STARTS` of them, each once."""
+        tried = self.known_tried.setdefault(key, set())
+        same = [k for k in self.known if tuple(k.sequence) == key and k.evaluation is not None]
+        for k in sorted(same, key=lambda k: k.cost)[:KNOWN_STARTS]:
+            if id(k) in tried:
+                continue
+            tried.add(id(k))
+            res = self.attempt(
+                key, guess_times(self.ocp, key, k.evaluation), k.controls,
+                f"the known control of {k.source}", estimate=True,
+                grad=_adjoint(self.ocp, k.controls), guess_ev=k.evaluation, retry=True,
+                fallback=False,
+            )  # fmt: skip
+            if res is not None:
+                return res
         return self.results.get(key)
 
     def verify(self, key: tuple[str, ...]) -> bool:
@@ -887,8 +916,13 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
         times = None
     if times is None:
         times = guess_times(ocp, seq, ev)
-    retry = p.retry and key in book.reasons
-    if (key in book.results and not retry) or (key in book.reasons and not retry):
+    # a sequence that failed before gets another try from the proposal's own control, and
+    # so does one whose extremal costs more than the proposal's control with its events
+    # (Newton stopped at a worse stationary point)
+    old = book.results.get(key)
+    cheaper = old is not None and own and cost is not None and cost < old.cost * (1 - _OPT_RTOL)
+    retry = (key in book.reasons and (p.retry or own) and key not in book.pruned) or cheaper
+    if (key in book.results or key in book.reasons) and not retry:
         return  # solved or failed before: nothing new to try
     book.attempt(
         seq, times, np.asarray(p.controls, dtype=float) if own else guess.controls, p.source,
@@ -1337,11 +1371,13 @@ def _record(
     if z is None:
         book.reasons[key] = why
         book.say(f"{seq} (enumeration): {why}")
+        book.from_known(key)
         return
     S = shooting_system(ocp, seq)
     nr = newton(S, z, tol=book.tol)
     if not nr.converged:
         book.reasons[key] = f"Newton from the enumeration's point: residual {nr.residual:.2e}"
+        book.from_known(key)
         return
     book.results[key] = make_result(S, nr, "search")
     book.say(f"{seq} (enumeration): cost {book.results[key].cost:.12g}")

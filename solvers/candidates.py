@@ -29,6 +29,7 @@ use them. The solvers themselves are imported when a source first runs.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -44,10 +45,13 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "DIVERSE_FACTOR",
     "DT_BUDGET_SHARE",
+    "GD_BUDGET_SHARE",
+    "GD_FACTOR",
     "MULTISTART_ITERS",
     "MULTISTART_STEPS",
     "MultiStartSource",
     "TranscriptionSource",
+    "gd_multistart",
     "phase_costates",
     "register_builtin_sources",
     "rich_scene",
@@ -75,6 +79,13 @@ DIVERSE_ITERS = 40
 """Descent iterations of each diverse start."""
 DIVERSE_JUDGED = 6
 """Distinct results of the diverse multi-start judged at the problem's resolution."""
+GD_FACTOR = 4
+"""On a disc scene the multi-start first runs gradient descent's multi-start
+(:func:`gd_multistart`) from this many times ``context.multistart`` starts: 32 by default,
+as ``solve_gd(starts=32)`` (cross-validation's, :data:`hybridoc.solvers.gd.GD_STARTS`);
+0 skips it."""
+GD_BUDGET_SHARE = 0.5
+"""The share of ``context.budget_s`` gradient descent's multi-start may take."""
 DT_GUESSES = 2
 """Further guesses of the transcription on a scene with several actuated discs or passive
 discs already moving (:class:`TranscriptionSource`)."""
@@ -294,25 +305,48 @@ def _dt_guesses(ocp: HybridOCP, context: SourceContext, count: int) -> list[tupl
 class MultiStartSource:
     """A batched multi-start of the differentiable simulator on a coarse grid
     (:func:`hybridoc.solvers.multistart.explore`) from ``context.multistart`` starts, or
-    :data:`DIVERSE_FACTOR` times as many diverse ones on a :func:`rich_scene` (module
+    :data:`DIVERSE_FACTOR` times as many diverse ones on a :func:`rich_scene`; on a disc
+    scene first gradient descent's own multi-start (:func:`gd_multistart`) (module
     notes)."""
 
     name = "multi-start"
 
     def propose(self, ocp: HybridOCP, context: SourceContext) -> list[Proposal]:
         """Every judged result as a known control; each distinct sequence to solve."""
+        from hybridoc.problems.disc_ocp import DiscOCP
+
+        if not context.multistart:
+            return []
+        t0 = time.perf_counter()
+        deadline = _deadline(context, t0)
+        if _spent(deadline):
+            context.say("multi-start: not run, the time budget is spent")
+            return []
+        out: list[Proposal] = []
+        if isinstance(ocp, DiscOCP) and GD_FACTOR:
+            share = None if deadline is None else t0 + GD_BUDGET_SHARE * (deadline - t0)
+            out += gd_multistart(ocp, context, share)
+        # each distinct sequence solved once (the first proposal of it: gd's refined control)
+        solved: set[tuple[str, ...]] = {tuple(p.sequence or ()) for p in out if p.solve}
+        for p in self._explore(ocp, context, deadline):
+            key = tuple(p.sequence or ())
+            out.append(dataclasses.replace(p, solve=p.solve and key not in solved))
+            solved |= {key} if p.solve else set()
+        return out
+
+    def _explore(
+        self, ocp: HybridOCP, context: SourceContext, deadline: float | None
+    ) -> list[Proposal]:
+        """The source's own coarse multi-start (diverse starts on a :func:`rich_scene`)."""
         from hybridoc.errors import HybridocError
         from hybridoc.solvers.contacts import contact_model
         from hybridoc.solvers.gd import make_loss
         from hybridoc.solvers.multistart import diverse_starts, explore
 
         count = context.multistart
-        if not count:
-            return []
         t0 = time.perf_counter()
-        deadline = _deadline(context, t0)
         if _spent(deadline):
-            context.say("multi-start: not run, the time budget is spent")
+            context.say("multi-start: diverse starts not run, the time budget is spent")
             return []
         model = contact_model("direct", toi="both")
         why = rich_scene(ocp)
@@ -349,6 +383,92 @@ class MultiStartSource:
             )  # fmt: skip
             seen.add(key)
         return out
+
+
+def gd_multistart(ocp: HybridOCP, context: SourceContext, deadline: float | None) -> list[Proposal]:
+    """What ``solve_gd(ocp, starts=GD_FACTOR * context.multistart)`` does on a disc scene,
+    through gd's and the multi-start's public functions, every result kept: the same
+    starting set (:func:`~hybridoc.solvers.multistart.starting_controls`, seed 0), the same
+    coarse batched descent (:func:`~hybridoc.solvers.multistart.explore` on gd's
+    :data:`~hybridoc.solvers.gd.MULTISTART_STEPS` grid, :data:`~hybridoc.solvers.gd.
+    MULTISTART_ITERS` iterations, every distinct result judged), and the refinement of the
+    best distinct results (at most :data:`~hybridoc.solvers.gd.MULTISTART_REFINE`, within 2%
+    of the best) at full resolution by :func:`~hybridoc.solvers.gd.solve_gd` from each (one
+    light smoothing stage, as gd's). Each refined control and each judged coarse result is a
+    known control; each distinct sequence is proposed, the refined ones first (with
+    ``retry``: a better start than a coarse control). Stops at ``deadline``."""
+    from hybridoc.errors import HybridocError
+    from hybridoc.evaluator import evaluate
+    from hybridoc.solvers import gd
+    from hybridoc.solvers.multistart import explore
+
+    t0 = time.perf_counter()
+    count = GD_FACTOR * context.multistart
+    coarse = min(ocp.steps, gd.MULTISTART_STEPS)
+    context.progress.stage(f"multi-start: gradient descent's {count} starts on {coarse} steps")
+    try:
+        found = explore(
+            ocp, count, seed=0, steps=coarse, iters=gd.MULTISTART_ITERS, deadline=deadline,
+            loss_for=_gd_loss,
+        )  # fmt: skip
+    except HybridocError as exc:
+        context.say(f"gd's multi-start failed: {exc}")
+        return []
+    refined: list[Proposal] = []
+    seen: set[tuple[str, ...]] = set()
+    for r in found:
+        key = tuple(r["sequence"])
+        if key in seen:
+            continue
+        if refined and r["cost"] > 1.02 * found[0]["cost"]:
+            break  # gd's rule: the batched phase ranks the basins well enough
+        if _spent(deadline):
+            context.say("gd's multi-start: refinement stopped, the time budget is spent")
+            break
+        seen.add(key)
+        context.progress.stage(
+            f"multi-start: refining the basin {' '.join(key) or '(no events)'} (gd)"
+        )
+        stop = None if deadline is None else (lambda k, f, u: time.perf_counter() > deadline)
+        try:
+            sol = gd.solve_gd(
+                ocp, initial=r["controls"], smoothing=gd.MULTISTART_SMOOTHING, callback=stop
+            )
+            ev = evaluate(ocp, sol.controls)
+        except HybridocError as exc:
+            context.say(f"gd's refinement of {list(key)} failed: {exc}")
+            continue
+        refined.append(
+            Proposal("multi-start", list(ev.sequence), sol.controls, ev, cost=ev.cost,
+                     label="gradient descent's multi-start", retry=True,
+                     solve=len(ev.events) <= context.max_events)
+        )  # fmt: skip
+        if len(seen) >= gd.MULTISTART_REFINE:
+            break
+    context.say(
+        f"gd's multi-start ({count} starts): {len(found)} results, refined "
+        + ", ".join(f"{p.cost:.10g} {p.sequence}" for p in refined)
+        + f" ({time.perf_counter() - t0:.2f} s)"
+    )
+    out, done = list(refined), {tuple(p.sequence or ()) for p in refined}
+    for r in found:
+        key = tuple(r["sequence"])
+        out.append(
+            Proposal("multi-start", list(key), r["controls"], r["evaluation"], cost=r["cost"],
+                     label="gradient descent's multi-start (coarse)",
+                     solve=key not in done and len(key) <= context.max_events)
+        )  # fmt: skip
+        done.add(key)
+    return out
+
+
+def _gd_loss(coarse: HybridOCP) -> Any:
+    """gd's exploration loss: the compiled exact simulation, contact ``direct`` with TOI
+    ``both`` (cached by :func:`~hybridoc.solvers.gd.make_loss`)."""
+    from hybridoc.solvers.contacts import contact_model
+    from hybridoc.solvers.gd import make_loss
+
+    return make_loss(coarse, contact_model("direct", toi="both"), "exact")[0]
 
 
 def register_builtin_sources() -> None:
