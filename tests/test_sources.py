@@ -118,7 +118,10 @@ def test_multistart_finds_the_channel_strike() -> None:
     assert best.solve and best.known
 
 
-@pytest.mark.parametrize("name", ["two-strikers", "bank-shot", "corner-pocket"])
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param("two-strikers", marks=pytest.mark.slow), "bank-shot", "corner-pocket"],
+)
 def test_multistart_proposes_the_optimal_sequence(name: str) -> None:
     sequence, cost, _ = OPTIMA[name]
     proposals = _multistart(name)
