@@ -80,10 +80,12 @@ DIVERSE_ITERS = 40
 DIVERSE_JUDGED = 6
 """Distinct results of the diverse multi-start judged at the problem's resolution."""
 GD_FACTOR = 4
-"""On a disc scene the multi-start first runs gradient descent's multi-start
+"""Starts of gradient descent's multi-start per ``context.multistart`` (0 skips it).
+
+On a disc scene the multi-start source first runs gradient descent's multi-start
 (:func:`gd_multistart`) from this many times ``context.multistart`` starts: 32 by default,
-as ``solve_gd(starts=32)`` (cross-validation's, :data:`hybridoc.solvers.gd.GD_STARTS`);
-0 skips it."""
+as ``solve_gd(starts=32)`` runs it in cross-validation
+(:data:`hybridoc.solvers.gd.GD_STARTS`)."""
 GD_BUDGET_SHARE = 0.5
 """The share of ``context.budget_s`` gradient descent's multi-start may take."""
 DT_GUESSES = 2
@@ -99,9 +101,10 @@ gets at most twice that first run's time (at least 1 s)."""
 
 
 def rich_scene(ocp: HybridOCP) -> str:
-    """Why ``ocp`` gets the diverse multi-start (``""``: it does not): a disc scene with
-    walls (bounce-first sequences), several actuated discs, or passive discs already moving
-    (sequences that add a strike to a body's own events)."""
+    """Why ``ocp`` gets the diverse multi-start, or an empty string.
+
+    A disc scene with walls (bounce-first sequences), several actuated discs, or passive
+    discs already moving (sequences that add a strike to a body's own events)."""
     from hybridoc.problems.disc_ocp import DiscOCP
 
     if not isinstance(ocp, DiscOCP):
@@ -386,7 +389,9 @@ class MultiStartSource:
 
 
 def gd_multistart(ocp: HybridOCP, context: SourceContext, deadline: float | None) -> list[Proposal]:
-    """What ``solve_gd(ocp, starts=GD_FACTOR * context.multistart)`` does on a disc scene,
+    """Gradient descent's multi-start as proposals.
+
+    What ``solve_gd(ocp, starts=GD_FACTOR * context.multistart)`` does on a disc scene,
     through gd's and the multi-start's public functions, every result kept: the same
     starting set (:func:`~hybridoc.solvers.multistart.starting_controls`, seed 0), the same
     coarse batched descent (:func:`~hybridoc.solvers.multistart.explore` on gd's
@@ -472,7 +477,9 @@ def _gd_loss(coarse: HybridOCP) -> Any:
 
 
 def register_builtin_sources() -> None:
-    """Register :class:`MultiStartSource` and :class:`TranscriptionSource` (in this order,
+    """Register the multi-start and the transcription sources.
+
+    :class:`MultiStartSource` and :class:`TranscriptionSource` (in this order,
     the order the reference takes their proposals in: the multi-start is cheap, a second or
     two, while one transcription can take most of the budget; the channel's took 11 to 21 s
     and, asked first, left the multi-start, which alone reaches the channel's optimum, no
