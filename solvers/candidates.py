@@ -342,8 +342,7 @@ class MultiStartSource:
     ) -> list[Proposal]:
         """The source's own coarse multi-start (diverse starts on a :func:`rich_scene`)."""
         from hybridoc.errors import HybridocError
-        from hybridoc.solvers.contacts import contact_model
-        from hybridoc.solvers.gd import make_loss
+        from hybridoc.solvers.gd import exploration_loss
         from hybridoc.solvers.multistart import diverse_starts, explore
 
         count = context.multistart
@@ -351,7 +350,6 @@ class MultiStartSource:
         if _spent(deadline):
             context.say("multi-start: diverse starts not run, the time budget is spent")
             return []
-        model = contact_model("direct", toi="both")
         why = rich_scene(ocp)
         starts = None
         steps, iters, judge = MULTISTART_STEPS, MULTISTART_ITERS, MULTISTART_JUDGED
@@ -368,7 +366,7 @@ class MultiStartSource:
                 starts=starts, deadline=deadline,
                 # gd's cached loss (the default's function): built once per problem
                 # structure, not once per call (datasets call the reference per draw)
-                loss_for=lambda coarse: make_loss(coarse, model, "exact")[0],
+                loss_for=exploration_loss,
             )  # fmt: skip
         except HybridocError as exc:
             context.say(f"multi-start failed: {exc}")
@@ -405,7 +403,7 @@ def gd_multistart(ocp: HybridOCP, context: SourceContext, deadline: float | None
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
     from hybridoc.solvers import gd
-    from hybridoc.solvers.multistart import explore
+    from hybridoc.solvers.multistart import distinct_basins, explore
 
     t0 = time.perf_counter()
     count = GD_FACTOR * context.multistart
@@ -414,19 +412,15 @@ def gd_multistart(ocp: HybridOCP, context: SourceContext, deadline: float | None
     try:
         found = explore(
             ocp, count, seed=0, steps=coarse, iters=gd.MULTISTART_ITERS, deadline=deadline,
-            loss_for=_gd_loss,
+            loss_for=gd.exploration_loss,
         )  # fmt: skip
     except HybridocError as exc:
         context.say(f"gd's multi-start failed: {exc}")
         return []
     refined: list[Proposal] = []
     seen: set[tuple[str, ...]] = set()
-    for r in found:
+    for r in distinct_basins(found):  # the basins gd refines
         key = tuple(r["sequence"])
-        if key in seen:
-            continue
-        if refined and r["cost"] > 1.02 * found[0]["cost"]:
-            break  # gd's rule: the batched phase ranks the basins well enough
         if _spent(deadline):
             context.say("gd's multi-start: refinement stopped, the time budget is spent")
             break
@@ -465,15 +459,6 @@ def gd_multistart(ocp: HybridOCP, context: SourceContext, deadline: float | None
         )  # fmt: skip
         done.add(key)
     return out
-
-
-def _gd_loss(coarse: HybridOCP) -> Any:
-    """gd's exploration loss: the compiled exact simulation, contact ``direct`` with TOI
-    ``both`` (cached by :func:`~hybridoc.solvers.gd.make_loss`)."""
-    from hybridoc.solvers.contacts import contact_model
-    from hybridoc.solvers.gd import make_loss
-
-    return make_loss(coarse, contact_model("direct", toi="both"), "exact")[0]
 
 
 def register_builtin_sources() -> None:

@@ -90,6 +90,7 @@ __all__ = [
     "checked_options",
     "default_integrator",
     "default_settings",
+    "exploration_loss",
     "make_loss",
     "parse_smoothing",
     "solve_gd",
@@ -878,7 +879,7 @@ MULTISTART_SMOOTHING = (3e-6,)
 
 def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution:
     """:func:`solve_gd` with ``starts > 1`` (see its ``starts``)."""
-    from hybridoc.solvers.multistart import explore
+    from hybridoc.solvers.multistart import distinct_basins, explore
 
     t0 = time.perf_counter()
     if isinstance(ocp, DiscOCP) and opts.contact.name != "direct":
@@ -891,7 +892,7 @@ def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution
     progress.stage(f"multi-start: {opts.starts} starts on {coarse} steps")
     found = explore(
         ocp, opts.starts, seed=opts.seed, steps=coarse, iters=MULTISTART_ITERS, report=rows,
-        loss_for=_exploration_loss,
+        loss_for=exploration_loss,
     )  # fmt: skip
     t_explore = time.perf_counter() - t0
     single = dataclasses.replace(opts, starts=1)
@@ -900,14 +901,8 @@ def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution
     if smoothing is None:
         smoothing = MULTISTART_SMOOTHING if opts.optimizer == "lbfgs" else ()
     refined: list[Solution] = []
-    seen: set[tuple[str, ...]] = set()
-    for r in found:
+    for r in distinct_basins(found):
         key = tuple(r["sequence"])
-        if key in seen:
-            continue
-        if refined and r["cost"] > 1.02 * found[0]["cost"]:
-            break  # the batched phase ranks the basins well enough
-        seen.add(key)
         progress.stage(f"multi-start: refining the basin {' '.join(key) or '(no events)'}")
         refine = dataclasses.replace(single, smoothing=smoothing)
         refined.append(_continuation(ocp, refine, r["controls"], progress))
@@ -926,7 +921,7 @@ def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution
     return best
 
 
-def _exploration_loss(coarse: HybridOCP) -> Any:
+def exploration_loss(coarse: HybridOCP) -> Any:
     """The loss the multi-start explores with: the compiled exact simulation, contact
     ``direct`` with TOI ``both`` (kept in the cache of :func:`make_loss`)."""
     from hybridoc.solvers.contacts import contact_model

@@ -13,7 +13,7 @@ pairs and its own backtracking step.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -24,6 +24,7 @@ from hybridoc.problems.disc_ocp import DiscOCP
 __all__ = [
     "EXPLORE_SMOOTHING",
     "batched_lbfgs",
+    "distinct_basins",
     "diverse_controls",
     "diverse_starts",
     "exploration_loss",
@@ -629,3 +630,18 @@ def _judged(
             same = [c for c in picked if _same(f, b, c)]
             row["same_as" if same else "not_judged"] = same[0] if same else True
     return out, rows
+
+
+def distinct_basins(found: list[dict[str, Any]], rtol: float = 0.02) -> Iterator[dict[str, Any]]:
+    """The results of :func:`explore` worth refining, best first: the first of each distinct
+    event sequence, while its coarse cost is within ``rtol`` of the best (the batched phase
+    ranks the basins well enough)."""
+    seen: set[tuple[str, ...]] = set()
+    for r in found:
+        key = tuple(r["sequence"])
+        if key in seen:
+            continue
+        if seen and r["cost"] > (1 + rtol) * found[0]["cost"]:
+            return
+        seen.add(key)
+        yield r
