@@ -17,6 +17,7 @@ from hybridoc.cli._util import (
     load_controls_arg,
     load_problem_arg,
     nonnegative_int,
+    option_type,
     output_stem,
     print_solution,
     problem_arg,
@@ -81,16 +82,6 @@ def cmd_reference(args: argparse.Namespace) -> int:
     for f in files:
         say(args, f"wrote {f}")
     return exit_code(sol.status, sol.message)
-
-
-def _budget(text: str) -> float:
-    """``--budget``: a positive number of seconds (argparse's error otherwise)."""
-    from hybridoc.reference.solve import parse_budget
-
-    try:
-        return parse_budget(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _short(text: str, width: int = 72) -> str:
@@ -182,7 +173,7 @@ def register(sub: Any) -> None:
 
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
-    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH
+    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH, parse_budget
 
     problem_arg(p)
     p.add_argument(
@@ -203,7 +194,7 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--budget",
         metavar="SECONDS",
-        type=_budget,
+        type=option_type(parse_budget, "budget"),
         default=DEFAULT_BUDGET,
         help="seconds the search for the optimum may take: the sources get what is left, "
         "the enumeration of sequences stops when it is spent and the coverage line says "
