@@ -1,7 +1,8 @@
 """The ``hybridoc`` command: every command in one package.
 
 One module per group of commands (:mod:`.problems`, :mod:`.evaluate`, :mod:`.reference`,
-:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`), each with
+:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`, :mod:`.export`,
+:mod:`.trajectory`, :mod:`.cache`), each with
 ``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
 in :mod:`._util`. The modules hold no library code: they parse, call the library, and print.
 
@@ -36,6 +37,8 @@ COMMAND_MODULES = (
     "validation",
     "datasets",
     "contacts",
+    "export",
+    "trajectory",
     "cache",
 )
 
