@@ -19,19 +19,36 @@ any order (``ball1.uy,ball1.ux`` swaps the columns back), and a header that name
 columns (an unknown, missing or repeated label) is an error rather than being ignored. The
 generic names ``u0,u1,...`` that :func:`save_controls` writes without labels keep the
 columns in order.
+
+Controls from another simulator
+    A simulator that takes ``K`` steps per control interval logs ``N * K`` rows (MuJoCo's
+    ``ctrl`` at ``K`` substeps). ``load_controls(path, problem, substeps=K)`` reads them for
+    the problem on the ``K`` times finer grid, :func:`substep_problem`, where the judge
+    measures them exactly; without ``substeps`` such a file is an error that names ``K``.
+    :func:`read_array` reads the other arrays that come from outside (gradients,
+    trajectories) with the same rules.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridoc.errors import ControlsError
+from hybridoc.errors import ControlsError, HybridocError
 
-__all__ = ["load_controls", "save_controls"]
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
+
+__all__ = [
+    "load_controls",
+    "read_array",
+    "save_controls",
+    "substep_problem",
+    "substeps_hint",
+]
 
 _SUFFIXES = (".npy", ".csv", ".npz", ".json")
 
@@ -106,7 +123,163 @@ def _is_float(text: str) -> bool:
     return True
 
 
-def load_controls(path: str | Path, problem: Any) -> np.ndarray:
+def read_array(
+    path: str | Path,
+    *,
+    what: str = "array",
+    labels: Sequence[str] | None = None,
+    error: type[HybridocError] = ControlsError,
+) -> np.ndarray:
+    """Read a numeric float64 array from a ``.npy`` or ``.csv`` file, shape unchecked.
+
+    The reader behind :func:`load_controls`, for the other arrays that come from outside:
+    gradients, trajectories, times. A CSV may start with a header line; when ``labels`` are
+    given and the file has that many columns, the header's names are matched to them as for
+    controls (module notes) and the columns returned in the order of ``labels``.
+
+    Parameters
+    ----------
+    path
+        A ``.npy`` or ``.csv`` file.
+    what
+        What the file holds, for the messages (``"gradient"``, ``"states"``, ...).
+    labels
+        Column names a CSV header may use; ``None`` ignores a header.
+    error
+        The :class:`~hybridoc.errors.HybridocError` subclass raised.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64; 1-D or 2-D as stored (a CSV is always 2-D).
+
+    Raises
+    ------
+    hybridoc.errors.HybridocError
+        ``error``: the file is missing, of another type, unparsable or not numeric.
+    """
+    p = Path(path)
+    where = f"{what} file {str(p)!r}"
+    if p.suffix.lower() not in (".npy", ".csv"):
+        raise error(f"{where}: unsupported file type {p.suffix!r}; use .npy or .csv")
+    if not p.is_file():
+        raise error(f"{where} does not exist")
+    return _read(p, where, list(labels) if labels is not None else None, error)
+
+
+def _read(p: Path, where: str, labels: list[str] | None, error: type[HybridocError]) -> np.ndarray:
+    """The array of a ``.npy`` or ``.csv`` file that exists (see :func:`read_array`)."""
+    if p.suffix.lower() == ".npy":
+        try:
+            with open(p, "rb") as fh:
+                magic = fh.read(6)
+        except OSError as exc:
+            raise error(f"{where} cannot be read: {exc.strerror or exc}") from None
+        if magic != b"\x93NUMPY":
+            # numpy's own message for this case talks about pickles, which misleads
+            raise error(
+                f"{where} is not a readable .npy file: no NumPy header (write it with numpy.save)"
+            )
+        try:
+            raw = np.load(p, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise error(f"{where} is not a readable .npy array: {exc}") from None
+        if raw.dtype.kind not in "biuf":
+            raise error(f"{where}: expected a numeric array, got dtype {raw.dtype}")
+        return raw.astype(np.float64)
+    try:
+        # utf-8-sig: spreadsheets ("CSV UTF-8") start the file with a byte-order mark,
+        # which would otherwise stick to the first label
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{where} cannot be read: {exc}") from None
+    try:
+        header, arr = _parse_csv(text, where)
+    except ControlsError as exc:
+        raise error(str(exc)) from None
+    if header is not None and len(header) != arr.shape[1]:
+        raise error(
+            f"{where}: the header has {len(header)} columns but the rows have {arr.shape[1]}"
+        )
+    if header is not None and labels is not None and arr.shape[1] == len(labels):
+        try:  # a wrong width: the caller's shape error
+            arr = arr[:, _header_columns(header, labels, where)]
+        except ControlsError as exc:
+            raise error(str(exc)) from None
+    return arr
+
+
+def substep_problem(problem: Any, substeps: int) -> HybridOCP:
+    """The problem on a grid ``substeps`` times finer: ``N * substeps`` control intervals.
+
+    Controls logged by a simulator that takes ``K`` steps per control interval (a MuJoCo
+    ``ctrl`` log at ``K`` substeps) have ``N * K`` rows; they are judged exactly as the
+    piecewise-constant control of this problem. Everything but the grid is the problem's
+    own (same name, horizon, costs and guards); ``substeps=1`` returns the problem itself.
+
+    Parameters
+    ----------
+    problem
+        Any problem (:func:`hybridoc.problem.as_ocp`).
+    substeps
+        ``K >= 1``.
+
+    Returns
+    -------
+    HybridOCP
+        ``problem.replace(steps=N * K)``.
+
+    Raises
+    ------
+    hybridoc.errors.ControlsError
+        ``K`` is not a positive integer, or ``N * K`` is more than
+        :data:`hybridoc.ocp.MAX_STEPS` intervals.
+    """
+    from hybridoc.ocp import MAX_STEPS
+
+    ocp = _ocp_of(problem)
+    k = _checked_substeps(substeps)
+    if k == 1:
+        return ocp
+    if ocp.steps * k > MAX_STEPS:
+        raise ControlsError(
+            f"substeps {k}: N * K = {ocp.steps} * {k} = {ocp.steps * k} intervals, more than "
+            f"the {MAX_STEPS} a problem may have (hybridoc.ocp.MAX_STEPS)"
+        )
+    return ocp.replace(steps=ocp.steps * k)
+
+
+def _checked_substeps(substeps: Any) -> int:
+    if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
+        raise ControlsError(f"substeps must be a positive integer, got {substeps!r}")
+    return int(substeps)
+
+
+def substeps_hint(rows: int, steps: int, flag: str = "substeps") -> str:
+    """The hint for a file of ``N * K`` rows given where ``N`` were expected (else empty).
+
+    Parameters
+    ----------
+    rows
+        The rows of the file.
+    steps
+        ``N``, the rows expected.
+    flag
+        How the caller spells the option: ``"substeps"`` (Python) or ``"--substeps"``.
+    """
+    if steps < 1 or rows <= steps or rows % steps:
+        return ""
+    k = rows // steps
+    setting = f"{flag}={k}" if not flag.startswith("-") else f"{flag} {k}"
+    return (
+        f" ({rows} rows: {k} per grid interval, as a simulator logs at {k} substeps per "
+        f"control interval, e.g. MuJoCo; {setting} takes them on the {rows}-interval grid)"
+    )
+
+
+def load_controls(
+    path: str | Path, problem: Any, *, substeps: int | None = None, flag: str = "substeps"
+) -> np.ndarray:
     """Read controls for ``problem`` from a ``.npy`` or ``.csv`` file.
 
     Parameters
@@ -116,11 +289,20 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
         header's columns are matched to the control labels by name (module notes).
     problem
         Any problem; it fixes the expected shape ``(N, nu)``.
+    substeps
+        ``K``: the file holds ``N * K`` rows, ``K`` per grid interval (a simulator's log at
+        ``K`` substeps per control interval), to be judged on the finer grid of
+        :func:`substep_problem`. Default: ``N`` rows. A file of ``N * K`` rows read without
+        it is an error that names ``K``.
+    flag
+        How the option is spelled in that error: ``"substeps"`` (the default, for Python
+        callers) or ``"--substeps"`` (the command line).
 
     Returns
     -------
     numpy.ndarray
-        float64 array of shape ``(N, nu)``.
+        float64 array of shape ``(N * K, nu)`` (``(N, nu)`` without ``substeps``), checked
+        against the bounds of the (refined) problem.
 
     Raises
     ------
@@ -129,12 +311,15 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
         or infinity, or is a CSV whose header does not name the problem's controls.
     """
     ocp = _ocp_of(problem)
+    k = 1 if substeps is None else _checked_substeps(substeps)
+    fine = substep_problem(ocp, k)
     p = Path(path)
     where = f"controls file {str(p)!r}"
-    n, nu = ocp.steps, ocp.nu
+    n, nu = fine.steps, fine.nu
     labels = list(ocp.control_labels or [])
-    expect = f"expected shape ({n}, {nu}): {n} rows (grid intervals), one column per control"
-    expect += f" component ({', '.join(labels)})" if labels else ""
+    per = f" ({ocp.steps} grid intervals x {k} substeps)" if k > 1 else " (grid intervals)"
+    expect = f"expected shape ({n}, {nu}): {n} rows{per}, one column per control component"
+    expect += f" ({', '.join(labels)})" if labels else ""
     if p.suffix.lower() not in _SUFFIXES:
         raise ControlsError(
             f"{where}: unsupported file type {p.suffix!r}; use .npy, .csv or a saved Solution "
@@ -143,49 +328,21 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
     if not p.is_file():
         raise ControlsError(f"{where} does not exist")
     if p.suffix.lower() in (".npz", ".json"):
-        from hybridoc.errors import HybridocError
         from hybridoc.solution import Solution
 
         try:
             arr = np.asarray(Solution.load(p).controls, dtype=np.float64)
         except HybridocError as exc:
             raise ControlsError(str(exc)) from None
-    elif p.suffix.lower() == ".npy":
-        try:
-            with open(p, "rb") as fh:
-                magic = fh.read(6)
-        except OSError as exc:
-            raise ControlsError(f"{where} cannot be read: {exc.strerror or exc}") from None
-        if magic != b"\x93NUMPY":
-            # numpy's own message for this case talks about pickles, which misleads
-            raise ControlsError(
-                f"{where} is not a readable .npy file: no NumPy header (write it with numpy.save)"
-            )
-        try:
-            raw = np.load(p, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise ControlsError(f"{where} is not a readable .npy array: {exc}") from None
-        if raw.dtype.kind not in "biuf":
-            raise ControlsError(f"{where}: expected a numeric array, got dtype {raw.dtype}")
-        arr = raw.astype(np.float64)
     else:
-        try:
-            # utf-8-sig: spreadsheets ("CSV UTF-8") start the file with a byte-order mark,
-            # which would otherwise stick to the first label
-            text = p.read_text(encoding="utf-8-sig")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ControlsError(f"{where} cannot be read: {exc}") from None
-        header, arr = _parse_csv(text, where)
-        if header is not None and len(header) != arr.shape[1]:
-            raise ControlsError(
-                f"{where}: the header has {len(header)} columns but the rows have {arr.shape[1]}"
-            )
-        if header is not None and arr.shape[1] == nu:  # a wrong width: the shape error below
-            arr = arr[:, _header_columns(header, labels, where)]
+        arr = _read(p, where, labels if labels else None, ControlsError)
     if arr.ndim == 1 and nu == 1:
         arr = arr[:, None]
     if arr.shape != (n, nu):
-        raise ControlsError(f"{where}: {expect}; got shape {arr.shape}")
+        hint = ""
+        if arr.ndim == 2 and arr.shape[1] == nu and k == 1:
+            hint = substeps_hint(arr.shape[0], n, flag)
+        raise ControlsError(f"{where}: {expect}; got shape {arr.shape}{hint}")
     if not np.all(np.isfinite(arr)):
         row, col = np.argwhere(~np.isfinite(arr))[0]
         name = labels[col] if col < len(labels) else f"column {col}"
@@ -193,7 +350,7 @@ def load_controls(path: str | Path, problem: Any) -> np.ndarray:
             f"{where}: non-finite value {arr[row, col]} at row {row} ({name}); "
             "controls must be finite"
         )
-    return ocp.check_controls(arr, what=where)
+    return fine.check_controls(arr, what=where)
 
 
 def save_controls(

@@ -44,6 +44,7 @@ __all__ = [
     "add_initial_arg",
     "add_json_out",
     "add_method_options",
+    "add_substeps_arg",
     "emit_json",
     "ensure_dir",
     "exit_code",
@@ -51,6 +52,7 @@ __all__ = [
     "format_table",
     "grid_steps",
     "load_controls_arg",
+    "load_substep_controls_arg",
     "load_problem_arg",
     "method_flags",
     "method_options_given",
@@ -367,6 +369,39 @@ def load_controls_arg(path: Path | None, ocp: Any) -> tuple[np.ndarray, str]:
     from hybridoc.io import load_controls
 
     return load_controls(path, ocp), str(path)
+
+
+def add_substeps_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--substeps K`` (the controls file holds ``K`` rows per grid interval)."""
+    parser.add_argument(
+        "--substeps",
+        metavar="K",
+        type=positive_int,
+        default=None,
+        help="the --controls file holds N*K rows, K per grid interval (a simulator's log at K "
+        "substeps per control interval, e.g. MuJoCo's ctrl): judge them exactly on the K times "
+        "finer grid",
+    )
+
+
+def load_substep_controls_arg(
+    path: Path | None, ocp: HybridOCP, substeps: int | None
+) -> tuple[HybridOCP, np.ndarray, str]:
+    """``(problem, controls, label)`` of ``--controls`` and ``--substeps``: with ``K``
+    substeps the problem on the ``K`` times finer grid (:func:`hybridoc.io.substep_problem`)
+    and its ``N*K`` rows; without, :func:`load_controls_arg` (whose error for a file of
+    ``N*K`` rows names ``--substeps K``)."""
+    from hybridoc.io import load_controls, substep_problem
+
+    if path is None:
+        if substeps is not None:
+            raise HybridocError("--substeps applies to a --controls file (of N*K rows)")
+        return (ocp, *load_controls_arg(None, ocp))
+    k = 1 if substeps is None else substeps
+    u = load_controls(path, ocp, substeps=k, flag="--substeps")
+    fine = substep_problem(ocp, k)
+    label = str(path) if k == 1 else f"{path} ({k} substeps: N = {ocp.steps} x {k})"
+    return fine, u, label
 
 
 def ensure_dir(path: str | Path) -> Path:

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from hybridoc.cli._util import (
     add_controls_arg,
     add_json_out,
+    add_substeps_arg,
     emit_json,
     ensure_dir,
     events_table,
@@ -18,6 +19,7 @@ from hybridoc.cli._util import (
     indent,
     load_controls_arg,
     load_problem_arg,
+    load_substep_controls_arg,
     output_stem,
     problem_arg,
     say,
@@ -78,18 +80,21 @@ def _timed(fn: Any, *args: Any, repeat: int = 1) -> tuple[Any, float]:
     return out, best
 
 
-def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[Any, Any, str]:
-    """``(policy, controls, source)`` of ``evaluate``'s ``--policy`` or ``--controls``."""
+def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[HybridOCP, Any, Any, str]:
+    """``(problem, policy, controls, source)`` of ``evaluate``'s ``--policy`` or
+    ``--controls`` (the problem on the finer grid with ``--substeps``)."""
     if args.policy is not None:
         from hybridoc.workflows.policies import load_policy
 
         if args.controls is not None:
             raise HybridocError("give --controls or --policy, not both")
-        return load_policy(args.policy), None, f"policy {args.policy} (hold {args.hold})"
+        if args.substeps is not None:
+            raise HybridocError("--substeps applies to --controls, not to --policy")
+        return ocp, load_policy(args.policy), None, f"policy {args.policy} (hold {args.hold})"
     if args.hold != "zoh":
         raise HybridocError("--hold applies to --policy only")
-    controls, source = load_controls_arg(args.controls, ocp)
-    return None, controls, source
+    ocp, controls, source = load_substep_controls_arg(args.controls, ocp, args.substeps)
+    return ocp, None, controls, source
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -98,8 +103,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hybridoc.evaluator import evaluate
     from hybridoc.solution import Solution
 
-    ocp = load_problem_arg(args.problem)
-    policy, controls, source = _evaluated_arg(args, ocp)
+    ocp, policy, controls, source = _evaluated_arg(args, load_problem_arg(args.problem))
     out = None if args.out is None else ensure_dir(args.out)
     try:
         ev, seconds = _timed(
@@ -126,6 +130,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "events": events,
         "sequence": ev.sequence,
         "feasible": ev.feasible,
+        "steps": ocp.steps,
+        "substeps": args.substeps or 1,
     }
     if args.json:
         emit_json(payload)
@@ -156,7 +162,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         label = (
             "initial guess"
             if args.controls is None and policy is None
-            else (f"policy {Path(args.policy).name}" if policy is not None else Path(source).name)
+            else (
+                f"policy {Path(args.policy).name}"
+                if policy is not None
+                else Path(args.controls).name
+            )
         )
         written += write_figures(ocp, ev, stem, label=label)
         for p in written:
@@ -267,6 +277,7 @@ def register(sub: Any) -> None:
     )
     problem_arg(p)
     add_controls_arg(p)
+    add_substeps_arg(p)
     p.add_argument(
         "--policy", metavar="SPEC", default=None,
         help="a feedback policy instead of controls: a TorchScript file (.pt) or "

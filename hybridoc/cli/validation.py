@@ -10,14 +10,15 @@ from typing import Any
 
 from hybridoc.cli._util import (
     add_json_out,
+    add_substeps_arg,
     emit_json,
     ensure_dir,
     exit_code,
     fmt,
     format_table,
     grid_steps,
-    load_controls_arg,
     load_problem_arg,
+    load_substep_controls_arg,
     output_stem,
     problem_arg,
     say,
@@ -123,20 +124,30 @@ def cmd_crossval(args: argparse.Namespace) -> int:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     """Judge a control file (.npy, .csv or a saved Solution) against the reference optimum."""
+    import dataclasses
+
+    import numpy as np
+
     from hybridoc.cli.evaluate import save
     from hybridoc.methods import solve
     from hybridoc.workflows.validation import validate_controls, validation_figures
 
     ocp = load_problem_arg(args.problem)
-    u, source = load_controls_arg(args.controls, ocp)
+    path = _validate_controls_path(args)
+    fine, u, source = load_substep_controls_arg(path, ocp, args.substeps)
+    k = fine.steps // ocp.steps
     out = None if args.out is None else ensure_dir(args.out)
     ref = solve(ocp, "reference")
-    report = validate_controls(ocp, u, reference=ref)
+    report = validate_controls(ocp, u, reference=ref, substeps=k)
     report["controls_file"] = source
     written: list[Path] = []
     if out is not None:
         stem = output_stem(out, ocp.name, "validate")
-        for name, fig in validation_figures(ocp, u, ref, label=Path(source).stem).items():
+        # on the controls' grid: the reference's values held over the K substeps
+        shown = ref if k == 1 else dataclasses.replace(
+            ref, controls=np.repeat(ref.controls, k, axis=0), time_grid=fine.time_grid()
+        )  # fmt: skip
+        for name, fig in validation_figures(fine, u, shown, label=path.stem).items():
             written.append(save(fig, f"{stem}_{name}.png"))
         written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
@@ -158,6 +169,18 @@ def cmd_validate(args: argparse.Namespace) -> int:
     for p in written:
         say(args, f"wrote {p}")
     return exit_code(ref.status, f"the reference itself: {ref.message}") if not ref.success else 0
+
+
+def _validate_controls_path(args: argparse.Namespace) -> Path:
+    """The controls file of ``validate``: the positional ``CONTROLS`` or ``--controls``."""
+    given = [p for p in (args.controls, args.controls_option) if p is not None]
+    if len(given) != 1:
+        raise HybridocError(
+            "give the controls file once: as CONTROLS or as --controls FILE"
+            if given
+            else "no controls file: give CONTROLS (or --controls FILE)"
+        )
+    return given[0]
 
 
 def cmd_convergence(args: argparse.Namespace) -> int:
@@ -224,9 +247,14 @@ def register(sub: Any) -> None:
     )
     problem_arg(p)
     p.add_argument(
-        "controls", metavar="CONTROLS", type=Path,
+        "controls", metavar="CONTROLS", type=Path, nargs="?", default=None,
         help=".npy or .csv (N rows, one column per control) or a saved Solution (.npz/.json)",
     )  # fmt: skip
+    p.add_argument(
+        "--controls", dest="controls_option", metavar="FILE", type=Path, default=None,
+        help="the controls file, as an option (the same as CONTROLS)",
+    )  # fmt: skip
+    add_substeps_arg(p)
     add_json_out(p, out_help="write the overlay figures and DIR/<problem>_validate.json")
     p.set_defaults(func=cmd_validate)
 

@@ -121,7 +121,11 @@ def method_entry(
 
 # ---------------------------------------------------------------------------- validate
 def validate_controls(
-    problem: ProblemLike, controls: ControlsLike, *, reference: Solution | None = None
+    problem: ProblemLike,
+    controls: ControlsLike,
+    *,
+    reference: Solution | None = None,
+    substeps: int = 1,
 ) -> dict[str, Any]:
     """Judge a user's piecewise-constant control against the reference optimum.
 
@@ -130,9 +134,16 @@ def validate_controls(
     problem
         Any problem.
     controls
-        ``(N, nu)`` array or a Solution (validated: shape, finiteness).
+        ``(N, nu)`` array or a Solution (validated: shape, finiteness); ``(N * K, nu)``
+        with ``substeps=K``.
     reference
-        The reference Solution; solved when not given.
+        The reference Solution of ``problem`` (on its own grid); solved when not given.
+    substeps
+        ``K``: the controls hold ``K`` values per grid interval (a simulator's log at ``K``
+        substeps) and are judged exactly on the ``K`` times finer grid
+        (:func:`hybridoc.io.substep_problem`); the gap is to the reference of ``problem``,
+        and the control error compares them with the reference's values held over the
+        ``K`` substeps.
 
     Returns
     -------
@@ -140,13 +151,16 @@ def validate_controls(
         ``cost``, ``terminal_cost``, ``running_cost``, ``reference_cost``,
         ``cost_gap_relative`` (``(J - J*) / J*``), ``control_error`` (``l2``, ``max``),
         ``events``, ``reference_events``, ``sequence_matches``, ``event_time_errors``,
-        ``reference_status``, ``feasible``.
+        ``reference_status``, ``feasible``, ``substeps``.
     """
+    from hybridoc.io import substep_problem
+
     ocp = as_ocp(problem)
-    u = ocp.check_controls(getattr(controls, "controls", controls))
+    fine = substep_problem(ocp, substeps)
+    u = fine.check_controls(getattr(controls, "controls", controls))
     if reference is None:
         reference = solve(ocp, "reference")
-    ev = evaluate(ocp, u)
+    ev = evaluate(fine, u)
     events = ev.event_dicts()
     cmp = event_comparison(events, reference.events)
     return {
@@ -157,12 +171,15 @@ def validate_controls(
         "reference_cost": float(reference.cost),
         "reference_status": reference.status.value,
         "cost_gap_relative": float((ev.cost - reference.cost) / abs(reference.cost)),
-        "control_error": control_errors(u, reference.controls, ocp.dt),
+        "control_error": control_errors(
+            u, np.repeat(np.asarray(reference.controls), fine.steps // ocp.steps, axis=0), fine.dt
+        ),
         "events": events,
         "reference_events": list(reference.events),
         "sequence_matches": cmp["sequence_matches"],
         "event_time_errors": cmp["time_errors"],
         "feasible": ev.feasible,
+        "substeps": fine.steps // ocp.steps,
     }
 
 
