@@ -127,6 +127,7 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
         scene, args.policy, args.samples, seed=args.seed, dataset=args.dataset,
         dataset_out=None if out is None else output_stem(out, scene.name, "dataset"),
         hold=args.hold, workers=args.workers, dask=args.dask, progress=not args.no_progress,
+        rollouts=args.rollouts,
     )  # fmt: skip
     s = report.summary
     payload = {"problem": scene.name, **report.to_json()}
@@ -197,7 +198,12 @@ def _print_policy_report(args: argparse.Namespace, scene: Scene, report: PolicyR
     rate = s["sequence_mismatch_rate"]
     pct = fmt(float("nan") if rate is None else 100 * rate, 4)
     say(args, f"events differ from the optimum in {pct}% of the draws")
-    say(args, f"rollouts   {s['rollout_time_s']:.3g} s")
+    r = s["rollouts"]
+    how = f"compiled {r['compiled']}, per-step judge {r['judge'] + r['fallback']}"
+    if r["fallback"]:
+        kinds = ", ".join(f"{k} {v}" for k, v in r["fallback_kinds"].items())
+        how += f" (of which {r['fallback']} not certified: {kinds})"
+    say(args, f"rollouts   {s['rollout_time_s']:.3g} s: {how}")
     if report.worst:
         say(args, "worst cases")
         rows = [
@@ -242,7 +248,8 @@ def register(sub: Any) -> None:
     problem_arg(p)
     p.add_argument(
         "policy", metavar="POLICY",
-        help="a TorchScript file (.pt) or path/to/file.py:name, a callable (t, state) -> u",
+        help="an MLP policy file (policy.json, runs no code), a TorchScript file (.pt) or "
+        "path/to/file.py:name, a callable (t, state) -> u",
     )  # fmt: skip
     _add_engine(p)
     p.add_argument(
@@ -252,6 +259,12 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--hold", choices=("zoh", "continuous"), default="zoh",
         help="zoh: the policy sampled at the grid times and held (default); continuous",
+    )  # fmt: skip
+    p.add_argument(
+        "--rollouts", choices=("auto", "compiled", "judge"), default="auto",
+        help="compiled: the policy compiled into the closed-loop step, each rollout certified "
+        "by the judge (an MLP policy file); judge: the per-step judge; auto (default): "
+        "compiled where possible",
     )  # fmt: skip
     add_json_out(
         p,

@@ -1,20 +1,27 @@
 """Feedback policies ``u = pi(t, s)`` from files, and their validation over a distribution.
 
-:func:`load_policy` reads a policy from a spec: a TorchScript file (``.pt``/``.pth``, read
-with :func:`torch.jit.load`) or ``path/to/file.py:name`` (a callable in a Python file; a
-name that is a class or a factory taking no arguments is not called: give the callable
-itself). The judge calls a policy with ``(t, state)`` (torch modules with float64
-tensors) and checks what it returns (:func:`hybridoc.evaluate`).
+:func:`load_policy` reads a policy from a spec: a policy file ``policy.json`` (an MLP: its
+description and weights, read without running anything, :mod:`hybridoc.workflows.policy_format`),
+a TorchScript file (``.pt``/``.pth``, read with :func:`torch.jit.load`) or
+``path/to/file.py:name`` (a callable in a Python file; a name that is a class or a factory
+taking no arguments is not called: give the callable itself). TorchScript and Python files
+run code when loaded: load them only from people you trust. A ``casadi.Function``
+``(t, s) -> u`` is a policy too. The judge calls a policy with ``(t, state)`` (torch
+modules with float64 tensors) and checks what it returns (:func:`hybridoc.evaluate`).
 
 :func:`validate_policy` judges a policy in closed loop on ``M`` draws of a scene's
 ``[distribution]`` and compares each with the exact reference of the same draw (from a
 dataset of :mod:`hybridoc.workflows.datasets`, computed when not given): the cost gap, whether the
 event sequence differs from the optimal one, the worst cases. Rollouts run in the same
-engines as datasets (a local process pool, or Dask), one chunk of draws per task.
+engines as datasets (a local process pool, or Dask), one chunk of draws per task. An MLP
+policy file or a CasADi policy is compiled into the closed-loop step and each chunk runs
+as one call, every rollout certified by the judge (:mod:`hybridoc.workflows.rollouts`);
+other policies, and rollouts the judge does not certify, go through the per-step judge.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,11 +47,13 @@ from hybridoc.workflows.datasets import (
     run_chunks,
     usable_cores,
 )
+from hybridoc.workflows.policy_format import CasadiPolicy, PolicyError, load_mlp_policy
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems import Scene
 
 __all__ = [
+    "ROLLOUTS",
     "PolicyError",
     "PolicyReport",
     "load_policy",
@@ -56,10 +65,11 @@ __all__ = [
 _TORCH_SUFFIXES = (".pt", ".pth", ".ts")
 WORST = 5
 """Worst cases listed in a report."""
-
-
-class PolicyError(HybridocError, ValueError):
-    """A policy spec that cannot be loaded (missing file, no such name, not callable)."""
+ROLLOUTS = ("auto", "compiled", "judge")
+"""How :func:`validate_policy` rolls a policy out: ``compiled`` (the policy compiled into the
+closed-loop step, each rollout certified by the judge), ``judge`` (the per-step judge), or
+``auto`` (compiled where the policy and problem allow it: an MLP policy file or a
+``casadi.Function``, zero-order hold, a problem with a closed-form flow)."""
 
 
 def load_policy(spec: Any) -> Callable[..., Any]:
@@ -68,8 +78,11 @@ def load_policy(spec: Any) -> Callable[..., Any]:
     Parameters
     ----------
     spec
+        ``path/to/policy.json`` (an MLP policy file: nothing in it runs),
         ``path/to/model.pt`` (TorchScript), ``path/to/file.py:name`` (a callable
-        ``(t, state) -> u`` in a Python file), or a callable, returned as is.
+        ``(t, state) -> u`` in a Python file), a ``casadi.Function`` ``(t, s) -> u``
+        (wrapped in a :class:`~hybridoc.workflows.policy_format.CasadiPolicy`), or another
+        callable, returned as is.
 
     Returns
     -------
@@ -79,13 +92,17 @@ def load_policy(spec: Any) -> Callable[..., Any]:
     Raises
     ------
     PolicyError
-        A missing or unreadable file, a missing name, an object that is not callable.
+        A missing or unreadable file, a policy file that does not describe a policy, a
+        missing name, an object that is not callable.
     """
+    if type(spec).__name__ == "Function" and type(spec).__module__.startswith("casadi"):
+        return CasadiPolicy(spec)
     if callable(spec) and not isinstance(spec, str | Path):
         return spec
     if not isinstance(spec, str | Path):
         raise PolicyError(
-            f"a policy is a .pt TorchScript file, path/to/file.py:name or a callable, got {spec!r}"
+            "a policy is a policy.json file, a .pt TorchScript file, path/to/file.py:name or a "
+            f"callable, got {spec!r}"
         )
     text = str(spec)
     path_text, _, name = text.rpartition(":") if ".py:" in text else (text, "", "")
@@ -94,9 +111,14 @@ def load_policy(spec: Any) -> Callable[..., Any]:
     path = Path(path_text)
     if name:
         return _load_python(path, name, text)
+    if path.suffix.lower() == ".json":
+        return load_mlp_policy(path)
     if path.suffix.lower() in _TORCH_SUFFIXES:
         return _load_torchscript(path)
-    raise PolicyError(f"policy {text!r}: expected a TorchScript file (.pt) or path/to/file.py:name")
+    raise PolicyError(
+        f"policy {text!r}: expected a TorchScript file (.pt), an MLP policy file (.json) or "
+        "path/to/file.py:name"
+    )
 
 
 def _load_torchscript(path: Path) -> Callable[..., Any]:
@@ -150,11 +172,15 @@ class PolicyReport:
         (with a successful reference as well), gap statistics ``gap_mean``,
         ``gap_median``, ``gap_p95``, ``gap_max`` (absolute, ``J_policy - J*``) and the same
         of the relative gap ``rel_gap_*`` (``(J_policy - J*) / J*``), ``sequence_mismatch_rate``,
-        ``rollout_time_s``.
+        ``rollout_time_s``, and ``rollouts``: how they ran (``mode``, the counts
+        ``compiled``, ``fallback`` and ``judge``, ``fallback_kinds``,
+        ``compiled_max_rel_diff``; :func:`validate_policy`).
     columns
         Per draw: ``index``, ``x0``, ``policy_cost``, ``reference_cost``, ``gap``,
         ``rel_gap``, ``policy_sequence``, ``reference_sequence``, ``mismatch``, ``status``
-        (``ok``, ``reference-failed``, ``rollout-failed``), ``message``.
+        (``ok``, ``reference-failed``, ``rollout-failed``), ``message``, ``rollout_path``
+        (``compiled``: certified by the judge; ``fallback``: compiled, not certified, run in
+        the per-step judge; ``judge``: the per-step judge) and ``fallback_reason``.
     worst
         The ``WORST`` largest gaps with their initial states.
     """
@@ -185,39 +211,78 @@ def _rollout_policy(key: str | None) -> Callable[..., Any]:
     return policy
 
 
-def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
-    """A worker's task: closed-loop rollouts of ``indices``."""
+_COMPILED: dict[str, Any] = {}
+
+
+def _compiled_runner(common: dict[str, Any], ctx: Any, policy: Any) -> Any:
+    """The :class:`~hybridoc.workflows.rollouts.CompiledRollouts` of a rollout task, built once
+    per process (a forked worker inherits the one :func:`validate_policy` built)."""
+    from hybridoc.workflows.rollouts import CompiledRollouts
+
+    key = json.dumps([common["dataset"], common["policy"]], sort_keys=True)
+    runner = _COMPILED.get(key)
+    if runner is None:
+        runner = CompiledRollouts(ctx.ocp, policy)
+        _COMPILED.clear()
+        _COMPILED[key] = runner
+    return runner
+
+
+def _judge_rollout(
+    ocp: Any, i: int, policy: Any, key: str | None, hold: str
+) -> tuple[float, str, str, str]:
+    """One rollout in the per-step judge: cost, sequence, status, message."""
     from hybridoc.evaluator import evaluate
 
+    try:
+        ev = evaluate(ocp, policy=policy, hold=hold)
+    except ControlsError as exc:
+        raise ControlsError(f"sample {i}: {exc}") from None
+    except SystemExit as exc:  # the user's policy ended the program: say so
+        who = "the policy" if key is None else f"policy {key!r}"
+        raise PolicyError(exit_message(who, exc, f"in the rollout of sample {i}")) from None
+    except EvaluationError as exc:
+        return np.nan, "", "rollout-failed", " ".join(str(exc).split())
+    return float(ev.cost), ",".join(ev.sequence), "ok", ""
+
+
+def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
+    """A worker's task: closed-loop rollouts of ``indices`` (compiled and certified in one
+    batch, or one by one in the per-step judge)."""
     ctx = draw_context(common["dataset"])
     key = common["policy"]
     policy = _rollout_policy(key)
+    ocps = [draw_problem(ctx, i)[1] for i in indices]
+    n = len(indices)
+    certs: list[Any] = [None] * n
+    if common.get("rollouts") == "compiled":
+        certs = _compiled_runner(common, ctx, policy).certify(ocps)
     costs, seqs, status, msgs = [], [], [], []
-    for i in indices:
-        _, ocp = draw_problem(ctx, i)
-        try:
-            ev = evaluate(ocp, policy=policy, hold=common["hold"])
-        except ControlsError as exc:
-            raise ControlsError(f"sample {i}: {exc}") from None
-        except SystemExit as exc:  # the user's policy ended the program: say so
-            who = "the policy" if key is None else f"policy {key!r}"
-            raise PolicyError(exit_message(who, exc, f"in the rollout of sample {i}")) from None
-        except EvaluationError as exc:
-            costs.append(np.nan)
-            seqs.append("")
-            status.append("rollout-failed")
-            msgs.append(" ".join(str(exc).split()))
-            continue
-        costs.append(float(ev.cost))
-        seqs.append(",".join(ev.sequence))
-        status.append("ok")
-        msgs.append("")
+    paths, reasons, kinds = [], [], []
+    diff = np.full(n, np.nan)
+    for k, (i, ocp, cert) in enumerate(zip(indices, ocps, certs, strict=True)):
+        if cert is not None and cert.evaluation is not None:
+            ev = cert.evaluation
+            row = (float(ev.cost), ",".join(ev.sequence), "ok", "")
+            paths.append("compiled")
+            diff[k] = cert.cost_rel_diff
+        else:
+            row = _judge_rollout(ocp, i, policy, key, common["hold"])
+            paths.append("judge" if cert is None else "fallback")
+        reasons.append("" if cert is None else cert.reason)
+        kinds.append("" if cert is None else cert.kind)
+        for col, v in zip((costs, seqs, status, msgs), row, strict=True):
+            col.append(v)
     return {
         "index": np.array(indices, dtype=np.int64),
         "policy_cost": np.array(costs, dtype=float),
         "policy_sequence": np.array(seqs, dtype=str),
         "rollout_status": np.array(status, dtype=str),
         "rollout_message": np.array(msgs, dtype=str),
+        "rollout_path": np.array(paths, dtype=str),
+        "fallback_reason": np.array(reasons, dtype=str),
+        "fallback_kind": np.array(kinds, dtype=str),
+        "compiled_rel_diff": diff,
     }
 
 
@@ -233,6 +298,7 @@ def validate_policy(
     workers: int | None = None,
     dask: Any = None,
     progress: ProgressLike = True,
+    rollouts: str = "auto",
 ) -> PolicyReport:
     """Judge a feedback policy against the exact references over a scene's distribution.
 
@@ -258,6 +324,11 @@ def validate_policy(
     progress
         ``True`` (a progress bar on stderr, the default), ``False``/``None`` or a
         :class:`~hybridoc.progress.Progress`: the references' stages and the rollouts done.
+    rollouts
+        One of :data:`ROLLOUTS`: ``"auto"`` (default), ``"compiled"`` (an error where the
+        policy or problem has no compiled form) or ``"judge"``. Compiled rollouts that the
+        judge does not certify run in the per-step judge; the report counts them
+        (``summary["rollouts"]``, the ``rollout_path`` column).
 
     Returns
     -------
@@ -273,6 +344,8 @@ def validate_policy(
     samples = check_count(samples, "samples", 1)
     if hold not in ("zoh", "continuous"):
         raise HybridocError(f"hold must be 'zoh' or 'continuous', got {hold!r}")
+    if rollouts not in ROLLOUTS:
+        raise HybridocError(f"rollouts must be one of {', '.join(ROLLOUTS)}, got {rollouts!r}")
     scene = distribution_scene(problem)
     seed = scene.distribution.seed if seed is None else check_count(seed, "seed", 0)
     workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
@@ -284,6 +357,7 @@ def validate_policy(
             "with dask, give the policy as a spec (model.pt or file.py:name) so that the "
             "workers can load it"
         )
+    mode = _rollout_mode(rollouts, scene, pol, hold)
     engine = {"workers": workers, "dask": dask}
     with progress_scope(progress, "validate-policy") as p:
         p.stage("references")
@@ -291,9 +365,13 @@ def validate_policy(
             scene, samples, seed, dataset, dataset_out, engine, p
         )
         scene_toml = ref_settings.get("scene", scene.to_toml())
-        common = {"dataset": _draws_spec(scene_toml, seed), "policy": spec_text, "hold": hold}
+        common = {
+            "dataset": _draws_spec(scene_toml, seed), "policy": spec_text, "hold": hold,
+            "rollouts": mode,
+        }  # fmt: skip
         roll, rollout_time = _rollouts(common, pol, samples, engine, p)
     report = _report(ref, roll, rollout_time)
+    report.summary["rollouts"] = _rollout_summary(mode, roll)
     report.settings = {
         "scene": scene.name,
         "policy": spec_text or repr(policy),
@@ -301,8 +379,44 @@ def validate_policy(
         "seed": seed,
         "hold": hold,
         "dataset": ds_path,
+        "rollouts": rollouts,
     }
     return report
+
+
+def _rollout_mode(rollouts: str, scene: Scene, policy: Any, hold: str) -> str:
+    """``"compiled"`` or ``"judge"``: what ``rollouts`` means for this policy and scene."""
+    from hybridoc.workflows.rollouts import unsupported
+
+    if rollouts == "judge":
+        return "judge"
+    why = (
+        "compiled rollouts hold the control over each grid interval: use hold='zoh'"
+        if hold != "zoh"
+        else unsupported(scene.to_ocp(), policy)
+    )
+    if why is None:
+        return "compiled"
+    if rollouts == "compiled":
+        raise PolicyError(f"no compiled rollout: {why}")
+    return "judge"
+
+
+def _rollout_summary(mode: str, roll: dict[str, np.ndarray]) -> dict[str, Any]:
+    """How the rollouts ran: ``mode``, ``compiled`` (certified compiled rollouts),
+    ``fallback`` (compiled but not certified: run in the per-step judge) with their
+    ``fallback_kinds`` counted, ``judge`` (per-step only), ``compiled_max_rel_diff``."""
+    path = roll["rollout_path"]
+    kinds, counts = np.unique(roll["fallback_kind"][path == "fallback"], return_counts=True)
+    d = roll["compiled_rel_diff"][path == "compiled"]
+    return {
+        "mode": mode,
+        "compiled": int(np.sum(path == "compiled")),
+        "fallback": int(np.sum(path == "fallback")),
+        "judge": int(np.sum(path == "judge")),
+        "fallback_kinds": {str(k): int(c) for k, c in zip(kinds, counts, strict=True)},
+        "compiled_max_rel_diff": float(np.max(d)) if d.size else None,
+    }
 
 
 def _draws_spec(scene_toml: str, seed: int) -> dict[str, Any]:
@@ -363,6 +477,7 @@ def _rollouts(
     """The rollout columns of draws ``0 .. samples - 1``, in order, and their wall time."""
     _ROLLOUT_POLICY.clear()
     _ROLLOUT_POLICY["policy" if common["policy"] is None else common["policy"]] = policy
+    _COMPILED.clear()
     parts: dict[int, dict[str, np.ndarray]] = {}
     tally = {"done": 0, "failed": 0}
     progress.stage("rollouts")
@@ -375,10 +490,15 @@ def _rollouts(
 
     t0 = time.perf_counter()
     chunks = list(iter_chunks(samples, CHUNK))
+    if common["rollouts"] == "compiled":
+        # built (its C code compiled, or loaded from the cache) here, once, and timed with
+        # the rollouts: forked workers inherit it, others load the C code from the cache
+        _compiled_runner(common, draw_context(common["dataset"]), policy)
     try:
         run_chunks(_rollout_chunk, common, chunks, on_result=on_result, **engine)
     finally:
         _ROLLOUT_POLICY.clear()
+        _COMPILED.clear()
     seconds = time.perf_counter() - t0
     roll = {k: np.concatenate([parts[c][k] for c, _ in chunks]) for k in parts[chunks[0][0]]}
     return roll, seconds
@@ -408,6 +528,8 @@ def _report(
         "mismatch": mismatch,
         "status": status.astype(str),
         "message": message.astype(str),
+        "rollout_path": roll["rollout_path"],
+        "fallback_reason": roll["fallback_reason"],
     }
 
     def stats(x: np.ndarray, prefix: str) -> dict[str, float | None]:
