@@ -2,8 +2,10 @@
 
 * :func:`guess_candidates`: the events of a simulated control (the initial guess, a
   transcription, a multi-start of the simulator), every sequence with one of them dropped,
-  and the sequence with one near-touch (a local minimum of a guard that did not fire) added.
-* :func:`enumerate_sequences`: every feasible sequence of up to ``K`` events (``--search``),
+  and the sequence with one near-touch (a local minimum of a guard that did not fire) added;
+  on a problem with modes only those whose every guard fires in its source mode.
+* :func:`enumerate_sequences`: every feasible sequence of up to ``K`` events (``--search``):
+  on a problem with modes the mode sequences (each guard fires in its source mode),
   pruned by geometry (disc scenes: a passive disc at rest takes part in no event before
   something has struck it; a passive disc cannot meet the same passive partner twice in a
   row, nor a wall twice in a row, since it moves in a straight line in between) and
@@ -99,7 +101,7 @@ def guess_candidates(ocp: HybridOCP, ev: Evaluation) -> list[list[tuple[str, flo
     out, seen = [], set()
     for c in cands:
         key = tuple(n for n, _ in c)
-        if key not in seen:
+        if key not in seen and ocp.sequence_feasible(list(key)):
             seen.add(key)
             out.append(c)
     return out
@@ -155,9 +157,11 @@ def _disc_layout(ocp: HybridOCP) -> dict[str, Any] | None:
 
 
 def _feasible(seq: Sequence[str], ocp: HybridOCP, layout: dict[str, Any] | None) -> bool:
-    """Geometric pruning (module notes); generic problems: everything is feasible."""
+    """Geometric pruning (module notes); problems with modes: each guard fires in its source
+    mode (:meth:`~hybridoc.HybridOCP.sequence_feasible`); other generic problems: everything
+    is feasible."""
     if layout is None:
-        return True
+        return ocp.sequence_feasible(list(seq))
     moving = set(layout["moving"])
     passive = layout["passive"]
     walls = layout["walls"]
