@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # pragma: no cover - what type checkers and editors see
     from hybridoc.evaluator import evaluate, gradient
     from hybridoc.events import Event
     from hybridoc.methods import solve
-    from hybridoc.ocp import Guard, HybridOCP
+    from hybridoc.ocp import Guard, HybridOCP, Mode
     from hybridoc.problem import as_ocp
     from hybridoc.problems import Disc, DiscOCP, Scene, Wall, builtin_names, load_scene
     from hybridoc.reference import solve_reference
@@ -63,6 +63,7 @@ __all__ = [
     "Guard",
     "HybridOCP",
     "HybridocError",
+    "Mode",
     "Scene",
     "SceneError",
     "SimultaneousEventError",
@@ -93,6 +94,7 @@ _EXPORTS: dict[str, str] = {
     "Guard": "hybridoc.ocp",
     "HybridOCP": "hybridoc.ocp",
     "HybridocError": "hybridoc.errors",
+    "Mode": "hybridoc.ocp",
     "Scene": "hybridoc.problems",
     "SceneError": "hybridoc.errors",
     "SimultaneousEventError": "hybridoc.errors",

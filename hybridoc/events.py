@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridoc.errors import EvaluationError, SimultaneousEventError
+from hybridoc.errors import EvaluationError, HybridocError, SimultaneousEventError
 
 __all__ = [
     "Event",
@@ -75,7 +75,10 @@ class Event:
     state_before, state_after
         ``s(gamma-)`` and ``s(gamma+)``.
     name
-        The guard's name.
+        The guard's name (for a problem with modes: the transition's).
+    mode_before, mode_after
+        For a problem with modes (:meth:`hybridoc.HybridOCP.from_modes`): the mode before and
+        after the jump; ``None`` without modes.
     """
 
     time: float
@@ -86,6 +89,8 @@ class Event:
     state_before: np.ndarray = field(repr=False)
     state_after: np.ndarray = field(repr=False)
     name: str = ""
+    mode_before: str | None = None
+    mode_after: str | None = None
 
     def __post_init__(self) -> None:
         # plain floats, so reprs and JSON read the same whatever produced them
@@ -93,13 +98,19 @@ class Event:
         object.__setattr__(self, "approach_speed", float(self.approach_speed))
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready ``{"time", "kind", "bodies", "guard"}``."""
-        return {
+        """JSON-ready ``{"time", "kind", "bodies", "guard"}``, with ``"mode_before"`` and
+        ``"mode_after"`` for a problem with modes (absent without, so that the records of
+        problems without modes stay as they were)."""
+        out: dict[str, Any] = {
             "time": float(self.time),
             "kind": self.kind,
             "bodies": list(self.bodies),
             "guard": self.name,
         }
+        if self.mode_before is not None or self.mode_after is not None:
+            out["mode_before"] = self.mode_before
+            out["mode_after"] = self.mode_after
+        return out
 
 
 def approaching(
@@ -215,7 +226,10 @@ class EventResolver:
             pending.discard(j)
             s_new = self.num.reset(j)(s)[0]
             g = self.ocp.guards[j]
-            events.append(Event(t, g.kind, g.bodies, j, float(rate[j]), s, s_new, g.name))
+            before, after = self._modes(g.name, t, s, s_new)
+            events.append(
+                Event(t, g.kind, g.bodies, j, float(rate[j]), s, s_new, g.name, before, after)
+            )
             s = s_new
             if sum(e.guard == j for e in events) > MAX_REPEATS_AT_ONE_TIME:
                 names = sorted({e.name for e in events})
@@ -234,6 +248,19 @@ class EventResolver:
                     "limit (e.g. a body squeezed between two others with restitution < 1), "
                     "which the impulsive model does not resolve in finitely many events"
                 )
+
+    def _modes(
+        self, name: str, t: float, s: np.ndarray, s_new: np.ndarray
+    ) -> tuple[str | None, str | None]:
+        """The modes before and after a jump (``None`` without modes)."""
+        if self.ocp.modes is None:
+            return None, None
+        try:
+            return self.ocp.mode_of(s), self.ocp.mode_of(s_new)
+        except HybridocError as exc:
+            raise EvaluationError(
+                f"the reset of guard {name!r} at t = {t:.9g} leaves no valid mode: {exc}"
+            ) from None
 
     def _check_commute(self, t: float, s: np.ndarray, due: list[int]) -> None:
         for ia, a in enumerate(due):

@@ -10,6 +10,22 @@ consume::
                u_min <= u(t) <= u_max           optional control bounds
                c(s(t), u(t)) >= 0               optional path constraints
 
+Modes
+    A system with discrete modes (flight and stance, a valve open or shut), each with its
+    own flow ``f_q`` and running cost ``L_q``, is the same model with one more state: the
+    last coordinate is the mode index ``q`` (a float: 0, 1, ...), constant along every flow
+    and set by the resets. :meth:`HybridOCP.from_modes` builds it from :class:`Mode` objects
+    and guards with a ``source`` and ``target`` mode: ``f = f_q`` and ``L = L_q`` are selected
+    by ``q``, and each guard fires only in its source mode. Every method (the judge, the
+    reference, the transcription, gradient descent) then solves it unchanged, and the hybrid
+    minimum principle comes out per mode: the Hamiltonian is ``L_q + lambda^T f_q`` on each
+    side of a switch, and the costate of ``q`` decouples (``dH/dq = 0`` between switches).
+    The state a user sees is ``(s, q)``, its last label ``"mode"``.
+
+What the model cannot express yet
+    Terminal constraints (only the penalty ``phi``), a free final time, static parameters,
+    flows and costs that depend on time, and resets that depend on the control.
+
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
 bouncing under gravity::
@@ -35,7 +51,8 @@ Data and structure
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -44,13 +61,33 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
 
-__all__ = ["MAX_STEPS", "Guard", "HybridOCP", "Structure", "as_float_array", "checked_steps"]
+__all__ = [
+    "MAX_STEPS",
+    "MODE_LABEL",
+    "Guard",
+    "HybridOCP",
+    "Mode",
+    "Structure",
+    "as_float_array",
+    "checked_steps",
+]
 
 MAX_STEPS = 10**6
 """The largest grid ``N`` a problem may have: a million cells (the controls alone are then
 ``16 nu`` MB, and every solver and the judge work cell by cell) is far beyond any grid the
 methods need, and a typo such as ``steps = 1e20`` fails with one clear line instead of
 exhausting memory."""
+
+MODE_LABEL = "mode"
+"""The label of the mode index, the last state coordinate of a problem with modes."""
+
+_SAME_DEPTH = 32
+"""How deep :meth:`HybridOCP.from_modes` compares the modes' expressions for equality."""
+
+_MASKED = 1.0
+"""The value of a guard outside its source mode: positive (free space, so it neither fires
+nor counts as penetrated there) and constant along every flow of those modes (a polynomial
+of degree 0, so the guard's declared ``degree`` still holds)."""
 
 
 @dataclass(frozen=True)
@@ -76,7 +113,12 @@ class Guard:
     degree
         Degree in time of ``detector`` along the flow under a constant control, if it is a
         polynomial (then events are located exactly from ``degree + 1`` samples per grid
-        interval); ``None`` for a general smooth guard.
+        interval); ``None`` for a general smooth guard. For a transition between modes: along
+        the flow of its source mode.
+    source, target
+        For a transition of a problem with modes (:meth:`HybridOCP.from_modes`): the mode in
+        which the guard can fire and the mode its reset enters; ``None`` for problems
+        without modes.
     """
 
     name: str
@@ -86,6 +128,8 @@ class Guard:
     bodies: tuple[str, ...] = ()
     detector: ca.Function | None = None
     degree: int | None = None
+    source: str | None = None
+    target: str | None = None
 
     @classmethod
     def from_expressions(
@@ -99,6 +143,8 @@ class Guard:
         bodies: Sequence[str] = (),
         detector: ca.SX | ca.MX | None = None,
         degree: int | None = None,
+        source: str | None = None,
+        target: str | None = None,
     ) -> Guard:
         """Build a guard from symbolic expressions in the state symbol ``s``."""
         tag = _casadi_name(name)
@@ -111,6 +157,49 @@ class Guard:
             bodies=tuple(bodies),
             detector=det,
             degree=degree,
+            source=source,
+            target=target,
+        )
+
+
+@dataclass(frozen=True)
+class Mode:
+    """A discrete mode of a hybrid system: its flow and its running cost.
+
+    Parameters
+    ----------
+    name
+        Unique name, e.g. ``"stance"``.
+    f
+        CasADi Function ``(s, u) -> ds/dt`` (``s`` without the mode index).
+    L
+        Running cost, ``(s, u) -> scalar``; ``None`` for none.
+    flow_map
+        Optional exact flow map of this mode, ``(s, u, h) -> (s(h), integral_0^h L dt)`` for
+        a constant control. When every mode has one, :meth:`HybridOCP.from_modes` assembles
+        the problem's closed-form flow map from them (the judge then needs no integrator).
+    """
+
+    name: str
+    f: ca.Function
+    L: ca.Function | None = None
+    flow_map: ca.Function | None = None
+
+    @classmethod
+    def from_expressions(
+        cls,
+        name: str,
+        s: ca.SX | ca.MX,
+        u: ca.SX | ca.MX,
+        f: ca.SX | ca.MX,
+        L: ca.SX | ca.MX | float | None = None,
+    ) -> Mode:
+        """Build a mode from expressions in the state symbol ``s`` and control ``u``."""
+        tag = _casadi_name(name)
+        return cls(
+            name=name,
+            f=ca.Function(f"f_{tag}", [s, u], [f]),
+            L=None if L is None else ca.Function(f"L_{tag}", [s, u], [L]),
         )
 
 
@@ -181,6 +270,10 @@ class HybridOCP:
         Problem name.
     meta
         Free-form extra information (disc scenes keep their layout here).
+    modes
+        The names of the discrete modes by index, for a problem with modes (built by
+        :meth:`from_modes`): the last state coordinate is then the mode index. ``None``
+        (default): no modes. Part of the structure, not data.
     """
 
     f: ca.Function
@@ -199,6 +292,7 @@ class HybridOCP:
     control_labels: list[str] | None = None
     name: str = "ocp"
     meta: dict[str, Any] = field(default_factory=dict)
+    modes: tuple[str, ...] | None = None
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
@@ -229,6 +323,7 @@ class HybridOCP:
         names = [g.name for g in self.guards]
         if len(set(names)) != len(names):
             raise SceneError(f"guard names must be unique: {names}")
+        self._check_modes()
         self.u_min = self._bound(self.u_min, -np.inf, "u_min")
         self.u_max = self._bound(self.u_max, np.inf, "u_max")
         if np.any(self.u_min > self.u_max):
@@ -250,6 +345,104 @@ class HybridOCP:
             if integrator:
                 self.flow_map = _integrator_flow_map(self.f, self.L)
             self.structure = Structure(integrator_flow=integrator)
+
+    def _check_modes(self) -> None:
+        """The mode names, the guards' source and target modes and the mode index of x0."""
+        with_modes = [g.name for g in self.guards if g.source is not None or g.target is not None]
+        if self.modes is None:
+            if with_modes:
+                raise SceneError(
+                    f"guard(s) {with_modes} have a source or target mode but the problem has "
+                    "no modes (build it with HybridOCP.from_modes)"
+                )
+            return
+        if isinstance(self.modes, str) or not all(isinstance(m, str) and m for m in self.modes):
+            raise SceneError(f"modes must be a sequence of non-empty names, got {self.modes!r}")
+        self.modes = tuple(self.modes)
+        if not self.modes:
+            raise SceneError("modes must name at least one mode")
+        if len(set(self.modes)) != len(self.modes):
+            raise SceneError(f"mode names must be unique: {list(self.modes)}")
+        for g in self.guards:
+            for role, m in (("source", g.source), ("target", g.target)):
+                if m is not None and m not in self.modes:
+                    raise SceneError(
+                        f"guard {g.name!r}: unknown {role} mode {m!r}; the modes are "
+                        f"{list(self.modes)}"
+                    )
+        self.mode_index(self.x0, what="x0")
+
+    def mode_index(self, state: Any, *, what: str = "state") -> int:
+        """The mode index of a state of a problem with modes (its last coordinate).
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            For a problem without modes, or an index that is not an integer or out of range.
+        """
+        if self.modes is None:
+            raise SceneError(f"{self.name}: the problem has no modes")
+        arr = np.asarray(state, dtype=float).ravel()
+        q = float(arr[-1]) if arr.size else math.nan
+        if not (math.isfinite(q) and q == round(q) and 0 <= q < len(self.modes)):
+            raise SceneError(
+                f"{what}: the mode index (the last state coordinate) must be an integer from 0 "
+                f"to {len(self.modes) - 1} (modes {list(self.modes)}), got {q!r}"
+            )
+        return int(q)
+
+    def mode_of(self, state: Any) -> str:
+        """The name of the mode of a state ``(s, q)`` (see :meth:`mode_index`)."""
+        index = self.mode_index(state)
+        assert self.modes is not None
+        return self.modes[index]
+
+    @property
+    def initial_mode(self) -> str | None:
+        """The mode of ``x0``; ``None`` without modes."""
+        return None if self.modes is None else self.mode_of(self.x0)
+
+    def modes_along(self, sequence: Any) -> list[str]:
+        """The modes an event sequence visits from the initial mode, that one first.
+
+        ``sequence`` is anything :meth:`check_sequence` takes. A guard without a target mode
+        keeps the mode.
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            For a problem without modes, an unknown guard, or a guard whose source is not
+            the mode the sequence is in at that point.
+        """
+        if self.modes is None:
+            raise SceneError(f"{self.name}: the problem has no modes")
+        names = self.check_sequence(sequence)
+        current = self.mode_of(self.x0)
+        out = [current]
+        for k, name in enumerate(names, start=1):
+            g = self.guards[self.guard_index(name)]
+            if g.source is not None and g.source != current:
+                raise SceneError(
+                    f"sequence {names}: event {k} ({name!r}) leaves mode {g.source!r}, but the "
+                    f"system is in mode {current!r} there (modes so far: {' -> '.join(out)})"
+                )
+            if g.target is not None:
+                current = g.target
+            out.append(current)
+        return out
+
+    def sequence_feasible(self, sequence: Any) -> bool:
+        """Whether an event sequence is possible mode by mode (each guard fires in its source
+        mode); always ``True`` without modes. Unknown guard names raise
+        :class:`~hybridoc.errors.SceneError`."""
+        names = self.check_sequence(sequence)
+        if self.modes is None:
+            return True
+        try:
+            self.modes_along(names)
+        except SceneError:
+            return False
+        return True
 
     def _bound(self, value: Any, default: float, what: str) -> np.ndarray:
         if value is None:
@@ -291,6 +484,143 @@ class HybridOCP:
             horizon=horizon,
             steps=steps,
             path=None if path is None else ca.Function("path", [s, u], [path]),
+            **kwargs,
+        )
+
+    @classmethod
+    def from_modes(
+        cls,
+        s: ca.SX | ca.MX,
+        u: ca.SX | ca.MX,
+        *,
+        modes: Sequence[Mode] | Mapping[str, tuple[Any, Any]],
+        transitions: Sequence[Guard],
+        initial_mode: str,
+        phi: ca.SX | ca.MX,
+        x0: Sequence[float] | np.ndarray,
+        horizon: float,
+        steps: int,
+        path: ca.SX | ca.MX | None = None,
+        state_labels: Sequence[str] | None = None,
+        **kwargs: Any,
+    ) -> HybridOCP:
+        """Build a problem with discrete modes (module notes, "Modes").
+
+        The problem's state is ``(s, q)``: ``s`` and the mode index ``q`` (a float: 0, 1,
+        ... in the order of ``modes``), constant along every flow. Its flow and running cost
+        are those of the current mode, ``f = (f_q(s, u), 0)`` and ``L = L_q(s, u)``; a
+        transition's guard is ``psi(s)`` in its source mode and ``1`` (free space) in every
+        other, and its reset is ``(g(s), index of the target)``.
+
+        Parameters
+        ----------
+        s, u
+            The state symbol (without the mode) and the control symbol.
+        modes
+            :class:`Mode` objects, or a dict ``name -> (f, L)`` of expressions in ``s`` and
+            ``u`` (``L`` may be ``None`` or ``0``), in index order.
+        transitions
+            :class:`Guard` objects with ``source`` and ``target`` mode names, ``psi`` and
+            ``reset`` functions of ``s`` (:meth:`Guard.from_expressions` with ``s``). A
+            declared ``degree`` (along the source mode's flow) is kept: outside its source
+            mode the guard is constant.
+        initial_mode
+            The mode at ``t = 0``.
+        phi
+            Terminal cost, an expression in ``s``.
+        x0
+            Initial ``s`` (without the mode index).
+        horizon, steps
+            ``T`` and ``N``.
+        path
+            Optional path constraints, an expression in ``s`` and ``u`` (``>= 0``).
+        state_labels
+            Labels of ``s``; ``"mode"`` is appended.
+        **kwargs
+            The other fields of :class:`HybridOCP` (``u_guess``, bounds, ``name``, ...);
+            not ``flow_map`` (give each :class:`Mode` its ``flow_map`` instead).
+        """
+        if "flow_map" in kwargs:
+            raise SceneError(
+                "from_modes: give each Mode its flow_map (s, u, h) -> (s(h), cost) instead of "
+                "one for the whole problem"
+            )
+        mode_list = _as_modes(modes, s, u)
+        names = [m.name for m in mode_list]
+        if len(set(names)) != len(names):
+            raise SceneError(f"mode names must be unique: {names}")
+        if initial_mode not in names:
+            raise SceneError(f"initial_mode {initial_mode!r} is not one of the modes {names}")
+        ns, nu = s.numel(), u.numel()
+        x0_s = as_float_array(x0, "x0").ravel()
+        if x0_s.size != ns:
+            raise SceneError(
+                f"x0 must give the {ns} components of s (the mode index is added from "
+                f"initial_mode), got {x0_s.size}"
+            )
+        for m in mode_list:
+            if m.f.n_in() != 2 or m.f.size1_in(0) != ns or m.f.size1_in(1) != nu:
+                raise SceneError(f"mode {m.name!r}: f must be a Function (s, u) -> ds/dt")
+            if m.f.size_out(0) != (ns, 1):
+                raise SceneError(f"mode {m.name!r}: f must return {ns} derivatives")
+        sym = ca.SX if isinstance(s, ca.SX) else ca.MX
+        x, uu = sym.sym("x", ns + 1), sym.sym("u", nu)
+        xs, q = x[:ns], x[ns]
+        index = {name: float(k) for k, name in enumerate(names)}
+
+        def select(values: list[Any]) -> Any:
+            # component by component: one that is the same expression in every mode (y' = v
+            # in flight and stance, a common running cost) stays free of the mode, so that
+            # structural checks (a control weight independent of the state) still see it
+            rows = []
+            for i in range(values[0].numel()):
+                col = [v[i] for v in values]
+                if all(ca.is_equal(c, col[0], _SAME_DEPTH) for c in col[1:]):
+                    rows.append(col[0])
+                    continue
+                # mode k where q < k + 1/2: robust to a q that an NLP moves by rounding
+                out = col[-1]
+                for k in range(len(col) - 2, -1, -1):
+                    out = ca.if_else(q < k + 0.5, col[k], out)
+                rows.append(out)
+            return ca.vertcat(*rows)
+
+        f_sel = select([m.f(xs, uu) for m in mode_list])
+        L_sel = select([sym(0.0) if m.L is None else m.L(xs, uu) for m in mode_list])
+        phi_fn = ca.Function("phi_s", [s], [phi])
+        guards = [_transition(g, x, ns, index, names) for g in transitions]
+        fm = None
+        if all(m.flow_map is not None for m in mode_list):
+            h = sym.sym("h")
+            ends = [m.flow_map(xs, uu, h) for m in mode_list]  # type: ignore[misc]
+            fm = ca.Function(
+                "flow_map",
+                [x, uu, h],
+                [ca.vertcat(select([e[0] for e in ends]), q), select([e[1] for e in ends])],
+                ["s", "u", "h"],
+                ["s_end", "cost"],
+            )
+        labels = None
+        if state_labels is not None:
+            labels = [*map(str, state_labels), MODE_LABEL]
+            if len(labels) != ns + 1:
+                raise SceneError(f"state_labels must name the {ns} components of s")
+        else:
+            labels = [f"s{i}" for i in range(ns)] + [MODE_LABEL]
+        return cls(
+            f=ca.Function("f", [x, uu], [ca.vertcat(f_sel, 0)]),
+            L=ca.Function("L", [x, uu], [L_sel]),
+            phi=ca.Function("phi", [x], [phi_fn(xs)]),
+            guards=guards,
+            x0=np.r_[x0_s, index[initial_mode]],
+            horizon=horizon,
+            steps=steps,
+            flow_map=fm,
+            path=None
+            if path is None
+            else ca.Function("path", [x, uu], [_in_state(path, s, u, xs, uu)]),
+            state_labels=labels,
+            modes=tuple(names),
             **kwargs,
         )
 
@@ -455,6 +785,59 @@ def checked_steps(steps: Any) -> int:
     if steps > MAX_STEPS:
         raise SceneError(f"steps must be at most {MAX_STEPS} (hybridoc.ocp.MAX_STEPS), got {steps}")
     return int(steps)
+
+
+def _as_modes(modes: Any, s: Any, u: Any) -> list[Mode]:
+    """``from_modes``'s modes as :class:`Mode` objects."""
+    if isinstance(modes, Mapping):
+        out = []
+        for name, spec in modes.items():
+            if not isinstance(spec, tuple | list) or len(spec) != 2:
+                raise SceneError(f"mode {name!r}: expected (f, L) expressions, got {spec!r}")
+            f, L = spec
+            out.append(Mode.from_expressions(str(name), s, u, f, None if L is None else L))
+        modes = out
+    modes = list(modes)
+    if not modes:
+        raise SceneError("from_modes needs at least one mode")
+    for m in modes:
+        if not isinstance(m, Mode):
+            raise SceneError(f"modes must be Mode objects or a dict name -> (f, L), got {m!r}")
+    return modes
+
+
+def _in_state(expr: Any, s: Any, u: Any, xs: Any, uu: Any) -> Any:
+    """An expression in ``(s, u)`` rewritten in the augmented state's ``s`` part."""
+    return ca.Function("tmp", [s, u], [expr])(xs, uu)
+
+
+def _transition(g: Guard, x: Any, ns: int, index: dict[str, float], names: list[str]) -> Guard:
+    """A transition of ``from_modes`` as a guard of the augmented state ``x = (s, q)``."""
+    if not isinstance(g, Guard):
+        raise SceneError(f"transitions must be Guard objects, got {g!r}")
+    for role, m in (("source", g.source), ("target", g.target)):
+        if m is None:
+            raise SceneError(f"transition {g.name!r} needs a {role} mode (one of {names})")
+        if m not in index:
+            raise SceneError(f"transition {g.name!r}: unknown {role} mode {m!r}; modes {names}")
+    for what, fn in (("psi", g.psi), ("reset", g.reset), ("detector", g.detector)):
+        if fn is not None and (fn.n_in() != 1 or fn.size1_in(0) != ns):
+            raise SceneError(f"transition {g.name!r}: {what} must be a Function of s ({ns})")
+    if g.reset.size_out(0) != (ns, 1):
+        raise SceneError(f"transition {g.name!r}: the reset must return the {ns} components of s")
+    xs, q = x[:ns], x[ns]
+    here = ca.fabs(q - index[g.source]) < 0.5  # type: ignore[index]
+    tag = _casadi_name(g.name)
+
+    def masked(fn: ca.Function, prefix: str) -> ca.Function:
+        return ca.Function(f"{prefix}_{tag}", [x], [ca.if_else(here, fn(xs), _MASKED)])
+
+    return dataclasses.replace(
+        g,
+        psi=masked(g.psi, "psi"),
+        reset=ca.Function(f"g_{tag}", [x], [ca.vertcat(g.reset(xs), index[g.target])]),  # type: ignore[index]
+        detector=None if g.detector is None else masked(g.detector, "det"),
+    )
 
 
 def _casadi_name(name: str) -> str:
