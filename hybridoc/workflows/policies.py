@@ -216,10 +216,11 @@ _COMPILED: dict[str, Any] = {}
 
 def _compiled_runner(common: dict[str, Any], ctx: Any, policy: Any) -> Any:
     """The :class:`~hybridoc.workflows.rollouts.CompiledRollouts` of a rollout task, built once
-    per process (a forked worker inherits the one :func:`validate_policy` built)."""
-    from hybridoc.workflows.rollouts import CompiledRollouts
+    per process and kept for the next call with the same scene and policy (a forked worker
+    inherits the one :func:`validate_policy` built)."""
+    from hybridoc.workflows.rollouts import CompiledRollouts, fingerprint
 
-    key = json.dumps([common["dataset"], common["policy"]], sort_keys=True)
+    key = json.dumps([common["dataset"], fingerprint(policy)], sort_keys=True)
     runner = _COMPILED.get(key)
     if runner is None:
         runner = CompiledRollouts(ctx.ocp, policy)
@@ -477,7 +478,6 @@ def _rollouts(
     """The rollout columns of draws ``0 .. samples - 1``, in order, and their wall time."""
     _ROLLOUT_POLICY.clear()
     _ROLLOUT_POLICY["policy" if common["policy"] is None else common["policy"]] = policy
-    _COMPILED.clear()
     parts: dict[int, dict[str, np.ndarray]] = {}
     tally = {"done": 0, "failed": 0}
     progress.stage("rollouts")
@@ -498,7 +498,6 @@ def _rollouts(
         run_chunks(_rollout_chunk, common, chunks, on_result=on_result, **engine)
     finally:
         _ROLLOUT_POLICY.clear()
-        _COMPILED.clear()
     seconds = time.perf_counter() - t0
     roll = {k: np.concatenate([parts[c][k] for c, _ in chunks]) for k in parts[chunks[0][0]]}
     return roll, seconds

@@ -61,6 +61,7 @@ __all__ = [
     "CompiledRollouts",
     "compilable",
     "closed_loop_evaluations",
+    "fingerprint",
     "unsupported",
 ]
 
@@ -78,6 +79,22 @@ def compilable(policy: Any) -> bool:
     """Whether a loaded policy can be compiled into the closed-loop step (an :class:`MLP` or
     a :class:`CasadiPolicy`)."""
     return isinstance(policy, MLP | CasadiPolicy)
+
+
+def fingerprint(policy: MLP | CasadiPolicy) -> str:
+    """A digest of everything a compiled policy is made of (architecture, normalisations,
+    weights; a CasADi policy's serialisation): equal digests, the same compiled rollout."""
+    import hashlib
+
+    h = hashlib.sha256()
+    if isinstance(policy, MLP):
+        h.update(repr(policy.description()).encode())
+        for a in (policy.parameters(), policy.state_mean, policy.state_scale,
+                  policy.output_offset, policy.output_scale):  # fmt: skip
+            h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    else:
+        h.update(policy.function.serialize().encode())
+    return h.hexdigest()
 
 
 def unsupported(ocp: HybridOCP, policy: Any) -> str | None:
