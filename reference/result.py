@@ -15,6 +15,54 @@ __all__ = ["GRAZE_FLAG", "ReferenceResult", "make_result", "reference_control"]
 
 #: approach speeds ``|d psi/dt|`` below this flag the event as grazing
 GRAZE_FLAG = 1e-6
+#: steps per phase that rebuild ``u(t)`` of a saved generic solution without ``substeps``
+LEGACY_SUBSTEPS = 64
+
+
+def _locate(
+    levels: Sequence[int], starts: np.ndarray, horizon: float, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Phase, step and time into that step of each time (generic problems' dense output)."""
+    k = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, None)
+    lengths = np.diff(np.append(starts, horizon))
+    n = np.asarray(levels, dtype=float)[k]
+    dh = lengths[k] / n
+    tau = t - starts[k]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        i = np.where(dh > 0, np.floor(tau / np.where(dh > 0, dh, 1.0)), 0.0)
+    i = np.clip(i, 0, n - 1).astype(int)
+    return k, i, tau - i * dh
+
+
+def _dense_from_nodes(
+    dense: Any,
+    nodes: Sequence[np.ndarray],
+    levels: Sequence[int],
+    starts: np.ndarray,
+    horizon: float,
+    t: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(s, lambda, u)`` at times ``t``: one DOP853 step from the node of the step that
+    holds each time. The nodes are the shooting's own, so ``u(t)`` is continuous across
+    them, and each time costs one step, not a whole phase."""
+    k, i, dt = _locate(levels, starts, horizon, t)
+    X = np.stack([nodes[a][b] for a, b in zip(k, i, strict=True)])
+    s, lam, u = dense.map(t.size)(X.T, dt)
+    return np.asarray(s).T.copy(), np.asarray(lam).T.copy(), np.asarray(u).T.copy()
+
+
+def _control_from_nodes(
+    dense: Any, nodes: Sequence[np.ndarray], levels: Sequence[int], starts: np.ndarray,
+    horizon: float,
+) -> Callable[[float], np.ndarray]:  # fmt: skip
+    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`) for the judge."""
+    starts = np.asarray(starts, dtype=float)
+
+    def u_generic(t: float) -> np.ndarray:
+        k, i, dt = _locate(levels, starts, horizon, np.array([float(t)]))
+        return np.asarray(dense(nodes[int(k[0])][int(i[0])], float(dt[0]))[2]).ravel()
+
+    return u_generic
 
 
 @dataclass
@@ -49,6 +97,15 @@ class ReferenceResult:
         True if some event has approach speed below ``GRAZE_FLAG`` in magnitude.
     path
         How Newton was started: ``"costate-estimate"``, ``"nlp"`` or ``"feasibility"``.
+    levels
+        Generic problems: the DOP853 steps of each phase (``None`` for disc scenes, whose
+        phases are exact).
+    integration_error
+        The estimated relative error of ``cost`` from the integration (step doubling; 0 for
+        disc scenes).
+    nodes
+        Generic problems: per phase, the ``(n_k + 1, 2 nx + 1)`` nodes of its steps
+        (``s``, ``lambda``, running cost), from which ``u(t)`` is rebuilt between them.
     coverage
         What the search that chose this extremal covered (the sources, the sequences
         proposed, solved and pruned, the exhaustive length, whether the budget stopped it,
@@ -79,6 +136,9 @@ class ReferenceResult:
     path: str
     system: ShootingSystem = field(repr=False)
     z: np.ndarray = field(repr=False)
+    levels: tuple[int, ...] | None = None
+    integration_error: float = 0.0
+    nodes: list[np.ndarray] | None = field(default=None, repr=False)
     coverage: dict[str, Any] | None = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ dense evaluation
@@ -118,13 +178,12 @@ class ReferenceResult:
             v = s0[:, n2:] + a0 * tt + a1 * tt**2 / 2
             lam = np.hstack([l0[:, :n2], l0[:, n2:] - l0[:, :n2] * tt])
             return np.hstack([p, v]), lam, u
-        M = t.size
-        if M == 0:
+        if t.size == 0:
             return np.zeros((0, nx)), np.zeros((0, nx)), np.zeros((0, S.nu))
-        # one mapped call for all times
-        s1, l1 = S.core.flow_fn.map(M)(self.phase_states[k].T, self.phase_costates[k].T, tau)
-        s_out, l_out = np.asarray(s1).T.copy(), np.asarray(l1).T.copy()
-        u_out = np.asarray(S.core.u_star.map(M)(s_out.T, l_out.T)).T.copy()
+        assert self.nodes is not None and self.levels is not None
+        s_out, l_out, u_out = _dense_from_nodes(
+            S.core.flow.dense, self.nodes, self.levels, self.phase_starts, self.ocp.horizon, t
+        )
         return s_out, l_out, u_out
 
     def control(self, t: float) -> np.ndarray:
@@ -136,15 +195,10 @@ class ReferenceResult:
         C = self.control_coefficients()
         starts = self.phase_starts
         if C is None:
-            S = self.system
-            flow, u_star = S.core.flow_fn, S.core.u_star
-
-            def u_generic(t: float) -> np.ndarray:
-                k = max(int(np.searchsorted(starts, t, side="right")) - 1, 0)
-                s, lam = flow(self.phase_states[k], self.phase_costates[k], t - starts[k])
-                return np.asarray(u_star(s, lam)).ravel()
-
-            return u_generic
+            assert self.nodes is not None and self.levels is not None
+            return _control_from_nodes(
+                self.system.core.flow.dense, self.nodes, self.levels, starts, self.ocp.horizon
+            )
 
         def u(t: float) -> np.ndarray:
             k = max(int(np.searchsorted(starts, t, side="right")) - 1, 0)
@@ -230,6 +284,8 @@ class ReferenceResult:
         C = self.control_coefficients()
         if C is not None:
             arrays["control_coefficients"] = C
+        if self.levels is not None:
+            arrays["substeps"] = np.asarray(self.levels, dtype=np.int64)
         base_info = {
             "residual": float(self.residual),
             "sequence": list(self.sequence),
@@ -239,6 +295,9 @@ class ReferenceResult:
             "approach_speeds": [float(a) for a in self.approach_speeds],
             "start": self.path,
         }
+        if self.levels is not None:
+            base_info["substeps"] = [int(n) for n in self.levels]
+            base_info["integration_error"] = float(self.integration_error)
         if self.coverage is not None:
             base_info["coverage"] = self.coverage
         base_info.update(info or {})
@@ -302,16 +361,17 @@ def reference_control(
         from hybridoc.problem import as_ocp
         from hybridoc.reference.shooting import shooting_system
 
-        S = shooting_system(as_ocp(problem), list(obj.info["sequence"]))
+        ocp = as_ocp(problem)
+        seq = list(obj.info["sequence"])
         starts_g = np.asarray(arrays["phase_starts"], dtype=float)
         P, L0 = np.asarray(arrays["phase_states"]), np.asarray(arrays["phase_costates"])
-
-        def u_generic(t: float) -> np.ndarray:
-            k = max(int(np.searchsorted(starts_g, t, side="right")) - 1, 0)
-            s, lam = S.core.flow_fn(P[k], L0[k], t - starts_g[k])
-            return np.asarray(S.core.u_star(s, lam)).ravel()
-
-        return u_generic, [float(t) for t in starts_g[1:]]
+        # a file from before the steps were stored: a fine fixed number (u(t) is then
+        # accurate, though not bit for bit the saved solve's)
+        levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
+        S = shooting_system(ocp, seq, levels)
+        nodes = S.nodes(starts_g, P, L0)
+        u = _control_from_nodes(S.core.flow.dense, nodes, levels, starts_g, ocp.horizon)
+        return u, [float(t) for t in starts_g[1:]]
     C = np.asarray(arrays["control_coefficients"], dtype=float)
     starts = np.asarray(arrays["phase_starts"], dtype=float)
 
@@ -323,12 +383,17 @@ def reference_control(
 
 
 # ---------------------------------------------------------------------- one sequence
-def make_result(S: ShootingSystem, nr: NewtonResult, path: str) -> ReferenceResult:
-    """The :class:`ReferenceResult` of a converged Newton point."""
+def make_result(
+    S: ShootingSystem, nr: NewtonResult, path: str, error: float = 0.0
+) -> ReferenceResult:
+    """The :class:`ReferenceResult` of a converged Newton point (``error``: the integration's
+    estimated relative cost error, :func:`~hybridoc.reference.shooting.refine`)."""
     out = S.traj(nr.z)
     starts, s0, l0, _, phiT, run, sm, lm, rates, sT, lT = out
     _, gam, pis, _ = S.unpack(nr.z)
     rates = rates.ravel()
+    levels = None if S.disc else tuple(S.levels)
+    nodes = None if S.disc else S.nodes(starts.ravel(), s0.T, l0.T)
     return ReferenceResult(
         ocp=S.ocp,
         sequence=list(S.sequence),
@@ -352,4 +417,7 @@ def make_result(S: ShootingSystem, nr: NewtonResult, path: str) -> ReferenceResu
         path=path,
         system=S,
         z=nr.z,
+        levels=levels,
+        integration_error=float(error),
+        nodes=nodes,
     )

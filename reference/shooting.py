@@ -16,7 +16,7 @@ where the phases between events carry ``(s, lambda)`` forward under ``u = argmin
 Taking ``lambda(gamma+)`` as an unknown (a light multiple shooting) avoids inverting the
 reset Jacobian, which is singular for restitution 0.
 
-Compiled once per problem structure and sequence
+Compiled once per problem structure
     The initial state and the horizon are parameters of the compiled functions, so problems
     that differ only in their data (:meth:`hybridoc.HybridOCP.replace`, a sweep over initial
     states) share them.
@@ -25,12 +25,25 @@ Phase maps
     Disc scenes integrate exactly: ``lambda_p`` is constant, ``lambda_v`` linear, hence
     ``u = -A^T lambda_v / (2 eps)`` is linear in time (``A = M^-1 B``) and the positions are
     cubic. Every other problem (its Hamiltonian quadratic in ``u``) integrates the
-    state-costate system by the classical Runge-Kutta method in SX with a fixed number of
-    sub-steps of a phase's (symbolic) length, Richardson-extrapolated from ``n`` and ``2 n``
-    sub-steps (error ``O(h^6)``). When the state-costate system is linear with a nilpotent
-    matrix (double integrators under gravity: the bouncing ball, the paddle) its solution is
-    a low-degree polynomial and the few sub-steps used are exact up to the quadrature of the
-    running cost. No CVODES sensitivity solve per Newton step.
+    state-costate system and the running cost by fixed steps of Dormand and Prince's
+    eighth-order Runge-Kutta method (DOP853's 12-stage formula, :func:`dop853_step`), ``n_k``
+    steps on phase ``k`` of its (symbolic) length. One step is compiled per problem
+    structure; a phase of ``n`` steps repeats it (``mapaccum``), so every sequence and
+    every number of steps shares it and a new sequence costs milliseconds to build. When
+    the state-costate system is linear with a nilpotent matrix (double integrators under
+    gravity: the bouncing ball, the paddle) its solution is a low-degree polynomial and one
+    step per phase is exact (the method's error terms all vanish), to rounding.
+
+Accuracy control
+    After Newton converges, :func:`refine` estimates each phase's integration error by step
+    doubling (``n_k`` against ``2 n_k`` steps from the same phase start) and weighs it by
+    what it does to the cost: the running-cost error plus ``|lambda| . |error of s|`` at the
+    phase end (the costate is the cost's sensitivity to the state). Where the sum exceeds
+    :data:`ACCURACY_SAFETY` ``* rtol * |J|``, the phases that need it get more steps (the
+    eighth order predicts how many, in powers of two), Newton polishes the point again, and
+    so on up to :data:`MAX_SUBSTEPS` steps per phase. The judge's re-simulation
+    (:func:`~hybridoc.reference.sequence.verify_reference`) is the final arbiter of ``rtol``.
+    No CVODES sensitivity solve per Newton step.
 
 Globalisation (disc scenes)
     Because the optimal control is linear in time between events, the optimum also solves a
@@ -42,6 +55,7 @@ Globalisation (disc scenes)
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import weakref
@@ -56,23 +70,45 @@ from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
+    "ACCURACY_SAFETY",
+    "DEFAULT_RTOL",
+    "MAX_SUBSTEPS",
+    "SUBSTEPS",
+    "SUBSTEPS_POLYNOMIAL",
     "NewtonResult",
+    "Refinement",
     "ShootingSystem",
+    "dop853_step",
+    "hamiltonian_check",
     "is_disc_scene",
     "newton",
+    "refine",
     "shooting_system",
-    "hamiltonian_check",
 ]
 
-RK_SUBSTEPS_POLYNOMIAL = 4
-"""Runge-Kutta sub-steps per phase for linear nilpotent state-costate systems."""
-RK_SUBSTEPS = 40
-"""Runge-Kutta sub-steps per phase otherwise (Richardson with twice as many)."""
+SUBSTEPS_POLYNOMIAL = 1
+"""DOP853 steps per phase for linear nilpotent state-costate systems (exact)."""
+SUBSTEPS = 4
+"""DOP853 steps per phase that other problems start from (:func:`refine` adds more)."""
+MAX_SUBSTEPS = 2048
+"""The most DOP853 steps :func:`refine` gives one phase. A phase that needs more is stiff
+for an explicit method (``|eigenvalue| h`` far beyond the method's stability region); the
+reference then reports that the tolerance cannot be met rather than running for minutes."""
+DEFAULT_RTOL = 1e-9
+"""The default relative agreement of the shooting cost and the judge's cost (``rtol``)."""
+ACCURACY_SAFETY = 0.1
+""":func:`refine` brings its estimate of the relative cost error below this fraction of
+``rtol``: the judge's own integration (DOP853 at 1e-12) and the estimate's first-order
+weighting get the rest."""
 
-_CORES: weakref.WeakKeyDictionary[Structure, dict[tuple[str, ...], _Core]] = (
+_CORES: weakref.WeakKeyDictionary[Structure, dict[Any, Any]] = weakref.WeakKeyDictionary()
+_FLOWS: weakref.WeakKeyDictionary[Structure, _Flow] = weakref.WeakKeyDictionary()
+# the steps per phase each sequence was last accepted at, per structure (where the next
+# solve of the same sequence starts)
+_LEVELS: weakref.WeakKeyDictionary[Structure, dict[tuple[str, ...], tuple[int, ...]]] = (
     weakref.WeakKeyDictionary()
 )
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()
 
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
@@ -125,8 +161,131 @@ class NewtonResult:
     history: list[float] = field(default_factory=list)
 
 
-class _Core:
-    """The compiled functions of one (structure, sequence); ``x0`` and ``T`` are inputs."""
+def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
+    """One step of Dormand and Prince's eighth-order Runge-Kutta method, ``(x, h) -> x(h)``.
+
+    The 12-stage formula of DOP853 (Hairer, Norsett and Wanner, *Solving Ordinary
+    Differential Equations I*, section II.10), with SciPy's coefficients, taken at a fixed
+    step: no error estimate, no step-size control (:func:`refine` does that per phase).
+
+    Parameters
+    ----------
+    rhs
+        ``x -> dx/dt`` (autonomous), SX-evaluable.
+    n
+        The dimension of ``x``.
+    """
+    # SciPy ships the tableau as module data; copying its 78 rational-looking decimals here
+    # would only add a chance of a typo (tests check the order against closed forms)
+    from scipy.integrate._ivp import dop853_coefficients as tab
+
+    stages = int(tab.N_STAGES)
+    A = np.asarray(tab.A, dtype=float)[:stages, :stages]
+    B = np.asarray(tab.B, dtype=float)[:stages]
+    x = ca.SX.sym("x", n)
+    h = ca.SX.sym("h")
+    K: list[Any] = []
+    for i in range(stages):
+        xi = x
+        for j in range(i):
+            if A[i, j] != 0.0:
+                xi = xi + (h * A[i, j]) * K[j]
+        K.append(rhs(xi))
+    inc = ca.SX.zeros(n)
+    for i in range(stages):
+        if B[i] != 0.0:
+            inc = inc + B[i] * K[i]
+    return ca.Function("dop853_step", [x, h], [x + h * inc])
+
+
+class _Flow:
+    """What every sequence of one (non-disc) structure shares: ``u* = argmin H``, the
+    state-costate right-hand side, its DOP853 step, the guards, ``phi`` and the phase maps
+    of each number of steps."""
+
+    def __init__(self, ocp: HybridOCP) -> None:
+        nx, nu = ocp.nx, ocp.nu
+        self.nx, self.nu = nx, nu
+        s = ca.SX.sym("s", nx)
+        lam = ca.SX.sym("lam", nx)
+        u = ca.SX.sym("u", nu)
+        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
+        Hu = ca.gradient(H, u)
+        Huu = ca.hessian(H, u)[0]
+        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+        self.u_star = ca.Function("u_star", [s, lam], [u_star])
+        self.H = ca.Function("H", [s, lam, u], [H])
+        self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
+        self.f = ocp.f
+        # costate flow -dH/ds at the minimising u (envelope theorem: partial at fixed u)
+        dlam = -ca.substitute(ca.gradient(H, s), u, u_star)
+        x = ca.vertcat(s, lam)
+        # the running cost rides along as a last component that nothing depends on
+        xj = ca.vertcat(x, ca.SX.sym("j"))
+        rhs = ca.vertcat(ocp.f(s, u_star), dlam, ocp.L(s, u_star))
+        self.rhs = ca.Function("hmp_rhs", [xj], [rhs])
+        self.polynomial = _nilpotent_linear(ca.vertcat(ocp.f(s, u_star), dlam), x)
+        self.start_steps = SUBSTEPS_POLYNOMIAL if self.polynomial else SUBSTEPS
+        self.width = 2 * nx + 1  # s, lambda and the running cost
+        self.step = dop853_step(self.rhs, self.width)
+        xn = ca.SX.sym("x", self.width)
+        tau = ca.SX.sym("tau")
+        xe = self.step(xn, tau)
+        se, le = xe[:nx], xe[nx : 2 * nx]
+        self.dense = ca.Function("hmp_dense", [xn, tau], [se, le, self.u_star(se, le)])
+        self.guards = []
+        for j, g in enumerate(ocp.guards):
+            psi = g.psi(s)
+            gs = g.reset(s)
+            self.guards.append(
+                ca.Function(f"ev{j}", [s], [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
+            )
+        phi = ocp.phi(s)
+        self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
+        self._maps: dict[int, tuple[ca.Function, ca.Function]] = {}
+
+    def _steps(self, n: int) -> tuple[ca.Function, ca.Function]:
+        maps = self._maps.get(n)
+        if maps is None:
+            with _LOCK:
+                maps = self._maps.get(n)
+                if maps is None:
+                    acc = self.step.mapaccum(f"hmp_steps{n}", n)
+                    nx = self.nx
+                    s0 = ca.MX.sym("s0", nx)
+                    l0 = ca.MX.sym("l0", nx)
+                    h = ca.MX.sym("h")
+                    x0 = ca.vertcat(s0, l0, ca.MX(1, 1))
+                    X = acc(x0, ca.repmat(h / n, 1, n))
+                    end = X[:, n - 1]
+                    phase = ca.Function(
+                        f"hmp_phase{n}", [s0, l0, h], [end[:nx], end[nx : 2 * nx], end[2 * nx]]
+                    )
+                    nodes = ca.Function(f"hmp_nodes{n}", [s0, l0, h], [ca.horzcat(x0, X)])
+                    maps = self._maps[n] = (phase, nodes)
+        return maps
+
+    def phase(self, n: int) -> ca.Function:
+        """``(s0, lambda0, h) -> (s, lambda, running cost)`` after ``n`` steps over ``h``."""
+        return self._steps(n)[0]
+
+    def nodes(self, n: int) -> ca.Function:
+        """``(s0, lambda0, h) -> (2 nx + 1, n + 1)``: the ``n`` steps' nodes (dense output)."""
+        return self._steps(n)[1]
+
+
+def _flow(ocp: HybridOCP) -> _Flow:
+    fl = _FLOWS.get(ocp.structure)
+    if fl is None:
+        with _LOCK:
+            fl = _FLOWS.get(ocp.structure)
+            if fl is None:
+                fl = _FLOWS[ocp.structure] = _Flow(ocp)
+    return fl
+
+
+class _CoreBase:
+    """The unknowns of one (structure, sequence) and their layout."""
 
     def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
         names = [g.name for g in ocp.guards]
@@ -141,7 +300,7 @@ class _Core:
         self.K = len(sequence)
         self.nx, self.nu = ocp.nx, ocp.nu
         self.disc = is_disc_scene(ocp)
-        self._build_pieces(ocp)
+        self.levels: tuple[int, ...] | None = None
         self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
 
@@ -156,12 +315,6 @@ class _Core:
         """Phase starts, states, costates, costs, ... of ``(z, x0, T)`` (see ``F``)."""
         return self._residual()[1]
 
-    @property
-    def flow_fn(self) -> Any:
-        """``(s, lambda)`` after time ``tau`` from ``(s0, lambda0)`` (see ``F``)."""
-        self._residual()
-        return self._flow_fn
-
     def _residual(self) -> tuple[Any, Any]:
         if self._residual_fns is None:
             ocp = self._ocp_ref()
@@ -172,84 +325,9 @@ class _Core:
                     self._residual_fns = self._build_residual(ocp)
         return self._residual_fns
 
-    # ------------------------------------------------------------------ building blocks
-    def _build_pieces(self, ocp: HybridOCP) -> None:
-        nx, nu = self.nx, self.nu
-        s = ca.SX.sym("s", nx)
-        lam = ca.SX.sym("lam", nx)
-        u = ca.SX.sym("u", nu)
-        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
-        Hu = ca.gradient(H, u)
-        Huu = ca.hessian(H, u)[0]
-        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
-        H_star = ca.substitute(H, u, u_star)
-        self.u_star = ca.Function("u_star", [s, lam], [u_star])
-        self.H = ca.Function("H", [s, lam, u], [H])
-        self.H_star = ca.Function("H_star", [s, lam], [H_star])
-        self.f = ocp.f
-        # costate flow -dH/ds at the minimising u (envelope theorem: partial at fixed u)
-        dlam = -ca.substitute(ca.gradient(H, s), u, u_star)
-        self.guard_fns = []
-        for j in self.guard_index:
-            g = ocp.guards[j]
-            psi = g.psi(s)
-            gs = g.reset(s)
-            self.guard_fns.append(
-                ca.Function(f"ev{j}", [s], [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
-            )
-        phi = ocp.phi(s)
-        self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
-        if self.disc:
-            # f = (v, A u) with constant A; L = eps |u|^2
-            self.A = np.asarray(ca.DM(ca.jacobian(ocp.f(s, u), u)))[nx // 2 :]
-            self.eps = float(ocp.meta["control_weight"])
-            return
-        x = ca.vertcat(s, lam)
-        rhs = ca.vertcat(ocp.f(s, u_star), dlam, ocp.L(s, u_star))
-        self.rhs = ca.Function("hmp_rhs", [x], [rhs])
-        self.polynomial = _nilpotent_linear(ca.vertcat(ocp.f(s, u_star), dlam), x)
-        self.substeps = RK_SUBSTEPS_POLYNOMIAL if self.polynomial else RK_SUBSTEPS
+    def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
+        raise NotImplementedError
 
-    def phase_u(self, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
-        """Disc scenes: state after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""
-        return _phase_u(self.A, self.eps, s0, c0, c1, h)
-
-    def control_coeffs(self, lam0: Any) -> tuple[Any, Any]:
-        """Disc scenes: ``u(tau) = c0 + c1 tau`` from the costate at the phase start."""
-        n2 = self.nx // 2
-        lp, lv = lam0[:n2], lam0[n2:]
-        c0 = -ca.mtimes(self.A.T, lv) / (2 * self.eps)
-        c1 = ca.mtimes(self.A.T, lp) / (2 * self.eps)
-        return c0, c1
-
-    def _rk(self, x0: Any, h: Any, n: int) -> Any:
-        z = ca.vertcat(x0, 0)
-        dh = h / n
-        nz = 2 * self.nx
-        for _ in range(n):
-            k1 = self.rhs(z[:nz])
-            k2 = self.rhs(z[:nz] + 0.5 * dh * k1[:nz])
-            k3 = self.rhs(z[:nz] + 0.5 * dh * k2[:nz])
-            k4 = self.rhs(z[:nz] + dh * k3[:nz])
-            z = z + dh / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return z
-
-    def phase(self, s0: Any, lam0: Any, h: Any) -> tuple[Any, Any, Any]:
-        """``(s, lambda, running cost)`` after a phase of length ``h`` under ``u*``."""
-        nx = self.nx
-        if self.disc:
-            n2 = nx // 2
-            c0, c1 = self.control_coeffs(lam0)
-            s1, J = self.phase_u(s0, c0, c1, h)
-            lam1 = ca.vertcat(lam0[:n2], lam0[n2:] - lam0[:n2] * h)
-            return s1, lam1, J
-        x0 = ca.vertcat(s0, lam0)
-        n = self.substeps
-        a, b = self._rk(x0, h, n), self._rk(x0, h, 2 * n)
-        z = b + (b - a) / 15  # Richardson: RK4's O(h^4) error removed
-        return z[:nx], z[nx : 2 * nx], z[2 * nx]
-
-    # ------------------------------------------------------------------ HMP residual
     @property
     def nz(self) -> int:
         """Number of unknowns."""
@@ -274,11 +352,13 @@ class _Core:
             parts += [[float(gam[k]), float(pis[k])], np.asarray(lps[k], float).ravel()]
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
+    def _assemble(self, ocp: HybridOCP, phase: Any, sym: Any) -> tuple[ca.Function, ca.Function]:
+        """The residual (with its Jacobian) and the trajectory function, from ``phase(k, s,
+        lambda, h) -> (s, lambda, running cost)`` and the symbol type ``sym``."""
         nx = self.nx
-        z = ca.SX.sym("z", self.nz)
-        x0 = ca.SX.sym("x0", nx)
-        T = ca.SX.sym("T")
+        z = sym.sym("z", self.nz)
+        x0 = sym.sym("x0", nx)
+        T = sym.sym("T")
         lam, gam, pis, lps = self.unpack(z)
         s: Any = x0
         t: Any = 0.0
@@ -288,7 +368,7 @@ class _Core:
             starts.append(t)
             s_starts.append(s)
             l_starts.append(lam)
-            sm, lm, J = self.phase(s, lam, gam[k] - t)
+            sm, lm, J = phase(k, s, lam, gam[k] - t)
             costs.append(J)
             psi, gpsi, sp, Dg = self.guard_fns[k](sm)
             lp = lps[k]
@@ -302,7 +382,7 @@ class _Core:
         starts.append(t)
         s_starts.append(s)
         l_starts.append(lam)
-        sT, lT, J = self.phase(s, lam, T - t)
+        sT, lT, J = phase(self.K, s, lam, T - t)
         costs.append(J)
         phiT, gphi = self.phi(sT)
         res.insert(0, lT - gphi)
@@ -327,12 +407,101 @@ class _Core:
                 lT,
             ],
         )
-        s0 = ca.SX.sym("s0", nx)
-        l0 = ca.SX.sym("l0", nx)
-        tau = ca.SX.sym("tau")
-        s1, l1, _ = self.phase(s0, l0, tau)
-        self._flow_fn = ca.Function("hmp_flow", [s0, l0, tau], [s1, l1])
         return F, traj
+
+
+class _DiscCore(_CoreBase):
+    """Disc scenes: the exact polynomial phases, compiled per (structure, sequence) in SX."""
+
+    def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
+        super().__init__(ocp, sequence)
+        nx, nu = self.nx, self.nu
+        s = ca.SX.sym("s", nx)
+        lam = ca.SX.sym("lam", nx)
+        u = ca.SX.sym("u", nu)
+        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
+        Hu = ca.gradient(H, u)
+        Huu = ca.hessian(H, u)[0]
+        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+        self.u_star = ca.Function("u_star", [s, lam], [u_star])
+        self.H = ca.Function("H", [s, lam, u], [H])
+        self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
+        self.f = ocp.f
+        all_guards = _disc_guard_fns(ocp, s)
+        self.guard_fns = [all_guards[j] for j in self.guard_index]
+        phi = ocp.phi(s)
+        self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
+        # f = (v, A u) with constant A; L = eps |u|^2
+        self.A = np.asarray(ca.DM(ca.jacobian(ocp.f(s, u), u)))[nx // 2 :]
+        self.eps = float(ocp.meta["control_weight"])
+
+    def phase_u(self, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
+        """State after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""
+        return _phase_u(self.A, self.eps, s0, c0, c1, h)
+
+    def control_coeffs(self, lam0: Any) -> tuple[Any, Any]:
+        """``u(tau) = c0 + c1 tau`` from the costate at the phase start."""
+        n2 = self.nx // 2
+        lp, lv = lam0[:n2], lam0[n2:]
+        c0 = -ca.mtimes(self.A.T, lv) / (2 * self.eps)
+        c1 = ca.mtimes(self.A.T, lp) / (2 * self.eps)
+        return c0, c1
+
+    def phase(self, s0: Any, lam0: Any, h: Any) -> tuple[Any, Any, Any]:
+        """``(s, lambda, running cost)`` after a phase of length ``h`` under ``u*``."""
+        n2 = self.nx // 2
+        c0, c1 = self.control_coeffs(lam0)
+        s1, J = self.phase_u(s0, c0, c1, h)
+        lam1 = ca.vertcat(lam0[:n2], lam0[n2:] - lam0[:n2] * h)
+        return s1, lam1, J
+
+    def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
+        return self._assemble(ocp, lambda k, s, lam, h: self.phase(s, lam, h), ca.SX)
+
+
+class _FlowCore(_CoreBase):
+    """Other problems: one (structure, sequence, steps per phase); the phases are the
+    structure's DOP853 maps (:class:`_Flow`), composed in MX."""
+
+    def __init__(self, ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...]) -> None:
+        super().__init__(ocp, sequence)
+        fl = _flow(ocp)
+        self.flow = fl
+        if len(levels) != self.K + 1 or any(int(n) < 1 for n in levels):
+            raise ValueError(f"steps per phase: {self.K + 1} positive integers, got {levels}")
+        self.levels = tuple(int(n) for n in levels)
+        self.u_star, self.H, self.H_star, self.f = fl.u_star, fl.H, fl.H_star, fl.f
+        self.rhs, self.polynomial, self.phi = fl.rhs, fl.polynomial, fl.phi
+        self.guard_fns = [fl.guards[j] for j in self.guard_index]
+
+    def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
+        fl = self.flow
+        return self._assemble(ocp, lambda k, s, lam, h: fl.phase(self.levels[k])(s, lam, h), ca.MX)
+
+    def phase_errors(
+        self, z: np.ndarray, x0: np.ndarray, T: float
+    ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+        """Per phase, the step-doubling estimate of the error it makes in the cost.
+
+        Returns
+        -------
+        errors, cost, starts, states, costates
+            ``|J_n - J_2n| + |lambda_end| . |s_n - s_2n|`` of each phase from its start,
+            the shooting cost, and the phase starts, states and costates.
+        """
+        out = [np.asarray(x) for x in self.traj(z, x0, T)]
+        starts, s0, l0 = out[0].ravel(), out[1], out[2]
+        cost = float(out[4].item()) + float(out[5].item())
+        lengths = np.diff(np.append(starts, T))
+        errors = np.zeros(self.K + 1)
+        for k, n in enumerate(self.levels):
+            a = [np.asarray(v).ravel() for v in self.flow.phase(n)(s0[:, k], l0[:, k], lengths[k])]
+            b = [
+                np.asarray(v).ravel()
+                for v in self.flow.phase(2 * n)(s0[:, k], l0[:, k], lengths[k])
+            ]
+            errors[k] = abs(float(a[2][0] - b[2][0])) + float(np.abs(b[1]) @ np.abs(a[0] - b[0]))
+        return errors, cost, starts, s0, l0
 
 
 class _DiscNLP:
@@ -509,14 +678,15 @@ class ShootingSystem:
         Guard names, in event order.
     """
 
-    def __init__(self, ocp: HybridOCP, sequence: list[str], core: _Core | None = None) -> None:
+    def __init__(self, ocp: HybridOCP, sequence: list[str], core: Any = None) -> None:
         self.ocp = ocp
-        self.core = core if core is not None else _Core(ocp, list(sequence))
+        self.core = core if core is not None else _core(ocp, list(sequence), None)
         self.x0 = np.asarray(ocp.x0, dtype=float)
         self.T = float(ocp.horizon)
 
     def __getattr__(self, name: str) -> Any:
-        # the core's compiled pieces (sequence, K, nx, nu, disc, A, eps, guard_fns, u_star, ...)
+        # the core's compiled pieces (sequence, K, nx, nu, disc, levels, A, eps, guard_fns,
+        # u_star, ...)
         if name == "core":
             raise AttributeError(name)
         return getattr(self.core, name)
@@ -533,10 +703,30 @@ class ShootingSystem:
         """Phase starts, states, costates, costs and the end state of a point ``z``."""
         return [np.asarray(x) for x in self.core.traj(z, self.x0, self.T)]
 
-    def flow(self, s0: np.ndarray, lam0: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
-        """Numeric ``(s, lambda)`` after time ``tau`` from the start of a phase."""
-        s1, l1 = self.core.flow_fn(s0, lam0, float(tau))
-        return np.asarray(s1).ravel(), np.asarray(l1).ravel()
+    def phase_errors(self, z: np.ndarray) -> tuple[np.ndarray, float]:
+        """Per phase, the estimated error the integration makes in the cost (step doubling,
+        module notes), and the shooting cost; zeros for disc scenes (exact phases)."""
+        if self.disc:
+            out = self.traj(z)
+            return np.zeros(self.K + 1), float(out[4].item()) + float(out[5].item())
+        errors, cost, *_ = self.core.phase_errors(z, self.x0, self.T)
+        return errors, cost
+
+    def nodes(
+        self, starts: np.ndarray, states: np.ndarray, costates: np.ndarray
+    ) -> list[np.ndarray]:
+        """Generic problems: the nodes ``(n_k + 1, 2 nx + 1)`` of each phase's steps, from the
+        phase starts, states and costates (``(K + 1,)``, ``(K + 1, nx)`` twice)."""
+        lengths = np.diff(np.append(np.asarray(starts, dtype=float), self.T))
+        fl = self.core.flow
+        return [
+            np.asarray(fl.nodes(n)(states[k], costates[k], lengths[k])).T.copy()
+            for k, n in enumerate(self.core.levels)
+        ]
+
+    def with_levels(self, levels: tuple[int, ...]) -> ShootingSystem:
+        """The same system with other numbers of steps per phase (generic problems)."""
+        return ShootingSystem(self.ocp, self.sequence, _core(self.ocp, self.sequence, levels))
 
     def solve_nlp(
         self, gamma0: np.ndarray, coeffs0: np.ndarray, max_iter: int = 100
@@ -601,19 +791,143 @@ def _nilpotent_linear(rhs: Any, x: Any) -> bool:
     return bool(np.allclose(P, 0.0, atol=1e-12 * max(1.0, float(np.abs(Mn).max()) ** 4)))
 
 
-def shooting_system(ocp: HybridOCP, sequence: list[str]) -> ShootingSystem:
-    """The system for ``(ocp, sequence)``; the compiled core is shared by every problem with
-    the same structure."""
-    key = tuple(sequence)
+def _core(ocp: HybridOCP, sequence: list[str], levels: Any) -> Any:
+    """The compiled core of ``(structure, sequence)`` (and steps per phase), shared."""
+    disc = is_disc_scene(ocp)
+    if not disc and levels is None:
+        levels = _LEVELS.get(ocp.structure, {}).get(tuple(sequence))
+        if levels is None:
+            levels = (_flow(ocp).start_steps,) * (len(sequence) + 1)
+    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels))
     cores = _CORES.setdefault(ocp.structure, {})
     core = cores.get(key)
     if core is None:
         with _LOCK:
             core = cores.get(key)
             if core is None:
-                core = _Core(ocp, list(sequence))
+                core = (
+                    _DiscCore(ocp, list(sequence))
+                    if disc
+                    else _FlowCore(ocp, list(sequence), key[1])
+                )
                 cores[key] = core
-    return ShootingSystem(ocp, list(sequence), core)
+    return core
+
+
+def shooting_system(
+    ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...] | None = None
+) -> ShootingSystem:
+    """The system for ``(ocp, sequence)``; the compiled core is shared by every problem with
+    the same structure.
+
+    Parameters
+    ----------
+    ocp, sequence
+        The problem and the guard names in event order.
+    levels
+        Generic problems: DOP853 steps on each of the ``K + 1`` phases; default: those the
+        sequence was last accepted at by :func:`refine` (for this structure), else
+        :data:`SUBSTEPS_POLYNOMIAL` or :data:`SUBSTEPS` each. Ignored for disc scenes.
+    """
+    return ShootingSystem(ocp, list(sequence), _core(ocp, list(sequence), levels))
+
+
+@dataclass
+class Refinement:
+    """Outcome of :func:`refine`."""
+
+    system: ShootingSystem
+    newton: NewtonResult
+    error: float
+    """The estimated relative error of the shooting cost (step doubling, module notes)."""
+    reason: str = ""
+    """Empty when the estimate is within the target; else why it is not."""
+
+    @property
+    def ok(self) -> bool:
+        """Whether the extremal is accurate to the target."""
+        return not self.reason
+
+
+def refine(
+    system: ShootingSystem,
+    nr: NewtonResult,
+    *,
+    rtol: float = DEFAULT_RTOL,
+    tol: float = 1e-10,
+    max_substeps: int | None = None,
+    verbose: bool = False,
+) -> Refinement:
+    """Steps per phase added until the integration's cost error is within ``rtol``.
+
+    Parameters
+    ----------
+    system, nr
+        A system and Newton's converged point on it.
+    rtol
+        The relative cost accuracy wanted; the estimate must come below
+        :data:`ACCURACY_SAFETY` times it (module notes).
+    tol
+        Newton's tolerance at each new number of steps.
+    max_substeps
+        The most steps one phase may get; default :data:`MAX_SUBSTEPS`.
+    verbose
+        Print each refinement to stderr.
+
+    Returns
+    -------
+    Refinement
+        The system and Newton point it ends at (the input for disc scenes, whose phases are
+        exact), the estimate, and ``reason`` when the target was not met: a phase would
+        need more than ``max_substeps`` steps, or Newton failed at a new number of steps.
+    """
+    S = system
+    if S.disc:
+        return Refinement(S, nr, 0.0)
+    if max_substeps is None:
+        max_substeps = MAX_SUBSTEPS
+    while True:
+        errors, cost = S.phase_errors(nr.z)
+        scale = max(abs(cost), 1e-300)
+        estimate = float(np.sum(errors)) / scale
+        target = ACCURACY_SAFETY * rtol * scale
+        levels = tuple(S.levels)
+        if not np.all(np.isfinite(errors)):
+            return Refinement(S, nr, math.inf, "the integration error estimate is not finite")
+        if float(np.sum(errors)) <= target:
+            _LEVELS.setdefault(S.ocp.structure, {})[tuple(S.sequence)] = levels
+            return Refinement(S, nr, estimate)
+        share = target / len(errors)
+        new = list(levels)
+        for k, e in enumerate(errors):
+            if e > share:
+                # eighth order: n (e / share)^(1/8) steps, in powers of two, at least twice n
+                factor = max(2.0, (e / share) ** (1 / 8))
+                new[k] = levels[k] * 2 ** math.ceil(math.log2(factor) - 1e-9)
+        if max(new) > max_substeps:
+            return Refinement(
+                S, nr, estimate,
+                f"the integration error of the cost is still {estimate:.1e} relative (rtol "
+                f"{rtol:g}) with {max(levels)} DOP853 steps on a phase, and more than "
+                f"MAX_SUBSTEPS = {max_substeps} would be needed: the state-costate flow is "
+                "too stiff for the reference's explicit integrator at this tolerance; a "
+                "looser rtol (--rtol) or method 'dt'",
+            )  # fmt: skip
+        if verbose:
+            print(
+                f"  refine {S.sequence}: cost error ~{estimate:.1e} relative (target "
+                f"{ACCURACY_SAFETY * rtol:.1e}); steps per phase {levels} -> {tuple(new)}",
+                file=sys.stderr,
+            )
+        S = S.with_levels(tuple(new))
+        nr_new = newton(S, nr.z, tol=tol, verbose=verbose)
+        if not nr_new.converged:
+            return Refinement(
+                S, nr, estimate,
+                f"Newton did not converge with {tuple(new)} steps per phase (residual "
+                f"{nr_new.residual:.2e}) while refining the integration for rtol {rtol:g}",
+            )  # fmt: skip
+        nr = nr_new
 
 
 def newton(

@@ -77,8 +77,20 @@ from hybridoc.reference.candidates import (
     lower_bound,
 )
 from hybridoc.reference.result import ReferenceResult, make_result
-from hybridoc.reference.sequence import solve_sequence, verify_reference
-from hybridoc.reference.shooting import hamiltonian_check, is_disc_scene, newton, shooting_system
+from hybridoc.reference.sequence import (
+    COST_RTOL,
+    RTOL_RANGE,
+    check_rtol,
+    judged_reference,
+    solve_sequence,
+)
+from hybridoc.reference.shooting import (
+    hamiltonian_check,
+    is_disc_scene,
+    newton,
+    refine,
+    shooting_system,
+)
 from hybridoc.reference.sources import (
     CandidateSource,
     PhaseCostates,
@@ -209,6 +221,14 @@ class ReferenceOptions:
         metavar="SECONDS",
     )
     verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
+    rtol: float = option(
+        COST_RTOL,
+        "relative accuracy of the cost: the integration of generic problems is refined until "
+        "its error estimate is within it, and the judge's re-simulation must agree to it "
+        f"(from {RTOL_RANGE[0]:g} to {RTOL_RANGE[1]:g}); default {COST_RTOL:g}",
+        parse=check_rtol,
+        metavar="RTOL",
+    )
     tol: float = option(1e-10, "max-norm of the HMP residual required", cli=False)
     verify: bool = option(
         True, "re-simulate the result with the judge (only a given sequence may skip it)",
@@ -306,6 +326,7 @@ class _Book:
     tol: float
     verbose: bool
     starters: tuple[Any, ...] = ()
+    rtol: float = COST_RTOL
     results: dict[tuple[str, ...], ReferenceResult] = field(default_factory=dict)
     reasons: dict[tuple[str, ...], str] = field(default_factory=dict)
     verdicts: dict[tuple[str, ...], tuple[bool, str]] = field(default_factory=dict)
@@ -384,7 +405,7 @@ class _Book:
             res, why = solve_sequence(
                 self.ocp, list(key), gamma0, u_guess, estimate=estimate, grad=grad,
                 guess_ev=guess_ev, starters=self.starters, tol=self.tol, verbose=self.verbose,
-                warm_start=warm_start,
+                warm_start=warm_start, rtol=self.rtol,
             )  # fmt: skip
         except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
             res, why = None, str(exc)
@@ -426,7 +447,10 @@ class _Book:
         if key not in self.verdicts:
             self.progress.stage(f"re-simulating the {len(key)}-event extremal with the judge")
             t0 = time.perf_counter()
-            ok, sim, msg = verify_reference(self.results[key])
+            res, ok, sim, msg = judged_reference(
+                self.results[key], rtol=self.rtol, tol=self.tol, verbose=self.verbose
+            )
+            self.results[key] = res  # refined where the judge asked for it
             self.verify_time += time.perf_counter() - t0
             self.verdicts[key] = (ok, msg)
             if not ok and sim is not None:
@@ -528,6 +552,7 @@ def solve_reference(
     search: int | None = None,
     budget: float = DEFAULT_BUDGET,
     verbose: bool = False,
+    rtol: float = COST_RTOL,
     tol: float = 1e-10,
     verify: bool = True,
     transcription: bool = True,
@@ -563,6 +588,14 @@ def solve_reference(
         sequences of cheaper controls met) is not cut short.
     verbose
         Print Newton's iterations and the candidates to stderr.
+    rtol
+        Relative accuracy of the cost (from 1e-12 to 1e-6; default 1e-9): on a generic
+        problem the integration of each phase is refined until its error estimate is within
+        it (:func:`~hybridoc.reference.shooting.refine`), and the judge's re-simulation of
+        the extremal's ``u(t)`` must agree with the shooting cost to it (where it does not,
+        the integration is refined further, at most
+        :data:`~hybridoc.reference.sequence.JUDGE_RETRIES` times, before a
+        :class:`~hybridoc.errors.ConvergenceError` names ``rtol``).
     tol
         Max-norm of the HMP residual required.
     verify
@@ -625,6 +658,10 @@ def solve_reference(
     t_start = time.perf_counter()
     ocp = as_ocp(problem)
     seq = _check_arguments(ocp, sequence, tol, search)
+    try:
+        rtol = check_rtol(rtol)
+    except ValueError as exc:
+        raise SceneError(str(exc)) from None
     if (
         isinstance(budget, bool)
         or not isinstance(budget, numbers.Real)
@@ -634,6 +671,7 @@ def solve_reference(
     proposers, starters, kind = _active_sources(sources, transcription, multistart)
     run = _Run(
         seq=seq, initial=initial, search=search, budget=float(budget), verbose=verbose, tol=tol,
+        rtol=rtol,
         verify=verify,
         transcription=transcription, multistart=multistart, sources=sources,
         proposers=proposers, starters=starters, kind=kind, t_start=t_start,
@@ -652,6 +690,7 @@ class _Run:
     budget: float
     verbose: bool
     tol: float
+    rtol: float
     verify: bool
     transcription: bool
     multistart: int
@@ -665,7 +704,8 @@ class _Run:
         """The options of a second run of the same problem (the search without a given
         sequence)."""
         return dict(
-            initial=self.initial, verbose=self.verbose, tol=self.tol, budget=self.budget,
+            initial=self.initial, verbose=self.verbose, tol=self.tol, rtol=self.rtol,
+            budget=self.budget,
             transcription=self.transcription, multistart=self.multistart, sources=self.sources,
         )  # fmt: skip
 
@@ -755,7 +795,7 @@ def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
     guess = _Guess(u_used, ev, grad, given or grad is not None)
     book = _Book(
-        ocp, run.tol, run.verbose, run.starters, progress=progress,
+        ocp, run.tol, run.verbose, run.starters, run.rtol, progress=progress,
         deadline=run.t_start + run.budget,
     )  # fmt: skip
     book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
@@ -1072,8 +1112,8 @@ def _finish(
         )
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
     sol.settings = {
-        "tol": run.tol, "sequence": run.seq, "search": run.search, "multistart": run.multistart,
-        "budget": run.budget,
+        "tol": run.tol, "rtol": run.rtol, "sequence": run.seq, "search": run.search,
+        "multistart": run.multistart, "budget": run.budget,
     }  # fmt: skip
     sol.timings = {"solve_time_s": time.perf_counter() - run.t_start, **sol.timings}
     return sol.set_status(status, message)
@@ -1267,18 +1307,27 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 _SEARCH_STATE: dict[str, Any] = {}
 
 
-def _search_one(seq: list[str]) -> tuple[list[str], np.ndarray | None, str, float]:
+_Outcome = tuple[list[str], np.ndarray | None, tuple[int, ...] | None, str, float]
+
+
+def _search_one(seq: list[str]) -> _Outcome:
     """A worker: Newton from the disc NLP (or the transcription) for one sequence."""
-    ocp, u0, ev, tol, starters = (_SEARCH_STATE[k] for k in ("ocp", "u0", "ev", "tol", "starters"))
+    ocp, u0, ev, tol, rtol, starters = (
+        _SEARCH_STATE[k] for k in ("ocp", "u0", "ev", "tol", "rtol", "starters")
+    )
     t0 = time.perf_counter()
     try:
         res, why = solve_sequence(
             ocp, seq, guess_times(ocp, seq, ev), u0, estimate=False,
             guess_ev=None if is_disc_scene(ocp) else ev, starters=starters, tol=tol, screen=True,
+            rtol=rtol,
         )  # fmt: skip
     except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
         res, why = None, str(exc)
-    return seq, (None if res is None else res.z), why, time.perf_counter() - t0
+    if res is None:
+        return seq, None, None, why, time.perf_counter() - t0
+    # the steps per phase travel with the point: a worker's cache is not the parent's
+    return seq, res.z, res.levels, why, time.perf_counter() - t0
 
 
 def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
@@ -1342,8 +1391,8 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
             deadline=book.deadline if bounded else None,
         )  # fmt: skip
         solved += len(outcomes)
-        for seq, z, why, took in outcomes:
-            _record(ocp, book, seq, z, why, took)
+        for seq, z, levels, why, took in outcomes:
+            _record(ocp, book, seq, z, levels, why, took)
         if len(outcomes) < len(todo):
             book.budget_stopped = True
             book.say(
@@ -1361,10 +1410,16 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
 
 
 def _record(
-    ocp: HybridOCP, book: _Book, seq: list[str], z: np.ndarray | None, why: str, took: float
+    ocp: HybridOCP,
+    book: _Book,
+    seq: list[str],
+    z: np.ndarray | None,
+    levels: tuple[int, ...] | None,
+    why: str,
+    took: float,
 ) -> None:
     """One enumerated sequence's outcome: its extremal (Newton polishes the worker's point
-    here, in one step) or the reason it has none."""
+    here, in one step, at the worker's steps per phase) or the reason it has none."""
     key = tuple(seq)
     book.origins.setdefault(key, "enumeration")
     book.times[key] = book.times.get(key, 0.0) + took
@@ -1373,13 +1428,18 @@ def _record(
         book.say(f"{seq} (enumeration): {why}")
         book.from_known(key)
         return
-    S = shooting_system(ocp, seq)
+    S = shooting_system(ocp, seq, levels)
     nr = newton(S, z, tol=book.tol)
     if not nr.converged:
         book.reasons[key] = f"Newton from the enumeration's point: residual {nr.residual:.2e}"
         book.from_known(key)
         return
-    book.results[key] = make_result(S, nr, "search")
+    ref = refine(S, nr, rtol=book.rtol, tol=book.tol, verbose=book.verbose)
+    if not ref.ok:
+        book.reasons[key] = ref.reason
+        book.from_known(key)
+        return
+    book.results[key] = make_result(ref.system, ref.newton, "search", ref.error)
     book.say(f"{seq} (enumeration): cost {book.results[key].cost:.12g}")
 
 
@@ -1391,7 +1451,7 @@ def _search_outcomes(
     ev: Evaluation,
     *,
     deadline: float | None = None,
-) -> list[tuple[list[str], np.ndarray | None, str, float]]:
+) -> list[_Outcome]:
     """:func:`_search_one` on the sequences of ``todo`` in order, counted on
     ``book.progress``; with a ``deadline`` (``time.perf_counter()``), no sequence starts
     after it (the outcomes then stop short of ``todo``)."""
@@ -1401,9 +1461,11 @@ def _search_outcomes(
     def spent() -> bool:
         return deadline is not None and time.perf_counter() >= deadline
 
-    _SEARCH_STATE.update(ocp=ocp, u0=u0, ev=ev, tol=book.tol, starters=book.starters)
+    _SEARCH_STATE.update(
+        ocp=ocp, u0=u0, ev=ev, tol=book.tol, rtol=book.rtol, starters=book.starters
+    )
     workers = min(usable_cores(), MAX_WORKERS)
-    outcomes: list[tuple[list[str], np.ndarray | None, str, float]] = []
+    outcomes: list[_Outcome] = []
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:

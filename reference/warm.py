@@ -18,8 +18,8 @@ from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.candidates import enumerate_sequences, lower_bound
 from hybridoc.reference.result import ReferenceResult, make_result
-from hybridoc.reference.sequence import verify_reference
-from hybridoc.reference.shooting import newton, shooting_system
+from hybridoc.reference.sequence import COST_RTOL, judged_reference
+from hybridoc.reference.shooting import newton, refine, shooting_system
 
 __all__ = ["CONTINUATION", "SCREEN_RTOL", "warm_extremal"]
 
@@ -68,6 +68,7 @@ def warm_extremal(
     tol: float,
     start_x0: np.ndarray | None = None,
     continuation: Sequence[int] = CONTINUATION,
+    rtol: float = COST_RTOL,
 ) -> tuple[ReferenceResult | None, str]:
     """The verified extremal of ``sequence`` from the shooting unknowns ``z``, or why not.
 
@@ -88,6 +89,8 @@ def warm_extremal(
         steps.
     continuation
         The numbers of continuation steps to try, in turn.
+    rtol
+        The relative accuracy of the cost (as :func:`~hybridoc.reference.solve_reference`'s).
 
     Returns
     -------
@@ -99,8 +102,12 @@ def warm_extremal(
     S, nr = _newton_with_continuation(ocp, sequence, z, tol, start_x0, continuation)
     if not nr.converged:
         return None, f"Newton from the nominal point: residual {nr.residual:.2e}"
-    res = make_result(S, nr, "warm")
-    ok, _, msg = verify_reference(res)
+    ref = refine(S, nr, rtol=rtol, tol=tol)
+    if not ref.ok:
+        return None, ref.reason
+    res, ok, _, msg = judged_reference(
+        make_result(ref.system, ref.newton, "warm", ref.error), rtol=rtol, tol=tol
+    )
     if not ok:
         return None, msg
     bound = res.cost * (1 - SCREEN_RTOL)

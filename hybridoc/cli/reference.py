@@ -47,7 +47,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve_reference(
         ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
-        budget=args.budget, progress=True,
+        budget=args.budget, rtol=args.rtol, progress=True,
     )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
@@ -173,6 +173,7 @@ def register(sub: Any) -> None:
 
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
+    from hybridoc.reference.sequence import COST_RTOL, RTOL_RANGE, check_rtol
     from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH, parse_budget
 
     problem_arg(p)
@@ -200,8 +201,21 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
         "the enumeration of sequences stops when it is spent and the coverage line says "
         f"so (default {DEFAULT_BUDGET:g})",
     )
+    p.add_argument(
+        "--rtol",
+        metavar="RTOL",
+        type=option_type(check_rtol, "rtol"),
+        default=COST_RTOL,
+        help="relative accuracy of the cost: the integration of a generic problem is refined "
+        "until its error estimate is within it, and the judge's re-simulation must agree to "
+        f"it (from {RTOL_RANGE[0]:g} to {RTOL_RANGE[1]:g}; default {COST_RTOL:g})",
+    )
     add_initial_arg(p)
-    p.add_argument("--verbose", action="store_true", help="print Newton's iterations to stderr")
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="print Newton's iterations and the integration's refinements to stderr",
+    )
     add_json_out(
         p,
         out_help="write DIR/<problem>_reference.npz + .json and three figures (four with "
