@@ -1,25 +1,31 @@
 """``hybridoc gradcheck`` and ``hybridoc compare-contacts``: the contact models side by side
-(the library functions are in :mod:`hybridoc.solvers.gradcheck`)."""
+(the library functions are in :mod:`hybridoc.solvers.gradcheck`), and ``gradcheck --against``:
+any simulator's gradient against the exact one (:mod:`hybridoc.workflows.gradcompare`)."""
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
+    add_controls_arg,
     add_json_out,
+    add_substeps_arg,
     disc_scene_of,
     emit_json,
     ensure_dir,
     fmt,
     format_table,
     load_problem_arg,
+    load_substep_controls_arg,
     nonnegative_int,
     output_stem,
     positive_float,
     problem_arg,
     say,
+    to_jsonable,
 )
 from hybridoc.errors import HybridocError, SceneError
 
@@ -45,18 +51,29 @@ def _int_list(text: str) -> list[int]:
 
 
 def cmd_gradcheck(args: argparse.Namespace) -> int:
-    """Compare each contact model's gradient with the exact gradient of the continuous cost.
+    """Compare each contact model's gradient with the exact gradient of the continuous cost,
+    or (--against) any simulator's gradient.
 
     For every contact model and every point (the initial guess and iterates of the paper's
     plain gradient descent), the relative errors ||g_sim - g_exact|| / ||g_exact|| of the
-    gradient with respect to the initial positions, the initial velocities and the controls.
+    gradient with respect to the initial positions, the initial velocities and the controls
+    (disc scenes). With --against GRAD (.npy or .csv, N x nu or N*nu values), that gradient
+    of the cost with respect to the controls (--controls, default the initial guess) against
+    the exact adjoint on any problem: cosine, relative error, per control component, and per
+    part of the grid split by the judge's events.
     """
+    if args.against is not None:
+        return _gradcheck_against(args)
+    given = [f for f, v in (("--controls", args.controls), ("--substeps", args.substeps),
+                            ("--out", args.out)) if v is not None]  # fmt: skip
+    if given:
+        raise HybridocError(f"{', '.join(given)} applies to --against only")
     import hybridoc
     from hybridoc.solvers.gradcheck import gradcheck_points, gradient_errors, parse_models
 
     scene = disc_scene_of(load_problem_arg(args.problem), "gradcheck")
     models = parse_models(args.models)
-    gd_iters = _int_list(args.gd_iters)
+    gd_iters = _int_list("20,100" if args.gd_iters is None else args.gd_iters)
     t0 = time.perf_counter()
     say(args, f"gradcheck {scene.name}: finding the points (plain gd, direct/both) ...")
     points = gradcheck_points(scene, gd_iters)
@@ -107,6 +124,75 @@ def cmd_gradcheck(args: argparse.Namespace) -> int:
     )
     print(f"({elapsed:.1f} s)")
     return 0
+
+
+def _gradcheck_against(args: argparse.Namespace) -> int:
+    """``gradcheck --against``: an external gradient against the exact adjoint."""
+    from hybridoc.cli.evaluate import save
+    from hybridoc.io import read_array
+    from hybridoc.workflows.gradcompare import GradientError, compare_gradient, gradient_figure
+
+    flags = (("--models", args.models), ("--gd-iters", args.gd_iters))
+    wrong = [f for f, v in flags if v is not None]
+    if wrong:
+        raise HybridocError(f"{', '.join(wrong)} compare contact models: not with --against")
+    base = load_problem_arg(args.problem)
+    ocp, u, source = load_substep_controls_arg(args.controls, base, args.substeps)
+    k = ocp.steps // base.steps
+    given = read_array(
+        args.against, what="gradient", labels=ocp.control_labels, error=GradientError
+    )
+    out = None if args.out is None else ensure_dir(args.out)
+    try:
+        cmp = compare_gradient(base, given, u, substeps=k, flag="--substeps")
+    except GradientError as exc:
+        raise GradientError(f"gradient file {str(args.against)!r}: {exc}") from None
+    report = {"gradient_file": str(args.against), "controls": source, **cmp.to_dict()}
+    written: list[Path] = []
+    if out is not None:
+        stem = output_stem(out, ocp.name, "gradcheck")
+        written.append(save(gradient_figure(cmp, label=args.against.stem), f"{stem}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
+    if args.json:
+        emit_json(report)
+    else:
+        say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})")
+        say(args, f"controls  {source}")
+        say(args, f"gradient  {args.against}")
+        say(args, f"cost      {cmp.cost!r}")
+        say(args, f"events    {_events_line(cmp.events)}")
+        say(args, "")
+        rows = []
+        for part in [cmp.overall, *cmp.components, *cmp.phases]:
+            rows.append(
+                [
+                    part.name, part.cells, fmt(part.exact_norm, 4), fmt(part.given_norm, 4),
+                    fmt(part.cosine, 6), fmt(part.relative_error, 4), fmt(part.max_abs_error, 4),
+                    f"{100 * part.error_share:.1f}%",
+                ]
+            )  # fmt: skip
+        headers = ["entries", "cells", "|exact|", "|given|", "cosine", "rel. error", "max |err|"]
+        headers.append("share of err^2")
+        say(args, format_table(headers, rows, right=[False] + [True] * 7))
+        say(args, "rel. error: |given - exact| / |exact| over the entries; exact: the adjoint of")
+        say(args, "the continuous cost (hybridoc gradient); cells split by the judge's events.")
+    for p in written:
+        say(args, f"wrote {p}")
+    return 0
+
+
+def _events_line(events: list[dict[str, Any]]) -> str:
+    return ", ".join(f"{e['guard']}@{e['time']:.6g}" for e in events) or "none"
+
+
+def _write_json(path: Path, obj: Any) -> Path:
+    import json
+
+    try:
+        path.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    return path
 
 
 def _learning_curves(scene: Scene, sols: dict[str, Solution]) -> Figure:
@@ -259,13 +345,22 @@ def _model_names() -> str:
 
 def _gradcheck_arguments(p: argparse.ArgumentParser) -> None:
     problem_arg(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_json_out(
+        p, out_help="with --against: write DIR/<problem>_gradcheck.json and its figure (.png)"
+    )
     p.add_argument(
         "--gd-iters",
-        default="20,100",
+        default=None,
         metavar="K,K",
         help="also compare at these iterates of the paper's plain gd (default 20,100; '' none)",
     )
+    p.add_argument(
+        "--against", metavar="GRAD", type=Path, default=None,
+        help="instead of the contact models: this gradient dJ/du (.npy or .csv; N x nu, or N*nu "
+        "values row by row) from any simulator, against the exact adjoint (any problem)",
+    )  # fmt: skip
+    add_controls_arg(p)
+    add_substeps_arg(p)
     p.add_argument(
         "--models", default=None, metavar="M,M",
         help=f"subset, e.g. direct/none,lcp/both,pbd (models: {_model_names()})",
