@@ -441,9 +441,10 @@ def trajectory_figure(comparison: TrajectoryComparison, *, label: str = "given")
     order = np.argsort(-err.max(axis=0))
     shown = order if err.shape[1] <= 8 else order[:6]
     ax = axes[0]
+    # the norm underneath: where one component carries the error, its line lies on top
+    ax.semilogy(c.times, np.maximum(c.error_norm, floor), color="0.75", lw=3.5, label="norm")
     for j in sorted(shown):
         ax.semilogy(c.times, np.maximum(err[:, j], floor), lw=1.0, label=c.state_labels[j])
-    ax.semilogy(c.times, np.maximum(c.error_norm, floor), color="k", lw=1.6, label="norm")
     ax.set_ylabel(f"|{label} - judge|")
     ax.legend(fontsize=7, ncol=3, loc="best")
     if panels == 2:
