@@ -107,24 +107,29 @@ for label, text in [("exported", exported), ("default", default)]:
 #
 # The exact optimum, run in MuJoCo
 # --------------------------------
-# The reference gives the exact optimum (tutorial 1 shows that its search finds this
-# one-event sequence; naming the sequence here saves the search). Run in the exported
-# model, the same control costs a little more: MuJoCo's Euler step ends positions
-# :math:`O(h)` away from the exact flow, and its contact is slightly compliant. With
-# MuJoCo's default contact the bounce is too weak and the cost is far off.
+# The reference gives the exact optimum :math:`J^*` (tutorial 1 shows that its search finds
+# this one-event sequence; naming the sequence here saves the search). Its control is a
+# function of time; ``optimum.controls`` are its values on the grid, which cost a little
+# more when held over each interval. Run in the exported model, those values cost a little
+# more again: MuJoCo's Euler step ends positions :math:`O(h)` away from the exact flow, and
+# its contact is slightly compliant. With MuJoCo's default contact the bounce is too weak
+# and the cost is far off.
 optimum = hybridoc.solve(problem, "reference", sequence=["ball1|ball2"])
+sampled = hybridoc.evaluate(problem, optimum.controls)
 in_mujoco = model.rollout(optimum.controls)
 file = Path(tempfile.mkdtemp()) / "default.xml"
 file.write_text(re.sub(r'\s+sol(ref|imp)="[^"]*"', "", xml))
 default_cost = load_model(scene, xml=file).cost(optimum.controls)
-print(f"exact optimum (judge)      {optimum.cost:.6f}")
+for label, cost in [
+    ("the exact optimum J*", optimum.cost),
+    ("its grid values, judged", sampled.cost),
+    ("its grid values in MuJoCo", in_mujoco.cost),
+    ("the same with MuJoCo's default contact", default_cost),
+]:
+    print(f"{label:>38}  {cost:.6f}  ({100 * (cost / optimum.cost - 1):+.2f}% vs J*)")
 print(
-    f"the same control in MuJoCo {in_mujoco.cost:.6f} "
-    f"({100 * (in_mujoco.cost / optimum.cost - 1):+.2f}%)"
+    f"ball2 at T: MuJoCo {in_mujoco.states[-1, 2:4]}, judge {sampled.final_state[2:4]}"
 )
-print(f"with MuJoCo's default contact {default_cost:.6f}")
-exact_end = hybridoc.evaluate(problem, optimum.controls).final_state
-print(f"ball2 at T: MuJoCo {in_mujoco.states[-1, 2:4]}, exact {exact_end[2:4]}")
 
 # %%
 # Optimise in MuJoCo
@@ -256,7 +261,7 @@ ax.legend()
 summary = [
     ("energy ratio of a head-on bounce, MuJoCo's default contact", energy["default"]),
     ("energy ratio of a head-on bounce, exported contact", energy["exported"]),
-    ("MuJoCo's cost of the exact optimum / the optimum", in_mujoco.cost / optimum.cost),
+    ("MuJoCo's cost of the optimum's grid values / J*", in_mujoco.cost / optimum.cost),
     ("the same with MuJoCo's default contact", default_cost / optimum.cost),
     (
         "judged cost of MuJoCo's L-BFGS control / the optimum",
@@ -270,8 +275,11 @@ width = max(len(k) for k, _ in summary)
 print("\n".join(f"{k.ljust(width)}  {v:.4f}" for k, v in summary))
 
 # %%
-# A control logged from MuJoCo at its own steps (``N K`` rows, one per ``d.ctrl``) is
-# judged the same way on the finer grid. Whatever simulator produced a control, the judge
-# says what it is worth; here it says that MuJoCo's optimiser stopped a few percent above
-# the optimum, that MuJoCo's own cost hides part of that gap, and that the reason is in
-# its gradient, not in its optimiser.
+# The command line does the same with files. ``hybridoc evaluate single-collision
+# --controls ctrl.npy --substeps 10`` judges a control logged from MuJoCo at its own steps
+# (``N K`` rows, one per ``d.ctrl``) exactly on the finer grid, and ``hybridoc gradcheck
+# single-collision --against grad.npy`` reports the cosine and the errors of any
+# simulator's gradient against the exact one, before and after each event. Whatever
+# simulator produced a control, the judge says what it is worth; here it says that
+# MuJoCo's optimiser stopped a few percent above the optimum, that MuJoCo's own cost hides
+# part of that gap, and that the reason is in MuJoCo's gradient, not in the optimiser.
