@@ -78,10 +78,10 @@ DEFAULT_SUBSTEPS = 10
 grid (``h = 1 / 4800``), ``sqrt(k) h = 0.21``, about 15 steps per contact."""
 
 IMPEDANCE = 0.9999
-"""MuJoCo's constraint impedance ``d`` (``solimp = (d, d, ...)``), constant and as close to
-MuJoCo's largest value 0.9999 as allowed: the share ``1 - d`` of the forces that the contact
-lets through along its normal is 1e-4, and ``solref``'s stiffness and damping are then the
-contact's own (MuJoCo divides them by ``dmax``)."""
+"""MuJoCo's constraint impedance ``d`` (``solimp = (d, d, ...)``): constant, at MuJoCo's
+largest value. Along a contact's normal the share ``1 - d`` of the other forces (1e-4) goes
+through, and ``solref``'s stiffness and damping are the contact's own (MuJoCo divides them
+by ``dmax``, here ``d``)."""
 
 _MAX_WH = 1.0  # sqrt(k) h above this: fewer than pi steps per contact
 _MAX_BH = 1.0  # b h above this: the explicit damping overshoots within one step
