@@ -55,6 +55,12 @@ def test_export_loads_with_the_scene_s_data():
     assert np.array_equal(m.qpos0, scene.initial_state()[:4])
 
 
+def test_free_text_names_are_escaped():
+    scene = dataclasses.replace(load_scene("head-on"), name='a "b" & <c> -- d')
+    m = mujoco.MjModel.from_xml_string(mj.scene_to_mjcf(scene))
+    assert m.nu == 2
+
+
 def test_walls_are_planes_on_the_free_side():
     scene = load_scene("damped-walls")
     m = mujoco.MjModel.from_xml_string(mj.scene_to_mjcf(scene))

@@ -45,6 +45,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -319,7 +320,7 @@ def scene_to_mjcf(
     e = scene.restitution
     d = repr(IMPEDANCE)
     lines = [
-        f'<mujoco model="{scene.name}">',
+        f"<mujoco model={quoteattr(scene.name)}>",
         "  <!-- Exported by hybridoc from the disc scene "
         f"{_xml_comment(scene.name)}: T = {_num(scene.horizon)}, N = {scene.steps}, "
         f"{substeps} MuJoCo step(s) per control interval.",
