@@ -387,10 +387,10 @@ def validate_policy(
 
 def _rollout_mode(rollouts: str, scene: Scene, policy: Any, hold: str) -> str:
     """``"compiled"`` or ``"judge"``: what ``rollouts`` means for this policy and scene."""
-    from hybridoc.workflows.rollouts import unsupported
+    from hybridoc.workflows.rollouts import compilable, unsupported
 
-    if rollouts == "judge":
-        return "judge"
+    if rollouts == "judge" or (rollouts == "auto" and not compilable(policy)):
+        return "judge"  # without compiling the scene to find out
     why = (
         "compiled rollouts hold the control over each grid interval: use hold='zoh'"
         if hold != "zoh"
