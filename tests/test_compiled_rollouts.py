@@ -140,6 +140,32 @@ def test_unresolved_cells_are_flagged() -> None:
     assert raw["untrusted"].all()
 
 
+def test_two_events_in_one_cell_sharing_a_disc() -> None:
+    # three-disc-chain with the end disc 5e-5 from the middle one: the striker hits the
+    # middle disc, which hits the end disc within the same cell. The compiled step resolves
+    # both in order with max_events >= 2; with one event per cell it flags the cell, and the
+    # per-step judge runs instead
+    ocp = as_ocp("three-disc-chain")
+    x0 = ocp.x0.copy()
+    x0[4:6] = x0[2:4] + [0.40005, 0.01]  # end = middle + (sum of radii + 5e-5, 0.01)
+    ocp = ocp.replace(x0=x0)
+    t, s = ca.SX.sym("t"), ca.SX.sym("s", ocp.nx)
+    pol = CasadiPolicy(ca.Function("push", [t, s], [ca.vertcat(3.0 - 0.5 * s[6], 0.0)]))
+    ref = per_step(ocp, x0, pol)
+    assert [e.name for e in ref.events[:2]] == ["striker|middle", "middle|end"]
+    assert int(ref.events[0].time / ocp.dt) == int(ref.events[1].time / ocp.dt)
+    evs, certs = closed_loop_evaluations(
+        ocp, pol, x0[None], compiled=CompiledRollouts(ocp, pol, batch=1, compile=False)
+    )
+    assert certs[0].evaluation is not None, certs[0].reason
+    assert abs(certs[0].compiled_cost - ref.cost) <= RTOL * ref.cost
+    assert evs[0].sequence == ref.sequence
+    one = CompiledRollouts(ocp, pol, max_events=1, batch=1, compile=False)
+    evs, certs = closed_loop_evaluations(ocp, pol, x0[None], compiled=one)
+    assert certs[0].evaluation is None and certs[0].kind == "unresolved"
+    assert evs[0].cost == ref.cost
+
+
 def test_unsupported_policies_and_problems() -> None:
     ocp = as_ocp("single-collision")
     with pytest.raises(PolicyError, match="only an MLP policy file"):
