@@ -209,6 +209,13 @@ def test_round_trip_from_torch_mlp_policy(tmp_path: Path) -> None:
     # saving the loaded policy again writes the same arrays
     again = load_mlp_policy(save_mlp_policy(pol, tmp_path / "again.json"))
     assert np.array_equal(again.parameters(), pol.parameters())
+    # and back to a trainable module with the same numbers
+    back = pol.to_torch()
+    with torch.no_grad():
+        got = back(torch.as_tensor(t), torch.as_tensor(S)).numpy()
+    assert np.array_equal(got, want)
+    with pytest.raises(PolicyError, match="tanh hidden layers of one width"):
+        MLP(pol.weights, pol.biases, activation="relu", horizon=1.0).to_torch()
 
 
 def test_round_trip_from_sequential(tmp_path: Path) -> None:

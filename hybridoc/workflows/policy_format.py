@@ -281,6 +281,45 @@ class MLP:
         names = ["t", "s"] if p is None else ["t", "s", "p"]
         return ca.Function("policy", args, [u], names, ["u"])
 
+    def to_torch(self) -> Any:
+        """The same policy as a trainable :class:`hybridoc.workflows.training.MLPPolicy`
+        (float64), to train further from a saved file.
+
+        Raises
+        ------
+        PolicyError
+            A policy that :class:`~hybridoc.workflows.training.MLPPolicy` cannot represent:
+            it reads ``(t, state)`` with a ``horizon``, has ``tanh`` hidden layers of one
+            width.
+        """
+        hidden = {int(W.shape[0]) for W in self.weights[:-1]}
+        if (
+            self.input != "t,state"
+            or self.horizon is None
+            or len(hidden) > 1
+            or (hidden and self.activation != "tanh")
+        ):
+            raise PolicyError(
+                "training.MLPPolicy reads (t, state) with a horizon and has tanh hidden layers "
+                f"of one width; this policy is {self!r} with horizon {self.horizon}"
+            )
+        import torch
+
+        from hybridoc.workflows.training import MLPPolicy
+
+        module = MLPPolicy(
+            self.nx, self.nu, hidden=hidden.pop() if hidden else 1,
+            layers=len(self.weights) - 1, horizon=self.horizon, s_mean=self.state_mean,
+            s_scale=self.state_scale, u_offset=self.output_offset, u_scale=self.output_scale,
+            generator=torch.Generator(),  # its random start is overwritten: leave torch's own
+        )  # fmt: skip
+        linears = [m for m in module.net if isinstance(m, torch.nn.Linear)]
+        with torch.no_grad():
+            for lin, W, b in zip(linears, self.weights, self.biases, strict=True):
+                lin.weight.copy_(torch.as_tensor(W))
+                lin.bias.copy_(torch.as_tensor(b))
+        return module
+
     def description(self) -> dict[str, Any]:
         """The JSON entries of the format that describe the architecture."""
         return {
