@@ -7,6 +7,10 @@ this package; these modules import the core and the CLI imports them.
   a scene's ``[distribution]`` (``hybridoc dataset``).
 - :mod:`hybridoc.workflows.policies`: feedback policies from files, and their validation
   against a dataset (``hybridoc validate-policy``).
+- :mod:`hybridoc.workflows.policy_format`: MLP policy files that run no code
+  (``policy.json`` and its weights), and CasADi policies.
+- :mod:`hybridoc.workflows.rollouts`: closed-loop rollouts with the policy compiled into the
+  step, each certified by the judge.
 - :mod:`hybridoc.workflows.validation`: methods measured against the reference
   (``hybridoc crossval``, ``validate`` and ``convergence``).
 - :mod:`hybridoc.workflows.training`: feedback policies trained through the differentiable
