@@ -413,7 +413,7 @@ class Rollout:
     contact_steps: int
 
 
-@dataclass
+@dataclass(repr=False)
 class MujocoModel:
     """A disc scene as a MuJoCo model, with the maps between MuJoCo's arrays and hybridoc's.
 
@@ -476,6 +476,12 @@ class MujocoModel:
     def scene(self) -> Scene:
         """The scene."""
         return self.problem.scene
+
+    def __repr__(self) -> str:
+        return (
+            f"MujocoModel({self.problem.name!r}, substeps={self.substeps}, "
+            f"timestep={self.timestep!r})"
+        )
 
     @property
     def timestep(self) -> float:
