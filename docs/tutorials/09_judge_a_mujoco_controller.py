@@ -264,7 +264,7 @@ summary = [
     ("MuJoCo's cost of the optimum's grid values / J*", in_mujoco.cost / optimum.cost),
     ("the same with MuJoCo's default contact", default_cost / optimum.cost),
     (
-        "judged cost of MuJoCo's L-BFGS control / the optimum",
+        "judged cost of MuJoCo's L-BFGS control / J*",
         judged.cost / optimum.cost,
     ),
     ("MuJoCo's cost of that control / its judged cost", mujoco_cost / judged.cost),
