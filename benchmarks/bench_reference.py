@@ -1,14 +1,20 @@
 """Timing of the HMP reference: in process on every problem, and ``hybridoc reference --search 5``.
 
-One table, one row per problem (default: both paper problems and every library problem):
+One table, one row per problem (default: both paper problems, every library problem and
+issue #15's masked hopper, ``tests/test_reference_accuracy.py:masked_hopper``):
 
 * ``sequence``, ``cost``: what :func:`hybridoc.reference.solve_reference` finds;
+* ``steps``: the DOP853 steps per phase the accuracy control chose (generic problems);
 * ``seq ms``: median of ``--runs`` solves with the found sequence given explicitly (shooting
   and the judge's re-simulation; no search);
 * ``solve ms``: median of ``--runs`` default solves, ``solve_reference(problem)``: the full
   search (candidates from the guess, the direct transcription and the batched multi-start,
   verification). Both after one warm-up solve (CasADi functions are built and cached per
   problem). Target for the library problems: < 500 ms;
+* where that time goes, medians over the same solves: ``ms-src`` the multi-start source,
+  ``dt-src`` the transcription source (both in ``hybridoc.solvers``), ``verify`` the judge's
+  re-simulations of the extremals, ``rest`` everything else (the judge's evaluation and
+  adjoint of the guess, the reference's own shooting, Newton and refinement);
 * ``cli s`` (paper problems): ``hybridoc reference PROBLEM --search 5 --json`` as a whole
   process (interpreter start-up and imports included), median of ``--repeats`` (default 3).
   Target: < 10 s. Below the table: its best cost and whether the landscape of
@@ -26,14 +32,17 @@ import argparse
 import json
 import statistics
 import sys
+import time
 
-from _timing import fmt_ms, hybridoc_command, machine_line, run_process, time_calls, verdict
+from _timing import ROOT, fmt_ms, hybridoc_command, machine_line, run_process, verdict
 
 from hybridoc.cli._util import format_table
 from hybridoc.problems import library_names, load_problem
 from hybridoc.reference import solve_reference
 
 PAPER = ("single-collision", "multiple-collision")
+#: problems outside the registry, by name: issue #15's user's hopper (modes by a state)
+EXTRA = {"masked-hopper": str(ROOT / "tests" / "test_reference_accuracy.py") + ":masked_hopper"}
 LIBRARY_TARGET_S = 0.5
 CLI_TARGET_S = 10.0
 SEARCH = 5
@@ -44,19 +53,44 @@ LANDSCAPE = {
 }
 
 
+def _split(sol: object) -> dict[str, float]:
+    """Where one default solve's time went (seconds): the two solver sources, the judge's
+    verification, the rest."""
+    info, timings = sol.info, sol.timings  # type: ignore[attr-defined]
+    by = {row["name"]: row["time_s"] for row in info.get("sources", [])}
+    out = {
+        "ms_src": by.get("multi-start", 0.0),
+        "dt_src": by.get("transcription", 0.0),
+        "verify": timings.get("verify_time_s", 0.0),
+    }
+    out["rest"] = timings["solve_time_s"] - sum(out.values())
+    return out
+
+
 def in_process(name: str, runs: int) -> dict:
     """Warm-up solve, then ``runs`` timed default solves and explicit-sequence solves."""
-    problem = load_problem(name)
+    problem = load_problem(EXTRA.get(name, name))
     sol = solve_reference(problem)  # warm-up: builds and caches the CasADi functions
     seq = list(sol.info["sequence"])
-    full = time_calls(lambda: solve_reference(problem), runs, warmup=0)
-    explicit = time_calls(lambda: solve_reference(problem, sequence=seq), runs, warmup=0)
+    full, parts = [], []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        s = solve_reference(problem)
+        full.append(time.perf_counter() - t0)
+        parts.append(_split(s))
+    explicit = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        solve_reference(problem, sequence=seq)
+        explicit.append(time.perf_counter() - t0)
     return {
         "sequence": seq,
         "cost": float(sol.cost),
         "status": sol.status.value,
+        "steps": sol.info.get("substeps"),
         "solve_s": statistics.median(full),
         "seq_s": statistics.median(explicit),
+        **{k: statistics.median(p[k] for p in parts) for k in parts[0]},
     }
 
 
@@ -96,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         args.runs, args.repeats = 1, 1
     if args.runs < 1 or args.repeats < 1:
         p.error("--runs and --repeats must be >= 1")
-    names = args.problems or [*PAPER, *library_names()]
+    names = args.problems or [*PAPER, *library_names(), *EXTRA]
     library = set(library_names())
 
     print(machine_line(), flush=True)
@@ -122,8 +156,10 @@ def main(argv: list[str] | None = None) -> int:
                 ",".join(r["sequence"]) or "(none)",
                 f"{r['cost']:.12f}",
                 r["status"],
+                "-" if not r["steps"] else ",".join(map(str, r["steps"])),
                 fmt_ms(r["seq_s"]),
                 fmt_ms(r["solve_s"]),
+                *(fmt_ms(r[k]) for k in ("ms_src", "dt_src", "verify", "rest")),
                 f"{cli['wall_s']:.2f}" if "wall_s" in cli else "-",
                 target,
                 verdict(ok),
@@ -153,19 +189,26 @@ def main(argv: list[str] | None = None) -> int:
                 "sequence",
                 "cost",
                 "status",
+                "steps",
                 "seq ms",
                 "solve ms",
+                "ms-src",
+                "dt-src",
+                "verify",
+                "rest",
                 f"cli --search {SEARCH} s",
                 "target",
                 "result",
             ],
             rows,
-            right=[False, False, True, False, True, True, True, False, False],
+            right=[False, False, True, False, False, *[True] * 7, False, False],
         )
     )
     print(
         "seq ms: solve_reference(problem, sequence=found); solve ms: solve_reference(problem) "
-        "(full search); targets apply to solve ms (library) and to the CLI process (paper)"
+        "(full search), split into ms-src (the multi-start source), dt-src (the transcription "
+        "source), verify (the judge's re-simulations) and rest; steps: DOP853 steps per "
+        "phase; targets apply to solve ms (library) and to the CLI process (paper)"
     )
     for line in notes:
         print(line)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -52,15 +53,23 @@ def _dense_from_nodes(
 
 
 def _control_from_nodes(
-    dense: Any, nodes: Sequence[np.ndarray], levels: Sequence[int], starts: np.ndarray,
+    u_at: Any, nodes: Sequence[np.ndarray], levels: Sequence[int], starts: np.ndarray,
     horizon: float,
 ) -> Callable[[float], np.ndarray]:  # fmt: skip
-    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`) for the judge."""
-    starts = np.asarray(starts, dtype=float)
+    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`; ``u_at(node, tau) -> u``) for the
+    judge, which calls it at every stage of its integrator: plain floats and one compiled
+    call per time."""
+    first = [float(a) for a in np.asarray(starts, dtype=float)]
+    ends = [*first[1:], float(horizon)]
+    steps = [(b - a) / int(n) for a, b, n in zip(first, ends, levels, strict=True)]
+    last = [int(n) - 1 for n in levels]
 
     def u_generic(t: float) -> np.ndarray:
-        k, i, dt = _locate(levels, starts, horizon, np.array([float(t)]))
-        return np.asarray(dense(nodes[int(k[0])][int(i[0])], float(dt[0]))[2]).ravel()
+        k = max(bisect.bisect_right(first, t) - 1, 0)
+        tau = t - first[k]
+        dh = steps[k]
+        i = min(max(int(tau // dh), 0), last[k]) if dh > 0 else 0
+        return np.asarray(u_at(nodes[k][i], tau - i * dh)).ravel()
 
     return u_generic
 
@@ -197,7 +206,7 @@ class ReferenceResult:
         if C is None:
             assert self.nodes is not None and self.levels is not None
             return _control_from_nodes(
-                self.system.core.flow.dense, self.nodes, self.levels, starts, self.ocp.horizon
+                self.system.core.flow.dense_u, self.nodes, self.levels, starts, self.ocp.horizon
             )
 
         def u(t: float) -> np.ndarray:
@@ -370,7 +379,7 @@ def reference_control(
         levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
         S = shooting_system(ocp, seq, levels)
         nodes = S.nodes(starts_g, P, L0)
-        u = _control_from_nodes(S.core.flow.dense, nodes, levels, starts_g, ocp.horizon)
+        u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
         return u, [float(t) for t in starts_g[1:]]
     C = np.asarray(arrays["control_coefficients"], dtype=float)
     starts = np.asarray(arrays["phase_starts"], dtype=float)

@@ -82,6 +82,7 @@ __all__ = [
     "hamiltonian_check",
     "is_disc_scene",
     "newton",
+    "prepare",
     "refine",
     "shooting_system",
 ]
@@ -138,6 +139,25 @@ def hamiltonian_check(ocp: HybridOCP) -> str | None:
     if eig.size and eig.min() <= 0:
         return "the Hamiltonian must be strictly convex in u (d2L/du2 positive definite)"
     return None
+
+
+_CHECKED: weakref.WeakKeyDictionary[Structure, str | None] = weakref.WeakKeyDictionary()
+
+
+def _checked_hamiltonian(ocp: HybridOCP) -> str | None:
+    """:func:`hamiltonian_check`, once per structure."""
+    if ocp.structure not in _CHECKED:
+        _CHECKED[ocp.structure] = hamiltonian_check(ocp)
+    return _CHECKED[ocp.structure]
+
+
+def prepare(ocp: HybridOCP, lengths: Any, max_iter: int = 100) -> None:
+    """Disc scenes: build the NLPs of these numbers of events now, so that the worker
+    processes a search forks share them instead of each compiling its own; nothing for
+    other problems."""
+    if is_disc_scene(ocp):
+        for K in sorted(set(int(k) for k in lengths)):
+            _disc_nlp(ocp, K, max_iter)
 
 
 def _residual_and_jacobian(F: Any, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -233,6 +253,7 @@ class _Flow:
         xe = self.step(xn, tau)
         se, le = xe[:nx], xe[nx : 2 * nx]
         self.dense = ca.Function("hmp_dense", [xn, tau], [se, le, self.u_star(se, le)])
+        self.dense_u = ca.Function("hmp_dense_u", [xn, tau], [self.u_star(se, le)])
         self.guards = []
         for j, g in enumerate(ocp.guards):
             psi = g.psi(s)
@@ -292,7 +313,7 @@ class _CoreBase:
         unknown = [s for s in sequence if s not in names]
         if unknown:
             raise SceneError(f"unknown guard name(s) {unknown}; this problem has {names}")
-        reason = hamiltonian_check(ocp)
+        reason = _checked_hamiltonian(ocp)
         if reason:
             raise SceneError(reason)
         self.sequence = list(sequence)
@@ -410,12 +431,12 @@ class _CoreBase:
         return F, traj
 
 
-class _DiscCore(_CoreBase):
-    """Disc scenes: the exact polynomial phases, compiled per (structure, sequence) in SX."""
+class _DiscPieces:
+    """Disc scenes: what every sequence of one structure shares (``u*``, ``H``, the guards,
+    ``phi``, ``A`` and ``eps``), built once."""
 
-    def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
-        super().__init__(ocp, sequence)
-        nx, nu = self.nx, self.nu
+    def __init__(self, ocp: HybridOCP) -> None:
+        nx, nu = ocp.nx, ocp.nu
         s = ca.SX.sym("s", nx)
         lam = ca.SX.sym("lam", nx)
         u = ca.SX.sym("u", nu)
@@ -426,14 +447,39 @@ class _DiscCore(_CoreBase):
         self.u_star = ca.Function("u_star", [s, lam], [u_star])
         self.H = ca.Function("H", [s, lam, u], [H])
         self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
-        self.f = ocp.f
-        all_guards = _disc_guard_fns(ocp, s)
-        self.guard_fns = [all_guards[j] for j in self.guard_index]
+        self.guards = _disc_guard_fns(ocp, s)
         phi = ocp.phi(s)
         self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
         # f = (v, A u) with constant A; L = eps |u|^2
         self.A = np.asarray(ca.DM(ca.jacobian(ocp.f(s, u), u)))[nx // 2 :]
         self.eps = float(ocp.meta["control_weight"])
+
+
+_DISC_PIECES: weakref.WeakKeyDictionary[Structure, _DiscPieces] = weakref.WeakKeyDictionary()
+
+
+def _disc_pieces(ocp: HybridOCP) -> _DiscPieces:
+    pieces = _DISC_PIECES.get(ocp.structure)
+    if pieces is None:
+        with _LOCK:
+            pieces = _DISC_PIECES.get(ocp.structure)
+            if pieces is None:
+                pieces = _DISC_PIECES[ocp.structure] = _DiscPieces(ocp)
+    return pieces
+
+
+class _DiscCore(_CoreBase):
+    """Disc scenes: the exact polynomial phases, compiled per (structure, sequence) in SX."""
+
+    def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
+        super().__init__(ocp, sequence)
+        pieces = _disc_pieces(ocp)
+        self.u_star, self.H, self.H_star, self.phi = (
+            pieces.u_star, pieces.H, pieces.H_star, pieces.phi
+        )  # fmt: skip
+        self.f = ocp.f
+        self.guard_fns = [pieces.guards[j] for j in self.guard_index]
+        self.A, self.eps = pieces.A, pieces.eps
 
     def phase_u(self, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
         """State after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""

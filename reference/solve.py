@@ -80,6 +80,7 @@ from hybridoc.reference.result import ReferenceResult, make_result
 from hybridoc.reference.sequence import (
     COST_RTOL,
     RTOL_RANGE,
+    SCREEN_NLP_ITER,
     check_rtol,
     judged_reference,
     solve_sequence,
@@ -88,6 +89,7 @@ from hybridoc.reference.shooting import (
     hamiltonian_check,
     is_disc_scene,
     newton,
+    prepare,
     refine,
     shooting_system,
 )
@@ -589,7 +591,7 @@ def solve_reference(
     verbose
         Print Newton's iterations and the candidates to stderr.
     rtol
-        Relative accuracy of the cost (from 1e-12 to 1e-6; default 1e-9): on a generic
+        Relative accuracy of the cost (from 1e-11 to 1e-6; default 1e-9): on a generic
         problem the integration of each phase is refined until its error estimate is within
         it (:func:`~hybridoc.reference.shooting.refine`), and the judge's re-simulation of
         the extremal's ``u(t)`` must agree with the shooting cost to it (where it does not,
@@ -1466,6 +1468,8 @@ def _search_outcomes(
     )
     workers = min(usable_cores(), MAX_WORKERS)
     outcomes: list[_Outcome] = []
+    # the screening NLP of each length once, before the workers fork (each would compile it)
+    prepare(ocp, {len(seq) for seq in todo}, max_iter=SCREEN_NLP_ITER)
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:

@@ -192,7 +192,7 @@ def test_the_method_declares_its_options() -> None:
     assert METHOD.name == "reference" and METHOD.tolerance == 1e-9
     assert METHOD.options is ReferenceOptions
     cli = [s.name for s in METHOD.specs() if s.cli]
-    assert cli == ["sequence", "search", "budget", "verbose"]
+    assert cli == ["sequence", "search", "budget", "verbose", "rtol"]
     assert parse_budget("2.5") == 2.5
     for bad in ("0", "-1", "x", "inf", "nan"):
         with pytest.raises(ValueError, match="budget must be"):

@@ -129,17 +129,19 @@ def test_a_coarse_extremal_is_refined_until_the_judge_agrees(hopper: HybridOCP) 
     assert abs(res.cost - good.cost) <= 1e-9 * good.cost
 
 
-def test_an_unreachable_rtol_is_a_quick_clear_error(
-    hopper: HybridOCP, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_an_unreachable_rtol_is_a_quick_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(shooting, "MAX_SUBSTEPS", 8)
+    hopper = masked_hopper()  # a fresh structure: no steps remembered from other tests
     t0 = time.perf_counter()
-    with pytest.raises(ConvergenceError, match=r"rtol 1e-12.*MAX_SUBSTEPS = 8"):
-        solve_reference(hopper, sequence=HOPPER_SEQUENCE, rtol=1e-12)
+    with pytest.raises(ConvergenceError, match=r"rtol 1e-11.*MAX_SUBSTEPS = 8"):
+        solve_reference(hopper, sequence=HOPPER_SEQUENCE, rtol=1e-11)
     assert time.perf_counter() - t0 < 20
 
 
-def test_a_tighter_rtol_takes_more_steps(hopper: HybridOCP) -> None:
+def test_a_tighter_rtol_takes_more_steps() -> None:
+    # a fresh structure: a sequence's next solve starts from the steps it was last accepted
+    # at, and the module's other tests refine the shared hopper further
+    hopper = masked_hopper()
     loose = solve_reference(hopper, sequence=HOPPER_SEQUENCE, rtol=1e-7).reference
     tight = solve_reference(hopper, sequence=HOPPER_SEQUENCE, rtol=1e-11).reference
     assert sum(tight.levels) > sum(loose.levels)
@@ -147,9 +149,9 @@ def test_a_tighter_rtol_takes_more_steps(hopper: HybridOCP) -> None:
     assert abs(loose.cost - tight.cost) <= 1e-7 * tight.cost
 
 
-@pytest.mark.parametrize("bad", [0.0, -1e-9, 1e-13, 1e-3, float("nan"), True, "x"])
+@pytest.mark.parametrize("bad", [0.0, -1e-9, 1e-12, 1e-3, float("nan"), True, "x"])
 def test_rtol_out_of_range_is_a_scene_error(hopper: HybridOCP, bad: object) -> None:
-    with pytest.raises(SceneError, match="rtol must be a number from 1e-12 to 1e-06"):
+    with pytest.raises(SceneError, match="rtol must be a number from 1e-11 to 1e-06"):
         solve_reference(hopper, sequence=HOPPER_SEQUENCE, rtol=bad)  # type: ignore[arg-type]
 
 
@@ -163,7 +165,7 @@ def test_cli_rtol(capsys: pytest.CaptureFixture[str]) -> None:
         main([*args, "--rtol", "0"])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "rtol must be a number from 1e-12 to 1e-06" in err
+    assert "rtol must be a number from 1e-11 to 1e-06" in err
     assert len(err.strip().splitlines()) == 1
 
 
