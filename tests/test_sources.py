@@ -184,11 +184,17 @@ def test_transcription_from_aimed_guesses_on_two_strikers() -> None:
 # ----------------------------------------------------------------------- the budget
 @pytest.mark.parametrize("source", [MultiStartSource(), TranscriptionSource()])
 def test_a_tiny_budget_returns_quickly(source: object) -> None:
+    from hybridoc.solvers import candidates, gd
+
     ocp = _ocp("channel")
-    _multistart("channel")  # the compiled loss is built (not interruptible) and cached
+    # the compiled losses of the coarse grids are built (not interruptible) and cached
+    for steps in {gd.MULTISTART_STEPS, candidates.MULTISTART_STEPS, candidates.DIVERSE_STEPS}:
+        gd.exploration_loss(ocp.replace(steps=min(ocp.steps, steps)))
     t0 = time.perf_counter()
     proposals = source.propose(ocp, _context(ocp, budget_s=1e-3))  # type: ignore[attr-defined]
-    assert time.perf_counter() - t0 < 3.0
+    # one building of the transcription's NLP (not interruptible) at most: 1-2 s idle, up
+    # to 4 s on a busy machine; the whole source takes 20 s and more
+    assert time.perf_counter() - t0 < 8.0
     _paired(list(proposals))
     t0 = time.perf_counter()
     assert source.propose(ocp, _context(ocp, budget_s=0.0)) == []  # type: ignore[attr-defined]

@@ -38,7 +38,9 @@ print(f"two events:   cost {two.cost:.12f}  {two.sequence}")
 # Without a sequence, the reference collects candidates (the initial guess's events and
 # variations of them, the transcription's, a batched multi-start) and keeps the cheapest
 # extremal that the judge confirms by re-simulating its control:
-best = hybridoc.solve(problem, "reference")
+# (``HYBRIDOC_TUTORIAL_QUICK=1``, set by the test suite, asks for the short search of the
+# next section here instead, and reuses it there: one search instead of two.)
+best = hybridoc.solve(problem, "reference", **({"search": 2} if QUICK else {}))
 print(f"the optimum:  cost {best.cost:.12f}  {best.sequence}  ({best.status})")
 print(f"{(two.cost - best.cost) / two.cost:.1%} below the two-event extremal")
 for e in best.events:
@@ -74,8 +76,8 @@ ax_two.get_legend().remove()  # the same keys as on the left: more room for the 
 # line cannot meet the same wall twice in a row) and reports the *landscape of
 # extremals*: every sequence with its verified cost, or why no extremal of it exists.
 # On the command line: ``hybridoc reference multiple-collision --search 5``.
-depth = 3 if QUICK else 5
-searched = hybridoc.solve(problem, "reference", search=depth)
+depth = 2 if QUICK else 5
+searched = best if QUICK else hybridoc.solve(problem, "reference", search=depth)
 landscape = searched.info["landscape"]
 verified = [row for row in landscape if row["cost"] is not None]
 print(
@@ -100,7 +102,7 @@ for row in failed[:3]:
 # multi-start, many perturbed starts descending together, is what finds the better basin;
 # it is what ``hybridoc crossval`` runs.
 single = hybridoc.solve(problem, "gd")
-multi = hybridoc.solve(problem, "gd", starts=32)
+multi = hybridoc.solve(problem, "gd", starts=8 if QUICK else 32)
 for label, sol in (
     ("one start", single),
     (f"{multi.settings.get('starts', '')} starts", multi),

@@ -14,6 +14,7 @@ or a control is wrong. The scene format is described in full in :doc:`/scenes`.
 # target, and there is a cushion (a wall) at :math:`y = 0.8`, its normal pointing into
 # free space. The puck bounces with restitution 0.9. Everything not given takes its
 # default (``control_weight`` 0.01, masses 1, discs at rest).
+import os
 import tempfile
 from pathlib import Path
 from textwrap import fill
@@ -48,6 +49,8 @@ name = "cushion"
 point = [0.0, 0.8]
 normal = [0.0, -1.0]
 """
+if os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1":  # the test suite: a coarser grid
+    SCENE = SCENE.replace("steps = 300", "steps = 100")
 folder = Path(tempfile.mkdtemp())
 path = folder / "bank-shot.toml"
 path.write_text(SCENE)
