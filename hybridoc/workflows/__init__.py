@@ -16,6 +16,10 @@ this package; these modules import the core and the CLI imports them.
 - :mod:`hybridoc.workflows.training`: feedback policies trained through the differentiable
   simulator, and the judge's exact closed-loop gradient.
 - :mod:`hybridoc.workflows.ablation`: the paper's Table 1 (``hybridoc ablation``).
+- :mod:`hybridoc.workflows.gradcompare`: any simulator's gradient against the exact adjoint
+  (``hybridoc gradcheck --against``).
+- :mod:`hybridoc.workflows.trajectories`: any simulator's trajectory and events against the
+  judge's (``hybridoc compare-trajectory``).
 - :mod:`hybridoc.workflows.mujoco`: disc scenes exported to MuJoCo (``hybridoc export
   mjcf``), with rollouts, MuJoCo's costs and MuJoCo's gradients to judge (needs the
   ``mujoco`` extra).
