@@ -46,6 +46,7 @@ __all__ = [
     "CLI_METHOD",
     "DEFAULT_METHOD",
     "DEFAULT_TOLERANCE",
+    "FEATURES",
     "METHODS",
     "RUN_KEYWORDS",
     "Method",
@@ -59,6 +60,7 @@ __all__ = [
     "parse_bool",
     "positive_float",
     "positive_int",
+    "problem_features",
     "register_method",
     "settings_lines",
     "solve",
@@ -68,6 +70,24 @@ __all__ = [
 DEFAULT_TOLERANCE = 5e-3
 """Relative cost gap to the reference within which a method agrees with it in crossval,
 unless the method declares its own (:attr:`Method.tolerance`)."""
+
+FEATURES: dict[str, str] = {
+    "terminal": "terminal constraints",
+    "free_horizon": "a free final time",
+}
+"""Problem features a method may or may not honour (:attr:`Method.features`), with the
+words :func:`solve` uses when it refuses a problem."""
+
+
+def problem_features(ocp: HybridOCP) -> list[str]:
+    """The :data:`FEATURES` a problem has."""
+    out = []
+    if ocp.terminal_eq is not None or ocp.terminal_ineq is not None:
+        out.append("terminal")
+    if ocp.horizon_bounds is not None:
+        out.append("free_horizon")
+    return out
+
 
 RUN_KEYWORDS = ("initial", "progress")
 """Keywords every method's ``run`` takes besides its options."""
@@ -268,6 +288,11 @@ class Method:
     crossval_check
         ``crossval_check(ocp, sol) -> (entry, reasons)``: a method's own check in crossval
         (fields added to its report entry, and the reasons it disagrees); default: none.
+    features
+        The problem features beyond the basic model that the method honours, from
+        :data:`FEATURES` (``"terminal"``: terminal constraints; ``"free_horizon"``: a free
+        final time). :func:`solve` refuses a problem with a feature its method lacks, so
+        that a method never answers a problem it silently simplified.
     """
 
     name: str
@@ -279,10 +304,18 @@ class Method:
     summary_lines: Callable[[Solution], list[tuple[str, str]]] = settings_lines
     crossval_defaults: Callable[[HybridOCP, dict[str, Any]], dict[str, Any]] | None = None
     crossval_check: Callable[[HybridOCP, Solution], tuple[dict[str, Any], list[str]]] | None = None
+    features: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.options):
             raise TypeError(f"method {self.name!r}: options must be a dataclass")
+        unknown = set(self.features) - set(FEATURES)
+        if unknown:
+            raise TypeError(f"method {self.name!r}: unknown features {sorted(unknown)}")
+
+    def missing_features(self, ocp: HybridOCP) -> list[str]:
+        """The features of ``ocp`` (:func:`problem_features`) this method does not honour."""
+        return [f for f in problem_features(ocp) if f not in self.features]
 
     def function(self) -> Callable[..., Solution]:
         """The run function."""
@@ -467,7 +500,10 @@ def solve(
 
     ocp = as_ocp(problem)
     m = get_method(method)
+    missing = m.missing_features(ocp)
     reason = m.supports(ocp)
+    if missing:
+        reason = f"it does not honour {' or '.join(FEATURES[f] for f in missing)} yet"
     if reason:
         raise SceneError(f"method {method!r} cannot solve {ocp.name!r}: {reason}")
     names = m.option_names()

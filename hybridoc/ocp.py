@@ -22,9 +22,15 @@ Modes
     side of a switch, and the costate of ``q`` decouples (``dH/dq = 0`` between switches).
     The state a user sees is ``(s, q)``, its last label ``"mode"``.
 
+Terminal constraints and a free final time
+    ``terminal_eq`` (``h(s(T)) = 0``) and ``terminal_ineq`` (``h(s(T)) >= 0``) are hard
+    constraints; ``horizon_bounds = (T_min, T_max)`` frees the final time (``horizon`` is
+    its guess). Issue #15 brings them to every method; a method that does not honour them
+    yet says so instead of answering.
+
 What the model cannot express yet
-    Terminal constraints (only the penalty ``phi``), a free final time, static parameters,
-    flows and costs that depend on time, and resets that depend on the control.
+    Static parameters, flows and costs that depend on time, and resets that depend on the
+    control.
 
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
@@ -226,6 +232,7 @@ _DATA_FIELDS = frozenset(
         "control_labels",
         "name",
         "meta",
+        "horizon_bounds",
     }
 )
 
@@ -274,6 +281,18 @@ class HybridOCP:
         The names of the discrete modes by index, for a problem with modes (built by
         :meth:`from_modes`): the last state coordinate is then the mode index. ``None``
         (default): no modes. Part of the structure, not data.
+    terminal_eq
+        Optional terminal equality constraints, CasADi Function ``s -> (m,)``, required
+        ``= 0`` at ``s(T)`` (hard, unlike the penalty ``phi``). Part of the structure.
+    terminal_ineq
+        Optional terminal inequality constraints, ``s -> (m,)``, required ``>= 0`` at
+        ``s(T)``. Part of the structure.
+    horizon_bounds
+        ``(T_min, T_max)`` for a free final time: ``T`` is then a decision variable in
+        those bounds and ``horizon`` is its initial guess (and the ``T`` at which the judge
+        evaluates given controls); the grid has ``N`` steps of ``T / N`` whatever ``T``.
+        The cost depends on ``T`` through the running cost (``L = 1 + ...`` charges time).
+        ``None`` (default): ``T = horizon`` is fixed. Data, not structure.
     """
 
     f: ca.Function
@@ -293,6 +312,9 @@ class HybridOCP:
     name: str = "ocp"
     meta: dict[str, Any] = field(default_factory=dict)
     modes: tuple[str, ...] | None = None
+    terminal_eq: ca.Function | None = None
+    terminal_ineq: ca.Function | None = None
+    horizon_bounds: tuple[float, float] | None = None
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
@@ -324,6 +346,7 @@ class HybridOCP:
         if len(set(names)) != len(names):
             raise SceneError(f"guard names must be unique: {names}")
         self._check_modes()
+        self._check_terminal()
         self.u_min = self._bound(self.u_min, -np.inf, "u_min")
         self.u_max = self._bound(self.u_max, np.inf, "u_max")
         if np.any(self.u_min > self.u_max):
@@ -444,6 +467,65 @@ class HybridOCP:
             return False
         return True
 
+    def _check_terminal(self) -> None:
+        """Validate the terminal constraints and the final-time bounds."""
+        for attr in ("terminal_eq", "terminal_ineq"):
+            fn = getattr(self, attr)
+            if fn is None:
+                continue
+            if (
+                not isinstance(fn, ca.Function)
+                or fn.n_in() != 1
+                or fn.n_out() != 1
+                or fn.size1_in(0) != self.nx
+                or fn.size2_out(0) != 1
+            ):
+                raise SceneError(
+                    f"{attr} must be a casadi.Function s -> (m,) constraints, with s of the "
+                    f"size of x0 ({self.nx})"
+                )
+        if self.horizon_bounds is None:
+            return
+        try:
+            lo, hi = (float(v) for v in self.horizon_bounds)
+        except (TypeError, ValueError):
+            raise SceneError(
+                f"horizon_bounds must be two numbers (T_min, T_max), got {self.horizon_bounds!r}"
+            ) from None
+        if not (0 < lo <= hi < np.inf):
+            raise SceneError(
+                f"horizon_bounds must satisfy 0 < T_min <= T_max < inf, got ({lo}, {hi})"
+            )
+        if not lo <= self.horizon <= hi:
+            raise SceneError(
+                f"horizon {self.horizon} (the initial guess of the free final time) must lie "
+                f"in horizon_bounds ({lo}, {hi})"
+            )
+        self.horizon_bounds = (lo, hi)
+
+    @property
+    def free_horizon(self) -> bool:
+        """Whether the final time is free (:attr:`horizon_bounds` given)."""
+        return self.horizon_bounds is not None
+
+    @property
+    def has_terminal_constraints(self) -> bool:
+        """Whether the problem has terminal equality or inequality constraints."""
+        return self.terminal_eq is not None or self.terminal_ineq is not None
+
+    def terminal_violation(self, s_end: Any) -> float:
+        """Largest violation of the terminal constraints at the final state ``s_end``:
+        ``max(|h_eq|, max(-h_ineq, 0))``, 0 when there are none."""
+        s_end = np.asarray(s_end, dtype=float).ravel()
+        viol = 0.0
+        if self.terminal_eq is not None:
+            h = np.asarray(self.terminal_eq(s_end).full()).ravel()
+            viol = max(viol, float(np.max(np.abs(h), initial=0.0)))
+        if self.terminal_ineq is not None:
+            h = np.asarray(self.terminal_ineq(s_end).full()).ravel()
+            viol = max(viol, float(np.max(-h, initial=0.0)))
+        return viol
+
     def _bound(self, value: Any, default: float, what: str) -> np.ndarray:
         if value is None:
             return np.full(self.nu, default)
@@ -468,12 +550,16 @@ class HybridOCP:
         horizon: float,
         steps: int,
         path: ca.SX | ca.MX | None = None,
+        terminal_eq: ca.SX | ca.MX | None = None,
+        terminal_ineq: ca.SX | ca.MX | None = None,
         **kwargs: Any,
     ) -> HybridOCP:
         """Build a problem from symbolic expressions in the state ``s`` and control ``u``.
 
         ``path``, if given, is an expression in ``s`` and ``u`` whose entries must stay
-        ``>= 0``; the other keyword arguments are those of :class:`HybridOCP`.
+        ``>= 0``; ``terminal_eq`` and ``terminal_ineq`` are expressions in ``s`` (``= 0``
+        and ``>= 0`` at ``s(T)``); the other keyword arguments are those of
+        :class:`HybridOCP`.
         """
         return cls(
             f=ca.Function("f", [s, u], [f]),
@@ -484,6 +570,12 @@ class HybridOCP:
             horizon=horizon,
             steps=steps,
             path=None if path is None else ca.Function("path", [s, u], [path]),
+            terminal_eq=None
+            if terminal_eq is None
+            else ca.Function("terminal_eq", [s], [terminal_eq]),
+            terminal_ineq=None
+            if terminal_ineq is None
+            else ca.Function("terminal_ineq", [s], [terminal_ineq]),
             **kwargs,
         )
 
