@@ -185,7 +185,8 @@ class Solution:
         The cost ``J`` and its two parts (as computed by the producer; the evaluator's are
         the judge's).
     events
-        ``[{"time", "kind", "bodies"}, ...]`` in time order.
+        ``[{"time", "kind", "bodies", "guard"}, ...]`` in time order; for a problem with
+        modes also ``"mode_before"`` and ``"mode_after"`` (see :attr:`modes`).
     state_times, states
         Optional trajectory: ``(M,)`` times and ``(M, nx)`` states (an event may appear
         twice, before and after the jump).
@@ -286,6 +287,16 @@ class Solution:
     def sequence(self) -> list[str]:
         """The guard names of :attr:`events` (``"a|b"`` for events stored without a name)."""
         return [str(e.get("guard") or "|".join(e.get("bodies", []))) for e in self.events]
+
+    @property
+    def modes(self) -> list[str] | None:
+        """The modes the solution visits, in order, from its events' ``mode_before`` and
+        ``mode_after`` (a problem with modes, :meth:`hybridoc.HybridOCP.from_modes`);
+        ``None`` when the events carry no modes (a problem without modes, or no event: then
+        the mode is the initial one throughout)."""
+        if not self.events or any("mode_before" not in e for e in self.events):
+            return None
+        return [str(self.events[0]["mode_before"])] + [str(e["mode_after"]) for e in self.events]
 
     def set_status(self, status: Status | str, message: str = "") -> Solution:
         """Set :attr:`status` and :attr:`message`; returns ``self``."""
@@ -492,5 +503,6 @@ class Solution:
         ]
         for e in self.events:
             bodies = ", ".join(str(b) for b in e.get("bodies", []))
-            lines.append(f"    t = {float(e['time']):.9f}  {e.get('kind', '?')}  {bodies}")
+            modes = f"  {e['mode_before']} -> {e['mode_after']}" if "mode_before" in e else ""
+            lines.append(f"    t = {float(e['time']):.9f}  {e.get('kind', '?')}  {bodies}{modes}")
         return "\n".join(lines)

@@ -791,3 +791,396 @@ def expected_table() -> dict[str, dict[str, Any]]:
             "method": r["method"],
         }
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# problems with modes (hybridoc.HybridOCP.from_modes): exact sequence-fixed optima
+#
+# hopper
+#     In flight the leg force does nothing, so u = 0 there. In stance the HMP gives
+#     ``u = -lambda_v / (2 eps)`` with ``lambda_y' = k lambda_v``, ``lambda_v' = -lambda_y``:
+#     ``u = a cos(w tau) + b sin(w tau)``, ``w = sqrt(k)``, ``tau`` the time since touchdown.
+#     For fixed event times the stance states are affine in ``(a, b)`` (the matrix
+#     exponential of the oscillator driven by the harmonic ``u``, resonance included), a
+#     flight between two stances of length ``d`` needs the liftoff speed ``g d / 2`` and
+#     lands at ``-g d / 2``, and the guards at the event times are linear: one KKT solve
+#     gives the exact value ``V(times)``, minimised over the free event times (Nelder-Mead
+#     to ``1e-11``). The first touchdown is the free fall's. With the times imposed, guards
+#     may be crossed between events (a relaxation): the minimum is a lower bound of the cost
+#     of that sequence, which is how the alternatives are compared; the claimed optimum is
+#     checked to cross no guard between its events.
+# coulomb_block
+#     Both modes are double integrators with a constant friction term: ``u`` is linear in
+#     time on each phase; for a fixed reversal time the state is affine in the coefficients
+#     and the guard ``v(gamma) = 0`` linear: one KKT solve, minimised over ``gamma``.
+#     Without a reversal the block never moves left, so ``x(T) >= 0`` and ``J >= w_x
+#     x_target^2`` (the defaults' target lies behind the start); two reversals: the relaxed
+#     lower bound.
+
+
+#: configuration name -> (problem function, keyword arguments) of the problems with modes
+MODE_CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "hopper": ("hopper", {}),
+    "coulomb_block": ("coulomb_block", {}),
+}
+
+
+def build_mode_problem(name: str) -> Any:
+    """The library's ``HybridOCP`` of a configuration of :data:`MODE_CONFIGS`."""
+    fn, kwargs = MODE_CONFIGS[name]
+    module = importlib.import_module(f"{library().__name__}.{fn}")
+    return getattr(module, fn)(**kwargs)
+
+
+class _Quadratic:
+    """A quadratic ``p^T H p + g^T p + c`` in the coefficients ``p`` (numbers only)."""
+
+    def __init__(self, n: int) -> None:
+        self.H, self.g, self.c = np.zeros((n, n)), np.zeros(n), 0.0
+
+    def add_square(self, weight: float, aff: np.ndarray) -> None:
+        """Add ``weight (a^T p + a0)^2`` for the affine ``aff = (a, a0)``."""
+        a, a0 = aff[:-1], aff[-1]
+        self.H += weight * np.outer(a, a)
+        self.g += 2 * weight * a0 * a
+        self.c += weight * a0 * a0
+
+
+def _kkt(J: _Quadratic, cons: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    """Minimum of ``J`` subject to the affine ``cons = 0`` (rows ``(a, a0)``), and ``p``."""
+    n = J.g.size
+    m = len(cons)
+    A = np.array([c[:-1] for c in cons]).reshape(m, n)
+    b = -np.array([c[-1] for c in cons])
+    K = np.block([[2 * J.H, A.T], [A, np.zeros((m, m))]])
+    p = np.linalg.solve(K, np.concatenate([-J.g, b]))[:n]
+    return float(p @ J.H @ p + J.g @ p + J.c), p
+
+
+def _hopper_stance_map(P: dict[str, Any], d: float) -> np.ndarray:
+    """``exp(M d)`` of the stance driven by ``u = a cos(w tau) + b sin(w tau)``: the map
+    from ``(y, v, 1, a, b)`` at touchdown to the same vector ``d`` later."""
+    from scipy.linalg import expm
+
+    k, l0, g = P["stiffness"], P["rest_length"], P["gravity"]
+    w = math.sqrt(k)
+    M = np.zeros((5, 5))
+    M[0, 1] = 1.0
+    M[1, 0], M[1, 2], M[1, 3] = -k, k * l0 - g, 1.0
+    M[3, 4], M[4, 3] = w, -w  # (p, q): p = a cos(w tau) + b sin(w tau) = u
+    return expm(M * d)
+
+
+def _hopper_first_touchdown(P: dict[str, Any]) -> tuple[float, float]:
+    """Time and speed of the first touchdown (free fall: u has no effect in flight)."""
+    g, y0, v0, l0 = P["gravity"], P["initial_height"], P["initial_velocity"], P["rest_length"]
+    t1 = (v0 + math.sqrt(v0 * v0 + 2 * g * (y0 - l0))) / g
+    return t1, v0 - g * t1
+
+
+def hopper_value(P: dict[str, Any], K: int, free: np.ndarray) -> tuple[float, np.ndarray]:
+    """``V`` of the ``K``-event sequence (touchdown, liftoff, ...) at the event times
+    ``(t1, *free)`` (``t1`` the free fall's), and the stance coefficients ``(a_j, b_j)``."""
+    g, l0, eps, T = P["gravity"], P["rest_length"], P["eps"], P["horizon"]
+    w = math.sqrt(P["stiffness"])
+    t1, v1 = _hopper_first_touchdown(P)
+    times = [t1, *map(float, free)]
+    if K == 0 or any(b <= a for a, b in zip([0.0, *times], [*times, T], strict=False)):
+        return math.inf, np.zeros(0)
+    stances = (K + 1) // 2
+    n = 2 * stances
+
+    def const(x: float) -> np.ndarray:
+        out = np.zeros(n + 1)
+        out[-1] = x
+        return out
+
+    J = _Quadratic(n)
+    cons: list[np.ndarray] = []
+    y_s, v_s = const(l0), const(v1)
+    y_end = None
+    for j in range(stances):
+        t_td = times[2 * j]
+        t_lo = times[2 * j + 1] if 2 * j + 1 < K else T
+        d = t_lo - t_td
+        E = _hopper_stance_map(P, d)
+        # (y, v, 1, a, b) at touchdown as affine functions of p
+        ea, eb = np.zeros(n + 1), np.zeros(n + 1)
+        ea[2 * j], eb[2 * j + 1] = 1.0, 1.0
+        z = [y_s, v_s, const(1.0), ea, eb]
+        ye = sum(E[0, i] * z[i] for i in range(5))
+        ve = sum(E[1, i] * z[i] for i in range(5))
+        # eps int (a cos + b sin)^2 = eps (a^2 Icc + 2 a b Ics + b^2 Iss)
+        s2 = math.sin(2 * w * d) / (4 * w)
+        icc, iss, ics = d / 2 + s2, d / 2 - s2, math.sin(w * d) ** 2 / (2 * w)
+        J.H[2 * j, 2 * j] += eps * icc
+        J.H[2 * j + 1, 2 * j + 1] += eps * iss
+        J.H[2 * j, 2 * j + 1] += eps * ics
+        J.H[2 * j + 1, 2 * j] += eps * ics
+        if 2 * j + 1 >= K:  # stance until T
+            y_end = ye
+            break
+        cons.append(ye - const(l0))  # liftoff
+        if 2 * j + 2 < K:  # a flight of length d_f, then touchdown
+            d_f = times[2 * j + 2] - t_lo
+            cons.append(ve - const(g * d_f / 2))
+            y_s, v_s = const(l0), const(-g * d_f / 2)
+        else:  # the last flight, to T
+            d_T = T - t_lo
+            y_end = const(l0) + d_T * ve - const(g * d_T**2 / 2)
+    assert y_end is not None
+    J.add_square(1.0, y_end - const(P["target_height"]))
+    return _kkt(J, cons)
+
+
+def _hopper_minimum(
+    P: dict[str, Any], K: int, starts: list[list[float]], xatol: float = 1e-11
+) -> tuple[float, np.ndarray]:
+    """``min V`` over the free event times of the ``K``-event sequence: Nelder-Mead from
+    each of ``starts`` (the best one kept)."""
+    if K <= 1:
+        return hopper_value(P, K, np.zeros(0))[0], np.zeros(0)
+    best = (math.inf, np.zeros(K - 1))
+    for start in starts:
+        res = so.minimize(
+            lambda x: hopper_value(P, K, x)[0], start, method="Nelder-Mead",
+            options={"xatol": xatol, "fatol": 1e-16, "maxfev": 20000},
+        )  # fmt: skip
+        if res.fun < best[0]:
+            best = (float(res.fun), np.asarray(res.x))
+    return best
+
+
+def hopper_control(
+    P: dict[str, Any], K: int, times: list[float], coeffs: np.ndarray
+) -> Callable[[float], np.ndarray]:
+    """``u(t)``: zero in flight, ``a_j cos(w tau) + b_j sin(w tau)`` in stance ``j``."""
+    w = math.sqrt(P["stiffness"])
+    T = P["horizon"]
+    stances = [
+        (times[2 * j], times[2 * j + 1] if 2 * j + 1 < K else T) for j in range((K + 1) // 2)
+    ]
+
+    def u(t: float) -> np.ndarray:
+        for j, (a, b) in enumerate(stances):
+            if a <= t < b or (t == b == T):
+                tau = t - a
+                return np.array(
+                    [coeffs[2 * j] * math.cos(w * tau) + coeffs[2 * j + 1] * math.sin(w * tau)]
+                )
+        return np.array([0.0])
+
+    return u
+
+
+def hopper_trajectory(
+    P: dict[str, Any], K: int, times: list[float], coeffs: np.ndarray, samples: int = 400
+) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(mode, tau, y)`` per phase, sampled from the closed forms (for the checks)."""
+    g, l0, T = P["gravity"], P["rest_length"], P["horizon"]
+    t1, v1 = _hopper_first_touchdown(P)
+    bounds = [0.0, *times, T]
+    out = []
+    tau = np.linspace(0.0, t1, samples)
+    out.append(("flight", tau, P["initial_height"] + P["initial_velocity"] * tau - g * tau**2 / 2))
+    y, v = l0, v1
+    for k in range(1, K + 1):
+        d = bounds[k + 1] - bounds[k]
+        tau = np.linspace(0.0, d, samples)
+        if k % 2 == 1:
+            j = (k - 1) // 2
+            z0 = np.array([y, v, 1.0, coeffs[2 * j], coeffs[2 * j + 1]])
+            Z = np.array([_hopper_stance_map(P, x) @ z0 for x in tau])
+            out.append(("stance", tau, Z[:, 0]))
+            y, v = Z[-1, 0], Z[-1, 1]
+        else:
+            out.append(("flight", tau, y + v * tau - g * tau**2 / 2))
+            y, v = y + v * d - g * d * d / 2, v - g * d
+    return out
+
+
+def hopper_nlp(
+    P: dict[str, Any], K: int, durations: list[float], intervals: int = 40
+) -> float | None:
+    """The sequence-fixed optimum of ``K`` events (touchdown, liftoff, ...) by an NLP with
+    the guards as path constraints, started from the given stance durations; ``None`` when
+    IPOPT fails.
+
+    Stances: ``intervals`` constant forces each, stepped exactly (the oscillator about
+    ``l0 + (u - g) / k``), free durations of at least 0.005, ``y <= l0`` at the nodes, and
+    a liftoff at ``y = l0`` with ``v >= 0``; a flight between two stances lasts ``2 v / g``
+    (it lands where it took off, with the opposite speed: above ``l0`` in between); the last
+    flight ends at ``T`` with ``y(T) >= l0``. The relaxation of the KKT method (event times
+    imposed, guards free in between) gives no lower bound here: a long stance that rises
+    above ``l0`` and comes back costs less than any real hop.
+    """
+    g, k, l0, eps, T = (P[x] for x in ("gravity", "stiffness", "rest_length", "eps", "horizon"))
+    w = math.sqrt(k)
+    t1, v1 = _hopper_first_touchdown(P)
+
+    def step(y: Any, v: Any, u: Any, h: Any) -> tuple[Any, Any]:
+        y_eq = l0 + (u - g) / k
+        c, s = ca.cos(w * h), ca.sin(w * h)
+        return y_eq + (y - y_eq) * c + v / w * s, -(y - y_eq) * w * s + v * c
+
+    opti = ca.Opti()
+    stances = (K + 1) // 2
+    y, v, J, elapsed = l0, v1, 0, t1
+    for j in range(stances):
+        U, d = opti.variable(intervals), opti.variable()
+        opti.set_initial(d, durations[j])
+        opti.set_initial(U, 0.0)
+        opti.subject_to(d >= 0.005)
+        for i in range(intervals):
+            y, v = step(y, v, U[i], d / intervals)
+            J += eps * U[i] ** 2 * d / intervals
+            if i < intervals - 1 or 2 * j + 1 >= K:
+                opti.subject_to(y <= l0)
+        elapsed = elapsed + d
+        if 2 * j + 1 >= K:  # stance until T
+            opti.subject_to(elapsed == T)
+            break
+        opti.subject_to(y == l0)
+        opti.subject_to(v >= 0)
+        if 2 * j + 2 < K:  # a flight, then the next touchdown
+            elapsed = elapsed + 2 * v / g
+            v = -v
+        else:
+            d_T = T - elapsed
+            opti.subject_to(d_T >= 0)
+            y = l0 + v * d_T - g * d_T**2 / 2
+            opti.subject_to(y >= l0)
+    J += (y - P["target_height"]) ** 2
+    opti.minimize(J)
+    ipopt = {"print_level": 0, "sb": "yes", "tol": 1e-10, "max_iter": 3000}
+    opti.solver("ipopt", {"print_time": False}, ipopt)
+    try:
+        return float(opti.solve().value(J))
+    except RuntimeError:
+        return None
+
+
+def hopper_alternatives(name: str = "hopper") -> dict[int, float]:
+    """The other sequences' optima (1, 2, 3, 5 and 6 events): :func:`hopper_nlp` from
+    short, medium and long stances, the cheapest kept."""
+    P = build_mode_problem(name).meta["params"]
+    out = {}
+    for K in (1, 2, 3, 5, 6):
+        n = (K + 1) // 2
+        starts = [[0.1] * n, [0.18] * n, [0.3] * n, [0.6 / n] * n]
+        costs = [c for c in (hopper_nlp(P, K, d) for d in starts) if c is not None]
+        out[K] = min(costs, default=math.inf)
+    return out
+
+
+def _hopper_optimum(name: str) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    ocp = build_mode_problem(name)
+    P = ocp.meta["params"]
+    K = 4
+    cost, free = _hopper_minimum(P, K, [[0.42, 0.87, 1.05]])  # the free hopper's events
+    t1, _ = _hopper_first_touchdown(P)
+    times = [t1, *map(float, free)]
+    _, coeffs = hopper_value(P, K, free)
+    seq = ["touchdown", "liftoff"] * (K // 2)
+    return {
+        "name": name,
+        "ocp": ocp,
+        "cost": cost,
+        "sequence": seq,
+        "modes": ["flight", "stance", "flight", "stance", "flight"],
+        "event_times": times,
+        "coefficients": coeffs,
+        "control_callable": hopper_control(P, K, times, coeffs),
+        "breakpoints": times,
+        "trajectory": hopper_trajectory(P, K, times, coeffs),
+        "method": (
+            "exact sequence-fixed optimum: harmonic stance controls (HMP), KKT solve at fixed "
+            "event times through the matrix exponential, minimised over the event times "
+            "(Nelder-Mead); alternatives: hopper_alternatives"
+        ),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def coulomb_value(P: dict[str, Any], gammas: list[float]) -> tuple[float, np.ndarray]:
+    """``V`` of the block with reversals at ``gammas`` (alternating right -> left -> ...),
+    and the coefficients ``(a_k, b_k)`` of ``u = a_k + b_k (t - gamma_{k-1})``."""
+    mu, T, eps = P["friction"], P["horizon"], P["eps"]
+    bounds = [0.0, *gammas, T]
+    if any(b <= a for a, b in zip(bounds[:-1], bounds[1:], strict=True)):
+        return math.inf, np.zeros(0)
+    n = 2 * (len(gammas) + 1)
+    x, v = np.zeros(n + 1), np.zeros(n + 1)
+    v[-1] = P["initial_velocity"]
+    J = _Quadratic(n)
+    cons = []
+    for k in range(n // 2):
+        d = bounds[k + 1] - bounds[k]
+        a, b = np.zeros(n + 1), np.zeros(n + 1)
+        a[2 * k], b[2 * k + 1] = 1.0, 1.0
+        fr = np.zeros(n + 1)
+        fr[-1] = -mu if k % 2 == 0 else mu  # right, left, right, ...
+        x = x + v * d + (a + fr) * d**2 / 2 + b * d**3 / 6
+        v = v + (a + fr) * d + b * d**2 / 2
+        # eps int_0^d (a + b t)^2 dt
+        J.H[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] += eps * np.array(
+            [[d, d**2 / 2], [d**2 / 2, d**3 / 3]]
+        )
+        if k < n // 2 - 1:
+            cons.append(v.copy())
+    target = np.zeros(n + 1)
+    target[-1] = P["target_position"]
+    J.add_square(P["weight_position"], x - target)
+    J.add_square(P["weight_velocity"], v)
+    return _kkt(J, cons)
+
+
+def _coulomb_optimum(name: str) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    ocp = build_mode_problem(name)
+    P = ocp.meta["params"]
+    T = P["horizon"]
+    res = so.minimize_scalar(
+        lambda g: coulomb_value(P, [g])[0], bounds=(1e-6, T - 1e-6), method="bounded",
+        options={"xatol": 1e-13},
+    )  # fmt: skip
+    gamma = float(res.x)
+    cost, coeffs = coulomb_value(P, [gamma])
+    two = so.minimize(
+        lambda g: coulomb_value(P, list(g))[0], [gamma, 0.5 * (gamma + T)],
+        method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-14},
+    )  # fmt: skip
+
+    def u(t: float) -> np.ndarray:
+        k = 0 if t < gamma else 1
+        return np.array([coeffs[2 * k] + coeffs[2 * k + 1] * (t - (0.0 if k == 0 else gamma))])
+
+    return {
+        "name": name,
+        "ocp": ocp,
+        "cost": cost,
+        "sequence": ["reverse"],
+        "modes": ["right", "left"],
+        "event_times": [gamma],
+        "coefficients": coeffs,
+        "control_callable": u,
+        "breakpoints": [gamma],
+        # no reversal: x never decreases, so x(T) >= 0 > x_target and J >= w_x x_target^2
+        "alternatives": {0: P["weight_position"] * P["target_position"] ** 2, 2: float(two.fun)},
+        "method": (
+            "exact sequence-fixed optimum: KKT solve for the phase-wise linear force at a "
+            "fixed reversal time, minimised over it (bounded Brent); alternatives: relaxed "
+            "lower bounds, same method"
+        ),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+@functools.cache
+def mode_optimum(name: str) -> dict[str, Any]:
+    """The independent optimum of a configuration of :data:`MODE_CONFIGS` (cached); keys as
+    :func:`independent_optimum`'s, with ``"modes"`` (the modes visited)."""
+    if MODE_CONFIGS[name][0] == "hopper":
+        return _hopper_optimum(name)
+    return _coulomb_optimum(name)

@@ -99,6 +99,8 @@ def test_library_api() -> None:
         "ball-on-slope",
         "juggling-paddle",
         "pendulum-wall",
+        "hopper",
+        "coulomb-block",
     }
     assert all(lib.describe(name) for name in lib.LIBRARY)
     for fn in lib.LIBRARY.values():
