@@ -36,7 +36,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
     from hybridoc.problem import ProblemLike
 
-__all__ = ["CompiledLoss", "SIMULATIONS"]
+__all__ = ["CompiledLoss", "SIMULATIONS", "TerminalLoss"]
 
 SIMULATIONS = ("auto", "disc", "generic")
 """Which step :class:`CompiledLoss` compiles: ``auto`` (the disc step for disc scenes, the
@@ -299,6 +299,137 @@ def _rollout_functions(
     value_grad = ca.Function("loss_grad", [x0, U], [J, lams[:, N - 1], reverse(grads)])
     rollout = ca.Function("rollout", [x0, U], [ca.horzcat(x0, X)])
     return value, value_grad, rollout
+
+
+class TerminalLoss:
+    """The generic objective with the step length as an input and a terminal
+    augmented-Lagrangian term: what gd minimises on problems with terminal constraints or a
+    free final time.
+
+    One call of :meth:`evaluate` gives, for controls ``U``, a step ``h = T / N`` and the
+    terminal multipliers ``(nu, mu)`` with penalty ``rho``,
+
+    * ``J``: the discrete objective ``phi(s_N) + sum_n c_n`` of :class:`CompiledLoss` (the
+      generic time-of-impact step, with the path penalty), at step ``h``;
+    * ``A``: the Powell-Hestenes-Rockafellar term of the terminal constraints,
+      ``nu . h_eq + rho/2 |h_eq|^2 + 1/(2 rho) sum(max(0, mu - rho h_in)^2 - mu^2)``
+      (``h_eq(s_N) = 0``, ``h_in(s_N) >= 0``);
+    * ``s_N``, the final state;
+    * the gradients of ``J + A`` with respect to ``U`` and to ``T`` (the discrete adjoint
+      of the same rollout, carried through ``h``).
+
+    Parameters
+    ----------
+    problem : ProblemLike
+        Any problem (:func:`hybridoc.problem.as_ocp`); a disc scene is simulated by the
+        generic step too.
+    max_events : int
+        Events resolved per step.
+    path_weight : float
+        Weight of the path-constraint penalty, as in :class:`CompiledLoss`.
+
+    Notes
+    -----
+    :class:`CompiledLoss` is unchanged (its step length is a constant of the graph); this
+    is a separate graph because the step length here is an input.
+    """
+
+    def __init__(self, problem: ProblemLike, *, max_events: int = 2, path_weight: float = 1e5):
+        from hybridoc.problem import as_ocp
+        from hybridoc.problems import Scene
+        from hybridoc.solvers.toi_sim import toi_step
+
+        ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
+        self.ocp = ocp
+        self.steps = N = ocp.steps
+        self.nx = nx = ocp.nx
+        self.nu = nu = ocp.nu
+        self.n_eq = 0 if ocp.terminal_eq is None else int(ocp.terminal_eq.size1_out(0))
+        self.n_in = 0 if ocp.terminal_ineq is None else int(ocp.terminal_ineq.size1_out(0))
+        h = ca.SX.sym("h")
+        step = toi_step(ocp, h, max_events=max_events)
+        if ocp.path is not None:
+            s, u = ca.SX.sym("s", nx), ca.SX.sym("u", nu)
+            s_next, c = step(s, u, h)
+            viol = ca.sumsqr(ca.fmin(ocp.path(s_next, u), 0))
+            step = ca.Function("toi_step_h", [s, u, h], [s_next, c + path_weight * h * viol])
+        self.step = step
+        self._fn = Accelerated(self._build(step, N))
+        self._x0 = ocp.x0.copy()
+
+    def _build(self, step: ca.Function, N: int) -> ca.Function:
+        """``(x0, U, T, nu, mu, rho) -> (J, A, s_N, dJA/dU, dJA/dT)`` (class notes)."""
+        ocp, nx, nu = self.ocp, self.nx, self.nu
+        s, u, lam, h = ca.SX.sym("s", nx), ca.SX.sym("u", nu), ca.SX.sym("lam", nx), ca.SX.sym("h")
+        s_next, c = step(s, u, h)
+        back_step = ca.Function(
+            "adjoint_step_h",
+            [lam, s, u, h],
+            [
+                ca.jtimes(s_next, s, lam, True) + ca.gradient(c, s),
+                ca.jtimes(s_next, u, lam, True) + ca.gradient(c, u),
+                ca.jtimes(s_next, h, lam, True) + ca.gradient(c, h),
+            ],
+        )
+        sf = ca.SX.sym("sf", nx)
+        nu_m, mu_m, rho = ca.SX.sym("nu", self.n_eq), ca.SX.sym("mu", self.n_in), ca.SX.sym("rho")
+        A = ca.SX(0)
+        if self.n_eq:
+            he = ocp.terminal_eq(sf)
+            A += ca.dot(nu_m, he) + 0.5 * rho * ca.sumsqr(he)
+        if self.n_in:
+            hi = ocp.terminal_ineq(sf)
+            A += (ca.sumsqr(ca.fmax(0, mu_m - rho * hi)) - ca.sumsqr(mu_m)) / (2 * rho)
+        phi = ocp.phi(sf)
+        end = ca.Function("terminal_al", [sf, nu_m, mu_m, rho], [phi, A, ca.gradient(phi + A, sf)])
+        x0 = ca.MX.sym("x0", nx)
+        U = ca.MX.sym("U", nu, N)
+        T = ca.MX.sym("T")
+        nu_x, mu_x, rho_x = ca.MX.sym("nu", self.n_eq), ca.MX.sym("mu", self.n_in), ca.MX.sym("rho")
+        H = ca.repmat(T / N, 1, N)
+        X, C = step.mapaccum("rollout_h", N)(x0, U, H)
+        s_N = X[:, N - 1]
+        phi_N, A_N, lam_N = end(s_N, nu_x, mu_x, rho_x)
+        X_prev = ca.horzcat(x0, X[:, : N - 1])
+        reverse = lambda M: ca.horzcat(*ca.horzsplit(M)[::-1])  # noqa: E731
+        _, gU, gh = back_step.mapaccum("adjoint_h", N)(lam_N, reverse(X_prev), reverse(U), H)
+        return ca.Function(
+            "terminal_loss",
+            [x0, U, T, nu_x, mu_x, rho_x],
+            [phi_N + ca.sum2(C), A_N, s_N, reverse(gU), ca.sum2(gh) / N],
+        )
+
+    def evaluate(
+        self,
+        controls: np.ndarray,
+        horizon: float,
+        nu: np.ndarray | None = None,
+        mu: np.ndarray | None = None,
+        rho: float = 1.0,
+    ) -> tuple[float, float, np.ndarray, np.ndarray, float]:
+        """``(J, A, s_N, d(J + A)/dU (N, nu), d(J + A)/dT)`` of ``(N, nu)`` controls at
+        final time ``horizon`` (class notes); ``nu`` and ``mu`` default to zeros."""
+        u = np.asarray(controls, dtype=float)
+        if u.shape != (self.steps, self.nu):
+            raise ControlsError(
+                f"controls must have shape ({self.steps}, {self.nu}), got {u.shape}"
+            )
+        nu = np.zeros(self.n_eq) if nu is None else np.asarray(nu, dtype=float)
+        mu = np.zeros(self.n_in) if mu is None else np.asarray(mu, dtype=float)
+        J, A, sN, gU, gT = self._fn(self._x0, u.T, float(horizon), nu, mu, float(rho))
+        return (
+            float(J), float(A), np.asarray(sN).ravel(), np.asarray(gU).T.copy(), float(gT)
+        )  # fmt: skip
+
+    def constraints(self, s_end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The terminal constraint values ``(h_eq, h_in)`` at a final state."""
+        ocp = self.ocp
+        he = np.zeros(0) if ocp.terminal_eq is None else np.asarray(ocp.terminal_eq(s_end)).ravel()
+        hi = (
+            np.zeros(0) if ocp.terminal_ineq is None
+            else np.asarray(ocp.terminal_ineq(s_end)).ravel()
+        )  # fmt: skip
+        return he, hi
 
 
 _LOSS_FN: Any = None

@@ -71,7 +71,7 @@ def _sx_flow(ocp: HybridOCP, substeps: int) -> ca.Function:
 
 def toi_step(
     ocp: HybridOCP,
-    dt: float,
+    dt: float | ca.SX,
     *,
     max_events: int = 2,
     newton_iterations: int = NEWTON_ITERATIONS,
@@ -85,7 +85,9 @@ def toi_step(
         The problem; its functions must be SX functions (the closed-form flow map may be
         given; CVODES flows are replaced by RK4 sub-steps).
     dt
-        Step length.
+        Step length: a number, or a scalar SX symbol, which then becomes the step's third
+        input, ``(s, u, h) -> (s_next, cost)`` (a free final time: :mod:`hybridoc.solvers.compiled`
+        differentiates the rollout with respect to it).
     max_events
         Events resolved per step (later crossings in the same step are left to the next).
     newton_iterations
@@ -146,4 +148,8 @@ def toi_step(
         remaining = ca.if_else(fired > 0.5, remaining - best_tau, 0.0)
     s_end, c_end = flow(state, u, remaining)
     cost = cost + c_end
+    if isinstance(dt, ca.SX):
+        return ca.Function(
+            "toi_step_h", [s, u, dt], [s_end, cost], ["s", "u", "h"], ["s_next", "cost"]
+        )
     return ca.Function("toi_step", [s, u], [s_end, cost], ["s", "u"], ["s_next", "cost"])
