@@ -11,7 +11,11 @@ import numpy as np
 from hybridoc.events import Event
 from hybridoc.ocp import HybridOCP
 
-__all__ = ["Evaluation", "Gradient", "Segment"]
+__all__ = ["TERMINAL_TOL", "Evaluation", "Gradient", "Segment"]
+
+TERMINAL_TOL = 1e-8
+"""The terminal-constraint violation up to which a result meets its terminal constraints
+(unless a method is given another tolerance)."""
 
 
 class Segment(NamedTuple):
@@ -47,6 +51,12 @@ class Evaluation:
     path_violation
         Largest violation of the problem's path constraints at the recorded times (0 when
         none or when the problem has none).
+    terminal_violation
+        Largest violation of the problem's terminal constraints at ``s(T)``:
+        ``max(|h_eq|, max(-h_ineq, 0))`` (0 when it has none).
+    terminal_eq_values, terminal_ineq_values
+        The terminal constraints at ``s(T)``, one value per constraint (``h_eq`` must be 0,
+        ``h_ineq`` at least 0); empty arrays when the problem has none.
     """
 
     cost: float
@@ -61,6 +71,30 @@ class Evaluation:
     segments: list[Segment] = field(repr=False, default_factory=list)
     bound_violation: float = 0.0
     path_violation: float = 0.0
+    terminal_violation: float = field(init=False, default=0.0)
+    terminal_eq_values: np.ndarray = field(init=False, repr=False)
+    terminal_ineq_values: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # every evaluation (grid controls, a policy, a callable u(t)) reports its terminal
+        # constraints from the same final state, whichever path built it
+        s_end = np.asarray(self.final_state, dtype=float).ravel()
+        eq, ineq = self.ocp.terminal_eq, self.ocp.terminal_ineq
+        self.terminal_eq_values = (
+            np.zeros(0) if eq is None else np.asarray(eq(s_end).full(), dtype=float).ravel()
+        )
+        self.terminal_ineq_values = (
+            np.zeros(0) if ineq is None else np.asarray(ineq(s_end).full(), dtype=float).ravel()
+        )
+        self.terminal_violation = max(
+            float(np.max(np.abs(self.terminal_eq_values), initial=0.0)),
+            float(np.max(-self.terminal_ineq_values, initial=0.0)),
+        )
+
+    @property
+    def horizon(self) -> float:
+        """The final time ``T`` of the evaluation (for a free final time: the one judged)."""
+        return float(self.ocp.horizon)
 
     @property
     def sequence(self) -> list[str]:
@@ -69,8 +103,13 @@ class Evaluation:
 
     @property
     def feasible(self) -> bool:
-        """Whether the control respects the bounds and the path constraints (to 1e-9)."""
-        return self.bound_violation <= 1e-9 and self.path_violation <= 1e-9
+        """Whether the control respects the bounds and the path constraints (to 1e-9) and
+        the terminal constraints (to :data:`TERMINAL_TOL`)."""
+        return (
+            self.bound_violation <= 1e-9
+            and self.path_violation <= 1e-9
+            and self.terminal_violation <= TERMINAL_TOL
+        )
 
     def sample(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
         """States at arbitrary times (after any jump at exactly that time)."""
@@ -112,6 +151,16 @@ class Gradient:
         before the jump), in time order.
     evaluation
         The forward :class:`Evaluation`.
+    d_horizon
+        ``dJ/dT`` with the controls held per cell and the cells ``T / N`` long (the grid
+        stretches with ``T``): the mean over the cells of the Hamiltonian
+        ``L + lambda^T f``, which is constant on each cell (events included). It is the
+        gradient with respect to a free final time; ``nan`` for the closed-loop gradient.
+    terminal_d_controls, terminal_d_initial_state, terminal_d_horizon
+        The same derivatives of each terminal constraint value (``terminal_eq`` first, then
+        ``terminal_ineq``, as in :attr:`Evaluation.terminal_eq_values` and
+        :attr:`Evaluation.terminal_ineq_values`): shapes ``(m, N, nu)``, ``(m, nx)`` and
+        ``(m,)``; ``m = 0`` without terminal constraints (or for the closed-loop gradient).
     """
 
     cost: float
@@ -120,3 +169,7 @@ class Gradient:
     costate_times: np.ndarray
     costates: np.ndarray
     evaluation: Evaluation
+    d_horizon: float = float("nan")
+    terminal_d_controls: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    terminal_d_initial_state: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    terminal_d_horizon: np.ndarray = field(default_factory=lambda: np.zeros(0))

@@ -47,7 +47,7 @@ from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.rootfind import CrossingSearch
 
-__all__ = ["evaluate", "gradient", "Policy"]
+__all__ = ["evaluate", "gradient", "at_horizon", "Policy"]
 
 Policy = Callable[[float, np.ndarray], Any]
 """A feedback policy ``u = pi(t, s)``: any callable, e.g. a ``torch.nn.Module``."""
@@ -77,7 +77,9 @@ def evaluate(
         a ``.toml`` path or ``file.py:function`` (see :func:`hybridoc.problem.as_ocp`).
     controls
         ``(N, nu)`` values, constant on each grid interval (a :class:`~hybridoc.Solution` is
-        accepted and its controls are used); default: the problem's initial guess. A
+        accepted and its controls are used; for a problem with a free final time, at the
+        final time it found, ``info["horizon"]``: see :func:`at_horizon`); default: the
+        problem's initial guess. A
         callable ``u(t)`` goes to :func:`hybridoc.evaluate_callable` with the grid times as
         breakpoints (``u`` may jump there).
     policy
@@ -102,7 +104,7 @@ def evaluate(
     -------
     Evaluation
     """
-    ocp = as_ocp(problem)
+    ocp = at_horizon(as_ocp(problem), controls)
     if policy is not None:
         if controls is not None:
             raise ControlsError("give either controls or a policy, not both")
@@ -125,6 +127,39 @@ def evaluate(
         )
     u_all = ocp.check_controls(ocp.u_guess if controls is None else controls)
     return Forward(ocp, u_all, None, graze_tol, penetration_tol, max_events).run()
+
+
+def at_horizon(ocp: HybridOCP, controls: Any) -> HybridOCP:
+    """The problem at the final time a solution found, for a free final time.
+
+    For a problem with :attr:`~hybridoc.HybridOCP.horizon_bounds` and ``controls`` a
+    :class:`~hybridoc.Solution` whose ``info`` holds ``"horizon"``, the problem with that
+    ``T`` (its grid stretched to ``T / N`` cells; the compiled functions are reused);
+    otherwise ``ocp`` itself: given controls alone are judged at ``ocp.horizon``, and a
+    fixed final time is never changed.
+
+    Raises
+    ------
+    hybridoc.errors.ControlsError
+        If the solution's ``horizon`` is not a number within the problem's bounds.
+    """
+    info = getattr(controls, "info", None)
+    if not ocp.free_horizon or not isinstance(info, dict) or info.get("horizon") is None:
+        return ocp
+    assert ocp.horizon_bounds is not None
+    lo, hi = ocp.horizon_bounds
+    try:
+        T = float(info["horizon"])
+    except (TypeError, ValueError):
+        raise ControlsError(
+            f"the solution's final time info['horizon'] is not a number: {info['horizon']!r}"
+        ) from None
+    if not lo <= T <= hi:
+        raise ControlsError(
+            f"the solution's final time {T!r} lies outside the problem's horizon_bounds "
+            f"({lo}, {hi})"
+        )
+    return ocp if T == ocp.horizon else ocp.replace(horizon=T)
 
 
 class PolicyCaller:
@@ -451,6 +486,14 @@ def gradient(
     Hamiltonian ``H = L + lambda^T f`` is continuous. Then ``dJ/ds(0) = lambda(0)`` and
     ``dJ/du_n`` is the integral of ``dH/du`` over grid interval ``n``.
 
+    The final time: with ``t = T sigma`` the problem is autonomous in ``sigma`` with the
+    parameter ``T`` (``ds/dsigma = T f``, cost rate ``T L``), so ``dJ/dT`` is the integral
+    over ``sigma`` of ``H``; under a constant control ``H`` is constant along the flow and,
+    by the choice of ``pi``, across events, hence ``dJ/dT = (1/N) sum_n H_n``, ``H_n`` the
+    Hamiltonian of cell ``n`` (:attr:`Gradient.d_horizon`). The terminal constraints'
+    gradients come from the same recursion started at ``grad h_i(s(T))`` without running
+    cost (:attr:`Gradient.terminal_d_controls`).
+
     Parameters
     ----------
     problem
@@ -460,7 +503,7 @@ def gradient(
     **kwargs
         Passed to :func:`evaluate`.
     """
-    ocp = as_ocp(problem)
+    ocp = at_horizon(as_ocp(problem), controls)
     controls = getattr(controls, "controls", controls)
     if callable(controls) or "policy" in kwargs:
         raise ControlsError("gradient needs piecewise-constant controls on the N-grid")
@@ -538,7 +581,7 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
         d_u = np.zeros_like(u_all)
         # later segments first, as the recursion visits them
         np.add.at(d_u, idx[::-1], contrib[::-1])
-    return Gradient(
+    out = Gradient(
         cost=ev.cost,
         d_initial_state=lam,
         d_controls=d_u,
@@ -546,6 +589,76 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
         costates=lam_rec,
         evaluation=ev,
     )
+    if feedback is None:
+        f_seg, L_seg = _segment_fL(num, segs, u_all)
+        h_seg = np.array([seg.h for seg in segs])
+        H = L_seg + np.einsum("ki,ki->k", lam_start, f_seg)
+        out.d_horizon = float(h_seg @ H) / ocp.horizon
+        if num.terminal is not None:
+            tc, tx, tT = _terminal_adjoint(num, ev, idx, FsT_a, FuT_a, f_seg, h_seg)
+            out.terminal_d_controls, out.terminal_d_initial_state = tc, tx
+            out.terminal_d_horizon = tT
+    return out
+
+
+def _segment_fL(
+    num: Numeric, segs: list[Segment], u_all: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``f`` and ``L`` at every segment's start state, ``(M, nx)`` and ``(M,)``."""
+    M = len(segs)
+    F = np.empty((M, num.k.nx))
+    Lv = np.empty(M)
+    for i, seg in enumerate(segs):
+        f_i, L_i = num.fL(seg.s0, u_all[seg.interval])
+        F[i], Lv[i] = f_i, L_i[0]
+    return F, Lv
+
+
+def _terminal_adjoint(
+    num: Numeric,
+    ev: Evaluation,
+    idx: np.ndarray,
+    FsT_a: np.ndarray,
+    FuT_a: np.ndarray,
+    f_seg: np.ndarray,
+    h_seg: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Derivatives of the terminal constraints ``h(s(T))`` (equalities first) with respect
+    to the controls, the initial state and ``T``: the costate recursion of :func:`adjoint`
+    with one column per constraint, started at ``grad h_i`` and without running cost."""
+    assert num.terminal is not None
+    ocp = ev.ocp
+    nx, N, nu = num.k.nx, ocp.steps, num.k.nu
+    vals, jac = num.terminal(ev.final_state)
+    m = vals.size
+    lam = jac.reshape((m, nx), order="F").T.copy()  # (nx, m): one costate per constraint
+    d_u = np.zeros((m, N, nu))
+    d_T = np.zeros(m)
+    segs = ev.segments
+    for i in range(len(segs) - 1, -1, -1):
+        seg = segs[i]
+        u = ev.controls[seg.interval]
+        if seg.event is not None:
+            lam = _costate_jump_block(num, seg, u, lam)
+        d_u[:, idx[i], :] += (FuT_a[i] @ lam).T
+        lam = FsT_a[i] @ lam
+        d_T += h_seg[i] * (lam.T @ f_seg[i])
+    return d_u, lam.T.copy(), d_T / ocp.horizon
+
+
+def _costate_jump_block(num: Numeric, seg: Segment, u: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """:func:`_costate_jump` for several costates ``(nx, m)`` of costs without running
+    cost (the terminal constraints'): ``pi`` per column from the continuity of
+    ``lambda^T f``."""
+    assert seg.event is not None
+    nx = lam.shape[0]
+    b = num.flow(seg.s0, u, seg.h)[0]
+    grad_psi, Dg, gb = num.event_jac(seg.event)(b, u)
+    Dg = Dg.reshape(nx, nx).T
+    f_minus = num.fL(b, u)[0]
+    f_plus = num.fL(gb, u)[0]
+    pi = (lam.T @ f_plus - lam.T @ (Dg @ f_minus)) / (grad_psi @ f_minus)
+    return Dg.T @ lam + np.outer(grad_psi, pi)
 
 
 def _segment_jacobians(

@@ -368,6 +368,15 @@ class Kernels:
             self.path_fn: ca.Function | None = dense_fn("path", [sp, u], [ocp.path(sp, u)])
         else:
             self.path_fn = None
+        # the terminal constraints (equalities first) and their Jacobian, for their adjoint
+        parts = [fn(sf) for fn in (ocp.terminal_eq, ocp.terminal_ineq) if fn is not None]
+        if parts:
+            h_all = ca.vertcat(*parts)
+            self.terminal_fn: ca.Function | None = dense_fn(
+                "terminal", [sf], [h_all, ca.jacobian(h_all, sf)]
+            )
+        else:
+            self.terminal_fn = None
 
     def numeric(self) -> Numeric:
         """This thread's buffer-bound evaluators (buffers are not shared between threads)."""
@@ -450,6 +459,10 @@ class Numeric:
     @cached_property
     def path(self) -> Num | None:
         return None if self.k.path_fn is None else Num(self.k.path_fn)
+
+    @cached_property
+    def terminal(self) -> Num | None:
+        return None if self.k.terminal_fn is None else Num(self.k.terminal_fn)
 
     def reset(self, j: int) -> Num:
         if j not in self._resets:

@@ -28,9 +28,21 @@ Terminal constraints and a free final time
     its guess). Issue #15 brings them to every method; a method that does not honour them
     yet says so instead of answering.
 
+Time-dependent flows and costs
+    ``f(t, s, u)`` and ``L(t, s, u)`` (and ``phi``, path and terminal constraints that read
+    the time) are the same model with one more state: :meth:`HybridOCP.from_expressions`
+    and :meth:`HybridOCP.from_modes` with ``t=t_sym`` add the time as a state coordinate
+    placed after ``s`` (before the mode index, which stays last), with ``t' = 1``,
+    ``t(0) = 0``, the label ``"t"``, and every reset keeping it. Every method then solves the
+    problem unchanged, and the judge's gradient and the event rule come out exact (the
+    costate of ``t`` carries ``dH/dt``: ``lambda_t + H`` is constant under a constant
+    control). Guards stay functions of ``s`` (or of ``(s, t)`` where built
+    on ``ca.vertcat(s, t)``). With a free final time the cost and constraints see the
+    time ``t`` of the stretched grid, since the time coordinate integrates ``t' = 1``.
+
 What the model cannot express yet
-    Static parameters, flows and costs that depend on time, and resets that depend on the
-    control.
+    Static parameters, resets that depend on the control, and terminal constraints tied to
+    a final mode (a constraint is an expression in ``s``, whatever the mode).
 
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
@@ -552,6 +564,7 @@ class HybridOCP:
         path: ca.SX | ca.MX | None = None,
         terminal_eq: ca.SX | ca.MX | None = None,
         terminal_ineq: ca.SX | ca.MX | None = None,
+        t: ca.SX | ca.MX | None = None,
         **kwargs: Any,
     ) -> HybridOCP:
         """Build a problem from symbolic expressions in the state ``s`` and control ``u``.
@@ -560,7 +573,38 @@ class HybridOCP:
         ``>= 0``; ``terminal_eq`` and ``terminal_ineq`` are expressions in ``s`` (``= 0``
         and ``>= 0`` at ``s(T)``); the other keyword arguments are those of
         :class:`HybridOCP`.
+
+        With ``t`` (a scalar symbol), ``f``, ``L``, ``phi``, ``path`` and the terminal
+        constraints may depend on time: the problem is built with one more state coordinate,
+        the time (``t' = 1``, ``t(0) = 0``, label ``"t"``, kept by every reset), placed after
+        ``s`` (module notes, "Time-dependent flows and costs"). ``x0`` and ``state_labels``
+        then give ``s`` only; a guard may be a function of ``s`` or of ``(s, t)`` (built with
+        ``ca.vertcat(s, t)`` as its state, its reset returning ``s`` alone).
         """
+        if t is not None:
+            if "flow_map" in kwargs:
+                raise SceneError(
+                    "from_expressions with t: a flow_map cannot be given (the time is added "
+                    "to the state); leave it out and the flow is integrated"
+                )
+            lift = _TimeLift(s, t, u)
+            return cls.from_expressions(
+                lift.x,
+                u,
+                f=ca.vertcat(lift.of_stu(f, "f"), 1.0),
+                L=lift.of_stu(L, "L"),
+                phi=lift.of_st(phi, "phi"),
+                guards=[lift.guard(g) for g in guards],
+                x0=lift.x0(x0),
+                horizon=horizon,
+                steps=steps,
+                path=None if path is None else lift.of_stu(path, "path"),
+                terminal_eq=None if terminal_eq is None else lift.of_st(terminal_eq, "terminal_eq"),
+                terminal_ineq=None
+                if terminal_ineq is None
+                else lift.of_st(terminal_ineq, "terminal_ineq"),
+                **lift.labels(kwargs),
+            )
         return cls(
             f=ca.Function("f", [s, u], [f]),
             L=ca.Function("L", [s, u], [L]),
@@ -594,6 +638,9 @@ class HybridOCP:
         steps: int,
         path: ca.SX | ca.MX | None = None,
         state_labels: Sequence[str] | None = None,
+        terminal_eq: ca.SX | ca.MX | None = None,
+        terminal_ineq: ca.SX | ca.MX | None = None,
+        t: ca.SX | ca.MX | None = None,
         **kwargs: Any,
     ) -> HybridOCP:
         """Build a problem with discrete modes (module notes, "Modes").
@@ -628,6 +675,14 @@ class HybridOCP:
             Optional path constraints, an expression in ``s`` and ``u`` (``>= 0``).
         state_labels
             Labels of ``s``; ``"mode"`` is appended.
+        terminal_eq, terminal_ineq
+            Optional terminal constraints, expressions in ``s`` required ``= 0`` and
+            ``>= 0`` at ``s(T)``.
+        t
+            Optional time symbol: the modes' expressions (the dict form), ``phi``, ``path``
+            and the terminal constraints may then depend on time, and the state becomes
+            ``(s, t, q)`` (module notes, "Time-dependent flows and costs"). :class:`Mode`
+            objects and transitions stay functions of ``s``.
         **kwargs
             The other fields of :class:`HybridOCP` (``u_guess``, bounds, ``name``, ...);
             not ``flow_map`` (give each :class:`Mode` its ``flow_map`` instead).
@@ -636,6 +691,30 @@ class HybridOCP:
             raise SceneError(
                 "from_modes: give each Mode its flow_map (s, u, h) -> (s(h), cost) instead of "
                 "one for the whole problem"
+            )
+        if t is not None:
+            lift = _TimeLift(s, t, u)
+            lifted = (
+                [lift.mode(str(n), spec) for n, spec in modes.items()]
+                if isinstance(modes, Mapping)
+                else [lift.mode(m.name, m) for m in _as_modes(modes, s, u)]
+            )
+            return cls.from_modes(
+                lift.x,
+                u,
+                modes=lifted,
+                transitions=[lift.guard(g) for g in transitions],
+                initial_mode=initial_mode,
+                phi=lift.of_st(phi, "phi"),
+                x0=lift.x0(x0),
+                horizon=horizon,
+                steps=steps,
+                path=None if path is None else lift.of_stu(path, "path"),
+                terminal_eq=None if terminal_eq is None else lift.of_st(terminal_eq, "terminal_eq"),
+                terminal_ineq=None
+                if terminal_ineq is None
+                else lift.of_st(terminal_ineq, "terminal_ineq"),
+                **lift.labels({**kwargs, "state_labels": state_labels}),
             )
         mode_list = _as_modes(modes, s, u)
         names = [m.name for m in mode_list]
@@ -713,6 +792,12 @@ class HybridOCP:
             else ca.Function("path", [x, uu], [_in_state(path, s, u, xs, uu)]),
             state_labels=labels,
             modes=tuple(names),
+            terminal_eq=None
+            if terminal_eq is None
+            else ca.Function("terminal_eq", [x], [_in_s(terminal_eq, s, xs)]),
+            terminal_ineq=None
+            if terminal_ineq is None
+            else ca.Function("terminal_ineq", [x], [_in_s(terminal_ineq, s, xs)]),
             **kwargs,
         )
 
@@ -903,6 +988,127 @@ def _in_state(expr: Any, s: Any, u: Any, xs: Any, uu: Any) -> Any:
     return ca.Function("tmp", [s, u], [expr])(xs, uu)
 
 
+def _in_s(expr: Any, s: Any, xs: Any) -> Any:
+    """An expression in ``s`` rewritten in the augmented state's ``s`` part."""
+    return ca.Function("tmp", [s], [expr])(xs)
+
+
+class _TimeLift:
+    """The lowering of time dependence: expressions in ``(s, t, u)`` rewritten in the state
+    ``x = (s, t)`` (module notes, "Time-dependent flows and costs")."""
+
+    def __init__(self, s: Any, t: Any, u: Any) -> None:
+        sym = ca.SX if isinstance(s, ca.SX) else ca.MX
+        if not isinstance(t, ca.SX | ca.MX) or not t.is_symbolic() or t.numel() != 1:
+            raise SceneError(f"t must be one scalar CasADi symbol (ca.SX.sym('t')), got {t!r}")
+        self.s, self.t, self.u = s, t, u
+        self.ns = int(s.numel())
+        self.x = sym.sym("st", self.ns + 1)
+        self.xs, self.xt = self.x[: self.ns], self.x[self.ns]
+
+    def _call(self, args: list[Any], values: list[Any], expr: Any, what: str) -> Any:
+        if not isinstance(expr, ca.SX | ca.MX):  # a number, e.g. L = 0
+            expr = type(self.x)(as_float_array(expr, what))
+        try:
+            fn = ca.Function(f"lift_{_casadi_name(what)}", args, [expr])
+        except RuntimeError as exc:
+            names = ", ".join(a.name() if a.is_symbolic() else "?" for a in args)
+            raise SceneError(
+                f"{what} must be an expression in ({names}) only: {str(exc).splitlines()[0]}"
+            ) from None
+        return fn(*values)
+
+    def of_stu(self, expr: Any, what: str) -> Any:
+        """``expr(s, t, u)`` as an expression in ``(x, u)``."""
+        return self._call([self.s, self.t, self.u], [self.xs, self.xt, self.u], expr, what)
+
+    def of_st(self, expr: Any, what: str) -> Any:
+        """``expr(s, t)`` as an expression in ``x``."""
+        return self._call([self.s, self.t], [self.xs, self.xt], expr, what)
+
+    def x0(self, x0: Any) -> np.ndarray:
+        arr = as_float_array(x0, "x0").ravel()
+        if arr.size != self.ns:
+            raise SceneError(
+                f"x0 must give the {self.ns} components of s (the time, 0 at the start, is "
+                f"added), got {arr.size}"
+            )
+        return np.r_[arr, 0.0]
+
+    def labels(self, kwargs: dict[str, Any]) -> dict[str, Any]:
+        """``kwargs`` with ``"t"`` appended to the state labels."""
+        out = dict(kwargs)
+        given = out.get("state_labels")
+        if given is None:
+            given = [f"s{i}" for i in range(self.ns)]
+        given = [*map(str, given)]
+        if len(given) != self.ns:
+            raise SceneError(f"state_labels must name the {self.ns} components of s")
+        out["state_labels"] = [*given, "t"]
+        return out
+
+    def _of_state(self, fn: ca.Function | None, what: str) -> Any:
+        """A function of ``s`` or of ``(s, t)`` at the symbolic ``x``."""
+        if fn is None:
+            return None
+        n = fn.size1_in(0) if fn.n_in() == 1 else -1
+        if n == self.ns:
+            return fn(self.xs)
+        if n == self.ns + 1:
+            return fn(self.x)
+        raise SceneError(f"{what} must be a Function of s ({self.ns}) or of (s, t) ({self.ns + 1})")
+
+    def guard(self, g: Guard) -> Guard:
+        """A guard of ``s`` (or ``(s, t)``) as a guard of ``x``; its reset keeps the time."""
+        if not isinstance(g, Guard):
+            raise SceneError(f"guards must be Guard objects, got {g!r}")
+        tag = _casadi_name(g.name)
+        reset = self._of_state(g.reset, f"guard {g.name!r}: the reset")
+        if reset.numel() == self.ns + 1:
+            reset = reset[: self.ns]
+        if reset.numel() != self.ns:
+            raise SceneError(f"guard {g.name!r}: the reset must return the {self.ns} components")
+        det = self._of_state(g.detector, f"guard {g.name!r}: the detector")
+        return dataclasses.replace(
+            g,
+            psi=ca.Function(f"psi_{tag}", [self.x], [self._of_state(g.psi, f"guard {g.name!r}")]),
+            reset=ca.Function(f"g_{tag}", [self.x], [ca.vertcat(reset, self.xt)]),
+            detector=None if det is None else ca.Function(f"det_{tag}", [self.x], [det]),
+        )
+
+    def mode(self, name: str, spec: Any) -> Mode:
+        """A mode of ``from_modes`` (``(f, L)`` expressions in ``(s, t, u)``, or a
+        :class:`Mode` of ``s``) as a mode of ``x``; a Mode's flow map advances the time."""
+        x, u = self.x, self.u
+        if isinstance(spec, Mode):
+            L = None if spec.L is None else ca.Function(f"L_{name}", [x, u], [spec.L(self.xs, u)])
+            fm = None
+            if spec.flow_map is not None:
+                h = type(self.x).sym("h")
+                end, cost = spec.flow_map(self.xs, u, h)
+                fm = ca.Function(
+                    f"fm_{_casadi_name(name)}", [x, u, h], [ca.vertcat(end, self.xt + h), cost]
+                )
+            return Mode(
+                spec.name,
+                f=ca.Function(
+                    f"f_{_casadi_name(name)}", [x, u], [ca.vertcat(spec.f(self.xs, u), 1.0)]
+                ),
+                L=L,
+                flow_map=fm,
+            )
+        if not isinstance(spec, tuple | list) or len(spec) != 2:
+            raise SceneError(f"mode {name!r}: expected (f, L) expressions, got {spec!r}")
+        f, L = spec
+        return Mode.from_expressions(
+            name,
+            x,
+            u,
+            ca.vertcat(self.of_stu(f, f"mode {name!r}: f"), 1.0),
+            None if L is None else self.of_stu(L, f"mode {name!r}: L"),
+        )
+
+
 def _transition(g: Guard, x: Any, ns: int, index: dict[str, float], names: list[str]) -> Guard:
     """A transition of ``from_modes`` as a guard of the augmented state ``x = (s, q)``."""
     if not isinstance(g, Guard):
@@ -962,7 +1168,15 @@ def integrator_flow_samples(
     us, hs = ps[:nu], ps[nu]
     # time scaled to [0, 1] so that h is a parameter (and h = 0 is allowed)
     dae = {"x": xs, "p": ps, "ode": hs * f(xs, us), "quad": hs * L(xs, us)}
-    opts = {"abstol": 1e-13, "reltol": 1e-13, "max_num_steps": 100000, "show_eval_warnings": False}
+    # quad_err_con: without it CVODES steps by the state alone, and a state that is easy to
+    # integrate (a polynomial) gives long steps and a running cost off by 1e-4 relative
+    opts = {
+        "abstol": 1e-13,
+        "reltol": 1e-13,
+        "max_num_steps": 100000,
+        "show_eval_warnings": False,
+        "quad_err_con": True,
+    }
     grid = [float(x) for x in fractions]
     integ = ca.integrator(f"{name}_int", "cvodes", dae, 0.0, grid, opts)
     res = integ(x0=s, p=ca.vertcat(u, h))

@@ -97,6 +97,19 @@ def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[HybridOCP,
     return ocp, None, controls, source
 
 
+def _solution_horizon(args: argparse.Namespace, ocp: HybridOCP) -> HybridOCP:
+    """For a free final time and a saved Solution as ``--controls``: the problem at the
+    final time the solution found (:func:`hybridoc.evaluator.at_horizon`)."""
+    if not ocp.free_horizon or args.controls is None or args.substeps is not None:
+        return ocp
+    if Path(args.controls).suffix.lower() not in (".npz", ".json"):
+        return ocp
+    from hybridoc.evaluator import at_horizon
+    from hybridoc.solution import Solution
+
+    return at_horizon(ocp, Solution.load(args.controls))
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate controls (or a feedback policy, --policy) with the event-exact judge: true cost
     and events."""
@@ -104,6 +117,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hybridoc.solution import Solution
 
     ocp, policy, controls, source = _evaluated_arg(args, load_problem_arg(args.problem))
+    ocp = _solution_horizon(args, ocp)
     out = None if args.out is None else ensure_dir(args.out)
     try:
         ev, seconds = _timed(
@@ -132,19 +146,31 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "feasible": ev.feasible,
         "steps": ocp.steps,
         "substeps": args.substeps or 1,
+        "horizon": ocp.horizon,
+        "free_horizon": ocp.free_horizon,
+        "terminal_violation": ev.terminal_violation,
+        "terminal_eq": ev.terminal_eq_values,
+        "terminal_ineq": ev.terminal_ineq_values,
     }
     if args.json:
         emit_json(payload)
     else:
-        say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})")
+        free = " (free final time: judged at this T)" if ocp.free_horizon else ""
+        say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)}){free}")
         say(args, f"controls  {source}")
         say(args, f"cost      {ev.cost!r}")
         say(args, f"terminal  {ev.terminal_cost!r}")
         say(args, f"running   {ev.running_cost!r}")
+        if ocp.has_terminal_constraints:
+            say(args, f"terminal constraints violated by {ev.terminal_violation:.3g}")
+            rows = [[f"h_eq[{i}] = 0", fmt(x)] for i, x in enumerate(ev.terminal_eq_values)]
+            rows += [[f"h_ineq[{i}] >= 0", fmt(x)] for i, x in enumerate(ev.terminal_ineq_values)]
+            say(args, indent(format_table(["constraint", "value at T"], rows, right=[False, True])))
         if not ev.feasible:
             say(
                 args,
-                f"feasible  no (bounds {ev.bound_violation:.3g}, path {ev.path_violation:.3g})",
+                f"feasible  no (bounds {ev.bound_violation:.3g}, path {ev.path_violation:.3g}, "
+                f"terminal {ev.terminal_violation:.3g})",
             )
         say(args, f"events    {len(events)}")
         if events:
