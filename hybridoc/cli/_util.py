@@ -44,6 +44,7 @@ __all__ = [
     "add_initial_arg",
     "add_json_out",
     "add_method_options",
+    "add_progress_arg",
     "add_substeps_arg",
     "emit_json",
     "ensure_dir",
@@ -63,6 +64,7 @@ __all__ = [
     "positive_int",
     "print_solution",
     "problem_arg",
+    "problem_slug",
     "say",
     "solution_payload",
     "to_jsonable",
@@ -418,9 +420,35 @@ def ensure_dir(path: str | Path) -> Path:
 
 def output_stem(out: Path, problem: str, command: str, method: str | None = None) -> Path:
     """``out/<problem>_<command>[_<method>]``, with a file-safe problem name."""
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "-", problem).strip("-") or "problem"
-    parts = [safe, command] + ([method] if method and method != command else [])
+    parts = [_safe_name(problem), command] + ([method] if method and method != command else [])
     return out / "_".join(parts)
+
+
+def problem_slug(text: str | Path, ocp: Any) -> str:
+    """The file-name slug of a problem in output names: a built-in or library name as it
+    was given (``bouncing-ball``, not the problem's long name), otherwise the problem's
+    name (``ocp.name``) made file-safe."""
+    from hybridoc.problems import builtin_names, library_names
+
+    given = str(text)
+    if given in builtin_names() or given in library_names():
+        return given
+    return _safe_name(str(getattr(ocp, "name", "") or ""))
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-") or "problem"
+
+
+def add_progress_arg(parser: argparse.ArgumentParser) -> None:
+    """Add ``--no-progress`` (the progress display on stderr is on by default: a bar on a
+    terminal, a plain line every 30 s in a log, :mod:`hybridoc.progress`)."""
+    parser.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress display on stderr (default: a bar on a terminal, plain lines in a "
+        "log after a minute)",
+    )
 
 
 def fmt(x: float, digits: int = 10) -> str:

@@ -6,9 +6,11 @@ Three reports, each a JSON-ready dict plus figures:
   (the judge), its relative gap to the reference optimum, control errors on the grid, and
   whether its events are the reference's.
 - :func:`crossval`: registered methods (:data:`hybridoc.methods.METHODS`) on one problem,
-  each measured against the reference within the tolerance the method declares
-  (:attr:`~hybridoc.methods.Method.tolerance`); disagreements are findings (``agree`` false
-  with the reasons), not table rows.
+  each measured twice: against the reference, and against the best control the method can
+  represent (:func:`representable`), within the tolerance the method declares
+  (:attr:`~hybridoc.methods.Method.tolerance`). Only the second gap is a disagreement: the
+  first also holds the method's discretisation error. Disagreements are findings (``agree``
+  false with the reasons); a method that fails is a row that says so.
 - :func:`convergence`: costs of the transcription's control sampled on grids of N cells and
   of gradient descent at each N, errors against the reference and observed orders.
 
@@ -48,6 +50,7 @@ __all__ = [
     "local_gap",
     "method_entry",
     "observed_orders",
+    "representable",
     "validate_controls",
     "validation_figures",
 ]
@@ -91,11 +94,16 @@ def event_comparison(
 
 
 def method_entry(
-    sol: Solution, ref: Solution, *, wall_time_s: float | None = None
+    sol: Solution, ref: Solution | None, *, wall_time_s: float | None = None
 ) -> dict[str, Any]:
-    """The cross-validation row of one Solution measured against the reference Solution."""
+    """The cross-validation row of one Solution measured against the reference Solution
+    (``None`` when there is none: the comparisons are then ``None``)."""
     dt = float(sol.time_grid[1] - sol.time_grid[0])
-    ev = event_comparison(sol.events, ref.events)
+    ev = (
+        event_comparison(sol.events, ref.events)
+        if ref is not None
+        else {"sequence_matches": None, "time_errors": None}
+    )
     out: dict[str, Any] = {
         "status": sol.status.value,
         "success": sol.success,
@@ -103,13 +111,13 @@ def method_entry(
         "cost": float(sol.cost),
         "terminal_cost": float(sol.terminal_cost),
         "running_cost": float(sol.running_cost),
-        "cost_gap_relative": float((sol.cost - ref.cost) / abs(ref.cost)) if ref.cost else 0.0,
+        "cost_gap_relative": None if ref is None else _relative(sol.cost, ref.cost),
         "events": list(sol.events),
         "sequence": sol.sequence,
         "event_times": [float(e["time"]) for e in sol.events],
         "sequence_matches": ev["sequence_matches"],
         "event_time_errors": ev["time_errors"],
-        "control_error": control_errors(sol.controls, ref.controls, dt),
+        "control_error": None if ref is None else control_errors(sol.controls, ref.controls, dt),
         "solve_time_s": float(sol.timings.get("solve_time_s", float("nan"))),
     }
     if wall_time_s is not None:
@@ -220,6 +228,13 @@ def crossval(
 ) -> tuple[dict[str, Any], dict[str, Solution]]:
     """Run several methods on one problem and measure each against the reference.
 
+    Each method gets two gaps. The gap to the reference, ``(J - J*) / |J*|``, holds the
+    method's discretisation error as well as any disagreement; the gap to the best control
+    the method can represent (:func:`representable`: the reference's control on the
+    method's N-step grid for a piecewise-constant method, the transcription re-solved from
+    the reference on its own mesh for ``dt``) holds only the disagreement. A method
+    disagrees when that second gap exceeds its tolerance.
+
     Parameters
     ----------
     problem
@@ -242,40 +257,93 @@ def crossval(
     Returns
     -------
     report, solutions
-        ``report``: ``{"problem", "agree", "reasons", <method>: entry}``; ``agree`` is false
-        when the reference is beaten by another method's true cost, when a method's cost is
-        outside its tolerance of the reference's, when a method failed, when a method's own
-        check (:attr:`~hybridoc.methods.Method.crossval_check`) finds a disagreement, or
-        when a method's own status is not a success; ``reasons`` says which. Each entry is
-        :func:`method_entry` plus the gap to the reference extremal of the method's own
-        event sequence (:func:`local_gap`). ``solutions``: the Solutions.
+        ``report``: ``{"problem", "agree", "reasons", "grid_cost", "grid_gap_relative",
+        <method>: entry}``. ``grid_cost`` is the judged cost of the reference's control
+        averaged over the cells of the problem's N-step grid, the best a piecewise-constant
+        method can be expected to reach (``grid_gap_relative`` its gap to ``J*``). Each entry
+        is :func:`method_entry` plus the gap to the reference extremal of the method's own
+        event sequence (:func:`local_gap`), :func:`representable`'s fields, ``converged``
+        (the method's own status is a success), ``tolerance`` and, for a problem with
+        terminal constraints, ``terminal_violation``. A method that raised is an entry
+        ``{"error", "error_type", "wall_time_s", "converged": False}``; the others still
+        run. ``agree`` is false when the reference is beaten by another method's true cost,
+        when a method is beyond its tolerance of the best control it can represent, when a
+        method (or the reference) failed or did not converge, or when a method's own check
+        (:attr:`~hybridoc.methods.Method.crossval_check`) finds a disagreement;
+        ``reasons`` says which. ``solutions``: the Solutions of the methods that returned
+        one.
     """
     ocp = as_ocp(problem)
     names = ["reference"] + [m for m in methods if m != "reference"]
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    bad_tol = [k for k in (tolerances or {}) if k not in METHODS]
+    if bad_tol:
+        raise SceneError(f"tolerance for unknown method(s) {bad_tol}")
+    tol = {name: METHODS[name].tolerance for name in names} | {
+        k: _checked_tolerance(k, v) for k, v in (tolerances or {}).items()
+    }
     opts = _run_options(ocp, names, options)
-    tol = {name: METHODS[name].tolerance for name in names} | dict(tolerances or {})
     with progress_scope(progress, "crossval") as p:
         sols, walls, errors = _run_methods(ocp, names, opts, p)
-        ref = sols["reference"]
+        ref = sols.get("reference")
         report: dict[str, Any] = {"problem": ocp.name}
         reasons: list[str] = []
-        if not ref.success:
+        if ref is not None and not ref.success:
             reasons.append(f"the reference reports {ref.status.value}: {ref.message}")
+        report.update(_grid_projection(ocp, ref))
         for name in names:
             if name in errors:
-                report[name] = {"error": errors[name], "wall_time_s": walls[name]}
-                reasons.append(f"{name} failed: {errors[name]}")
+                report[name] = {**errors[name], "wall_time_s": walls[name], "converged": False}
+                reasons.append(f"{name} failed: {errors[name]['error']}")
+                continue
+            if ref is None:  # nothing to compare with: the method's own answer only
+                report[name] = method_entry(sols[name], None, wall_time_s=walls[name])
+                report[name]["converged"] = sols[name].success
                 continue
             if name != "reference":
                 p.stage(f"comparing {name} with the reference")
-            report[name], why = _judge_method(ocp, name, sols[name], ref, walls[name], tol[name], p)
+            try:
+                report[name], why = _judge_method(
+                    ocp, name, sols[name], ref, walls[name], tol[name], opts[name], p
+                )
+            except Exception as exc:  # a comparison that breaks is that method's failure
+                report[name] = {**_error_fields(exc), "wall_time_s": walls[name]}
+                report[name]["converged"] = sols[name].success
+                why = [f"{name} could not be compared: {report[name]['error']}"]
             reasons += why
     report["agree"] = not reasons
     report["reasons"] = reasons
     return report, sols
+
+
+def _checked_tolerance(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise SceneError(f"tolerance of {name} must be a number, got {value!r}")
+    if not (math.isfinite(float(value)) and float(value) > 0):
+        raise SceneError(f"tolerance of {name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _error_fields(exc: BaseException) -> dict[str, Any]:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return {"error": text, "error_type": type(exc).__name__}
+
+
+def _grid_projection(ocp: HybridOCP, ref: Solution | None) -> dict[str, Any]:
+    """The judged cost of the reference's cell averages on the problem's N-step grid."""
+    if ref is None or ocp.free_horizon:
+        return {"grid_cost": None, "grid_gap_relative": None}
+    try:
+        cost = float(evaluate(ocp, ref.controls).cost)
+    except HybridocError as exc:
+        return {"grid_cost": None, "grid_gap_relative": None, "grid_error": str(exc)}
+    return {"grid_cost": cost, "grid_gap_relative": _relative(cost, ref.cost)}
+
+
+def _relative(cost: float, against: float) -> float:
+    return float((cost - against) / abs(against)) if against else float(cost - against)
 
 
 def _run_options(
@@ -293,23 +361,104 @@ def _run_options(
 
 def _run_methods(
     ocp: HybridOCP, names: Sequence[str], opts: Mapping[str, Mapping[str, Any]], progress: Progress
-) -> tuple[dict[str, Solution], dict[str, float], dict[str, str]]:
-    """Solve with each method: the solutions, wall times and errors (a failure of the
-    reference is raised)."""
+) -> tuple[dict[str, Solution], dict[str, float], dict[str, dict[str, Any]]]:
+    """Solve with each method: the solutions, wall times and errors (``{"error",
+    "error_type"}`` of each method that raised; the others still run)."""
     sols: dict[str, Solution] = {}
     walls: dict[str, float] = {}
-    errors: dict[str, str] = {}
+    errors: dict[str, dict[str, Any]] = {}
     for name in names:
         progress.stage(name)
         t0 = time.perf_counter()
         try:
             sols[name] = solve(ocp, name, progress=progress, **opts[name])
-        except HybridocError as exc:
-            if name == "reference":
-                raise
-            errors[name] = str(exc)
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # any method's failure is its row, not the end of the run
+            errors[name] = _error_fields(exc)
         walls[name] = time.perf_counter() - t0
     return sols, walls, errors
+
+
+def representable(
+    problem: ProblemLike,
+    method: str,
+    ref: Solution,
+    *,
+    options: Mapping[str, Any] | None = None,
+    progress: ProgressLike = None,
+) -> dict[str, Any]:
+    """The best control ``method`` can represent, built from the reference, and its cost.
+
+    A method's gap to the reference mixes two things: what its representation of the
+    control cannot express (discretisation) and how far it is from the best it could
+    express (disagreement: a local optimum, a failure to converge, a wrong gradient). This
+    gives the second's yardstick:
+
+    ``dt``
+        The transcription re-solved from the reference (its control and its event sequence
+        as the initial guess) with ``options`` (the same mesh and degree): the optimum of
+        dt's own discretisation near the reference, judged like any dt answer. Holding the
+        reference on dt's mesh instead would give a control that dt's NLP never optimises
+        (its quadrature and collocation differ from the judge's exact cost), so its cost is
+        not a bound on what dt can reach; the discrete optimum is.
+    any other method
+        The reference's control averaged over the cells of the N-step grid and judged:
+        the best piecewise-constant control the method can be expected to reach (not the
+        best one exactly: the best piecewise-constant control may be a little cheaper, so
+        a negative ``representable_gap_relative`` is not a finding).
+
+    Parameters
+    ----------
+    problem
+        Any problem.
+    method
+        A registered method name.
+    ref
+        The reference Solution.
+    options
+        The method's options (``dt``: ``mesh``, ``degree``).
+    progress
+        Passed to a re-solve.
+
+    Returns
+    -------
+    dict
+        ``representable`` (what it is, in words), ``representable_cost`` and
+        ``discretisation_gap_relative`` (``(J_best - J*) / |J*|``); ``representable_cost``
+        is ``None`` with ``representable_error`` when it could not be built.
+    """
+    ocp = as_ocp(problem)
+    if method == "dt":
+        what = "dt re-solved from the reference on its own mesh"
+        keep = {k: v for k, v in (options or {}).items() if k in ("mesh", "degree")}
+        try:
+            best = solve(ocp, "dt", initial=ref, sequence=ref.sequence, progress=progress, **keep)
+            cost = float(best.cost)
+        except HybridocError as exc:
+            return _no_representable(what, str(exc))
+    else:
+        what = f"the reference's cell averages on the N = {ocp.steps} grid"
+        if ocp.free_horizon:
+            return _no_representable(what, "a free final time has no fixed grid to project on")
+        try:
+            cost = float(evaluate(ocp, ref.controls).cost)
+        except HybridocError as exc:
+            return _no_representable(what, str(exc))
+    return {
+        "representable": what,
+        "representable_cost": cost,
+        "discretisation_gap_relative": _relative(cost, ref.cost),
+    }
+
+
+def _no_representable(what: str, why: str) -> dict[str, Any]:
+    return {
+        "representable": what,
+        "representable_cost": None,
+        "discretisation_gap_relative": None,
+        "representable_error": " ".join(why.split()),
+    }
 
 
 def _judge_method(
@@ -319,22 +468,34 @@ def _judge_method(
     ref: Solution,
     wall: float,
     tolerance: float,
+    options: Mapping[str, Any],
     progress: Progress,
 ) -> tuple[dict[str, Any], list[str]]:
     """The report entry of one method and the reasons it disagrees with the reference."""
     entry = method_entry(sol, ref, wall_time_s=wall)
-    entry.update(local_gap(ocp, sol, ref, progress=progress))
+    entry["converged"] = sol.success
+    if ocp.has_terminal_constraints:
+        v = sol.info.get("terminal_violation")
+        entry["terminal_violation"] = None if v is None else float(v)
     entry["tolerance"] = tolerance
     reasons: list[str] = []
     if name == "reference":
+        entry.update(local_gap(ocp, sol, ref, progress=progress))
         return entry, reasons
+    entry.update(local_gap(ocp, sol, ref, progress=progress))
+    entry.update(representable(ocp, name, ref, options=options, progress=progress))
+    best = entry["representable_cost"]
+    entry["representable_gap_relative"] = None if best is None else _relative(sol.cost, best)
     gap = entry["cost_gap_relative"]
+    # the yardstick of a disagreement: the best representable control when there is one
+    own = entry["representable_gap_relative"]
+    measured, against = (gap, "the reference") if own is None else (own, entry["representable"])
     if sol.cost < ref.cost - max(1e-9 * abs(ref.cost), 1e-15):
         reasons.append(
             f"{name} beats the reference: cost {sol.cost:.10g} < {ref.cost:.10g} "
             f"({gap:+.3e}); the reference is not the optimum"
         )
-    elif gap > tolerance:
+    elif measured > tolerance:
         local = entry.get("cost_gap_local_relative")
         why = (
             f" (it is within {local:+.2e} of the extremal of its own event sequence "
@@ -343,13 +504,14 @@ def _judge_method(
             else ""
         )
         reasons.append(
-            f"{name} is {gap:+.3e} above the reference, beyond its tolerance {tolerance:.0e}{why}"
+            f"{name} is {measured:+.3e} above {against}, beyond its tolerance "
+            f"{tolerance:.0e} (gap to the reference {gap:+.3e}){why}"
         )
     check = METHODS[name].crossval_check
     if check is not None:
-        fields, own = check(ocp, sol)
+        fields, own_reasons = check(ocp, sol)
         entry.update(fields)
-        reasons += own
+        reasons += own_reasons
     if not sol.success:
         reasons.append(f"{name} reports {sol.status.value}: {sol.message}")
     return entry, reasons
@@ -414,7 +576,7 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
     )
     gd = sols.get("gd")
     hist = None if gd is None else gd.arrays.get("loss_history")
-    if hist is not None and len(hist):
+    if hist is not None and len(hist) and "reference" in sols:
         fig = Figure(figsize=(6.4, 6.4), layout="constrained")
         ax, ax2 = fig.subplots(2, 1, sharex=True)
         hist = np.asarray(hist, dtype=float)
