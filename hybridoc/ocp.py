@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -245,6 +245,7 @@ _DATA_FIELDS = frozenset(
         "name",
         "meta",
         "horizon_bounds",
+        "distribution",
     }
 )
 
@@ -305,6 +306,12 @@ class HybridOCP:
         evaluates given controls); the grid has ``N`` steps of ``T / N`` whatever ``T``.
         The cost depends on ``T`` through the running cost (``L = 1 + ...`` charges time).
         ``None`` (default): ``T = horizon`` is fixed. Data, not structure.
+    distribution
+        Optional distribution of initial states for the workflows over many draws
+        (datasets, policy validation and training): a callable ``(rng, M) -> (M, nx)``
+        array, ``rng`` a ``numpy.random.Generator``. The workflows call it with ``M = 1``
+        and the generator ``default_rng([seed, i])`` for draw ``i``, so that a draw does
+        not depend on how many are made. Data, not structure.
     """
 
     f: ca.Function
@@ -327,6 +334,7 @@ class HybridOCP:
     terminal_eq: ca.Function | None = None
     terminal_ineq: ca.Function | None = None
     horizon_bounds: tuple[float, float] | None = None
+    distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
