@@ -11,6 +11,7 @@ import numpy as np
 
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.shooting import NewtonResult, ShootingSystem
+from hybridoc.reference.sources import PhaseCostates
 
 __all__ = ["GRAZE_FLAG", "ReferenceResult", "make_result", "reference_control"]
 
@@ -115,6 +116,15 @@ class ReferenceResult:
     nodes
         Generic problems: per phase, the ``(n_k + 1, 2 nx + 1)`` nodes of its steps
         (``s``, ``lambda``, running cost), from which ``u(t)`` is rebuilt between them.
+    terminal_eq_multipliers, terminal_ineq_multipliers
+        ``nu`` and ``mu`` of the terminal constraints (empty without them), with
+        ``lambda(T) = grad phi - Dh_eq^T nu - Dh_in^T mu`` and ``mu >= 0``.
+    final_hamiltonian
+        ``H(T)`` under ``u*``: the derivative of the optimal cost with respect to the final
+        time; 0 (to the tolerance) at a free final time strictly inside its bounds.
+    judged_terminal_violation
+        The terminal constraints' violation at the judge's re-simulated final state, set by
+        :func:`~hybridoc.reference.sequence.judged_reference` (``None`` before).
     coverage
         What the search that chose this extremal covered (the sources, the sequences
         proposed, solved and pruned, the exhaustive length, whether the budget stopped it,
@@ -148,7 +158,37 @@ class ReferenceResult:
     levels: tuple[int, ...] | None = None
     integration_error: float = 0.0
     nodes: list[np.ndarray] | None = field(default=None, repr=False)
+    terminal_eq_multipliers: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    terminal_ineq_multipliers: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    final_hamiltonian: float = 0.0
+    judged_terminal_violation: float | None = None
     coverage: dict[str, Any] | None = field(default=None, repr=False)
+
+    @property
+    def horizon(self) -> float:
+        """The final time (a free one as found)."""
+        return float(self.ocp.horizon)
+
+    @property
+    def horizon_at_bound(self) -> str | None:
+        """``"min"`` or ``"max"`` when a free final time lies at that bound, else ``None``."""
+        bounds = self.ocp.horizon_bounds
+        if bounds is None:
+            return None
+        if self.horizon <= bounds[0]:
+            return "min"
+        if self.horizon >= bounds[1]:
+            return "max"
+        return None
+
+    def terminal_multipliers(self) -> dict[str, Any]:
+        """``info["terminal_multipliers"]``: ``eq`` (``nu``), ``ineq`` (``mu``) and the
+        sign convention."""
+        return {
+            "eq": [float(v) for v in self.terminal_eq_multipliers],
+            "ineq": [float(v) for v in self.terminal_ineq_multipliers],
+            "convention": "lambda(T) = grad phi - Dh_eq^T eq - Dh_ineq^T ineq, ineq >= 0",
+        }
 
     # ------------------------------------------------------------------ dense evaluation
     def _phase_of(self, t: np.ndarray) -> np.ndarray:
@@ -251,12 +291,42 @@ class ReferenceResult:
         return np.array(times), np.array(S), np.array(L)
 
     def event_dicts(self) -> list[dict[str, Any]]:
-        """``[{"time", "kind", "bodies", "guard"}]`` as the judge writes them."""
+        """``[{"time", "kind", "bodies", "guard"}]`` as the judge writes them (with
+        ``"mode_before"`` and ``"mode_after"`` on a problem with modes)."""
         out = []
-        for name, t in zip(self.sequence, self.event_times, strict=True):
+        modes = None if self.ocp.modes is None else self.ocp.modes_along(self.sequence)
+        for k, (name, t) in enumerate(zip(self.sequence, self.event_times, strict=True)):
             g = self.ocp.guards[self.ocp.guard_index(name)]
             out.append({"time": float(t), "kind": g.kind, "bodies": list(g.bodies), "guard": name})
+            if modes is not None:
+                out[-1].update(mode_before=modes[k], mode_after=modes[k + 1])
         return out
+
+    def phase_costates_at(self, times: Sequence[float] | np.ndarray) -> PhaseCostates:
+        """This extremal's states and costates cut at other event times: a warm start of the
+        shooting of a neighbouring sequence (the events the judge's re-simulation of this
+        control has). A time within ``1e-7 T`` of one of this extremal's own events takes
+        the values on either side of its jump; elsewhere the costate is continuous, so the
+        new event's multiplier starts at 0."""
+        t = np.asarray(times, dtype=float).ravel()
+        T = self.horizon
+        s_in, l_in, _ = self.dense(np.clip(t, 0.0, T)) if t.size else (None, None, None)
+        starts, ends, states = [self.phase_costates[0]], [], []
+        for k, tk in enumerate(t):
+            assert s_in is not None and l_in is not None
+            near = np.abs(self.event_times - tk) <= 1e-7 * T
+            if near.any():
+                j = int(np.argmax(near))
+                states.append(self.states_minus[j])
+                ends.append(self.costates_minus[j])
+                starts.append(self.phase_costates[j + 1])
+            else:
+                states.append(s_in[k])
+                ends.append(l_in[k])
+                starts.append(l_in[k])
+        states.append(self.final_state)
+        ends.append(self.final_costate)
+        return PhaseCostates(t, starts, ends, states, horizon=T)
 
     def hmp_residuals(self) -> dict[str, float]:
         """Max-norm of each group of HMP conditions, recomputed from the stored numbers."""
@@ -264,10 +334,18 @@ class ReferenceResult:
         nx = self.system.nx
         out = {"transversality": float(np.max(np.abs(R[:nx])))}
         K = len(self.sequence)
-        blk = R[nx:].reshape(K, nx + 2) if K else np.zeros((0, nx + 2))
+        end = nx + K * (nx + 2)
+        blk = R[nx:end].reshape(K, nx + 2) if K else np.zeros((0, nx + 2))
         out["guard"] = float(np.max(np.abs(blk[:, 0]), initial=0.0))
         out["costate_jump"] = float(np.max(np.abs(blk[:, 1:-1]), initial=0.0))
         out["hamiltonian"] = float(np.max(np.abs(blk[:, -1]), initial=0.0))
+        m_eq, m_in = self.system.core.m_eq, self.system.core.m_in
+        if m_eq:
+            out["terminal_eq"] = float(np.max(np.abs(R[end : end + m_eq])))
+        if m_in:
+            out["terminal_ineq"] = float(np.max(np.abs(R[end + m_eq : end + m_eq + m_in])))
+        if self.ocp.free_horizon and self.horizon_at_bound is None:
+            out["free_time"] = abs(float(self.final_hamiltonian))
         return out
 
     def to_solution(
@@ -307,6 +385,14 @@ class ReferenceResult:
         if self.levels is not None:
             base_info["substeps"] = [int(n) for n in self.levels]
             base_info["integration_error"] = float(self.integration_error)
+        if self.ocp.has_terminal_constraints:
+            base_info["terminal_multipliers"] = self.terminal_multipliers()
+            if self.judged_terminal_violation is not None:
+                base_info["terminal_violation"] = float(self.judged_terminal_violation)
+        if self.ocp.free_horizon:
+            base_info["horizon"] = self.horizon
+            base_info["horizon_at_bound"] = self.horizon_at_bound
+            base_info["final_hamiltonian"] = float(self.final_hamiltonian)
         if self.coverage is not None:
             base_info["coverage"] = self.coverage
         base_info.update(info or {})
@@ -371,13 +457,15 @@ def reference_control(
         from hybridoc.reference.shooting import shooting_system
 
         ocp = as_ocp(problem)
+        if obj.info.get("horizon") is not None:
+            ocp = ocp.replace(horizon=float(obj.info["horizon"]))
         seq = list(obj.info["sequence"])
         starts_g = np.asarray(arrays["phase_starts"], dtype=float)
         P, L0 = np.asarray(arrays["phase_states"]), np.asarray(arrays["phase_costates"])
         # a file from before the steps were stored: a fine fixed number (u(t) is then
         # accurate, though not bit for bit the saved solve's)
         levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
-        S = shooting_system(ocp, seq, levels)
+        S = shooting_system(ocp, seq, levels, free=False)
         nodes = S.nodes(starts_g, P, L0)
         u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
         return u, [float(t) for t in starts_g[1:]]
@@ -396,10 +484,15 @@ def make_result(
     S: ShootingSystem, nr: NewtonResult, path: str, error: float = 0.0
 ) -> ReferenceResult:
     """The :class:`ReferenceResult` of a converged Newton point (``error``: the integration's
-    estimated relative cost error, :func:`~hybridoc.reference.shooting.refine`)."""
+    estimated relative cost error, :func:`~hybridoc.reference.shooting.refine`). A free
+    final time's point becomes the fixed-time extremal of the problem at that time
+    (:meth:`~hybridoc.reference.shooting.ShootingSystem.fixed_at`)."""
+    S, z = S.fixed_at(nr.z)
+    nr = NewtonResult(z, nr.residual, nr.iterations, nr.converged, list(nr.history))
     out = S.traj(nr.z)
-    starts, s0, l0, _, phiT, run, sm, lm, rates, sT, lT = out
+    starts, s0, l0, _, phiT, run, sm, lm, rates, sT, lT, _, H_T = out
     _, gam, pis, _ = S.unpack(nr.z)
+    nu, mu = S.core.unpack_terminal(nr.z)
     rates = rates.ravel()
     levels = None if S.disc else tuple(S.levels)
     nodes = None if S.disc else S.nodes(starts.ravel(), s0.T, l0.T)
@@ -429,4 +522,7 @@ def make_result(
         levels=levels,
         integration_error=float(error),
         nodes=nodes,
+        terminal_eq_multipliers=np.asarray(nu, dtype=float).ravel().copy(),
+        terminal_ineq_multipliers=np.asarray(mu, dtype=float).ravel().copy(),
+        final_hamiltonian=float(H_T.item()),
     )

@@ -32,14 +32,18 @@ from hybridoc.reference.shooting import (
 from hybridoc.reference.sources import PhaseCostates, SequenceStarter
 
 __all__ = [
+    "BOUND_SIGN_TOL",
     "COST_RTOL",
     "JUDGE_RETRIES",
     "SCREEN_NLP_ITER",
     "check_rtol",
+    "TERMINAL_TOL",
     "judged_reference",
+    "judged_violation",
     "solve_sequence",
     "verify_reference",
     "z_from_costates",
+    "z_zero_costate",
 ]
 
 COST_RTOL = DEFAULT_RTOL
@@ -49,6 +53,12 @@ control (``rtol``)."""
 SCREEN_INFEASIBILITY = 1e-3
 #: IPOPT iterations of a disc scene's NLP when the search screens many sequences.
 SCREEN_NLP_ITER = 40
+BOUND_SIGN_TOL = 1e-9
+"""A final time at a bound is a minimum in ``T`` when ``H(T)`` has the right sign, to this
+much relative (its residual is rounding there)."""
+TERMINAL_TOL = 1e-8
+"""The largest violation of the terminal constraints the judge's re-simulation of an
+extremal may show (the shared tolerance of issue #15's methods)."""
 JUDGE_RETRIES = 2
 """When the judge's cost differs from the shooting's by more than ``rtol`` although the
 events agree, the extremal is refined this many times more, each to a target 100 times
@@ -108,6 +118,35 @@ def _pi_from_jump(
     return float(gpsi @ r / max(float(gpsi @ gpsi), 1e-300))
 
 
+def _terminal_estimate(
+    S: ShootingSystem, s_end: np.ndarray, lam_end: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Terminal multipliers ``(nu, mu)`` that best explain a final costate: the least
+    squares solution of ``lambda(T) = grad phi - Dh_eq^T nu - Dh_in^T mu``, ``mu`` clipped
+    at 0; ``(None, None)`` without terminal constraints."""
+    core = S.core
+    if core.terminal is None:
+        return None, None
+    s_end = np.asarray(s_end, dtype=float).ravel()
+    _, gphi = (np.asarray(x, dtype=float) for x in core.phi(s_end))
+    _, D_eq, _, D_in = (np.asarray(x, dtype=float) for x in core.terminal(s_end))
+    D = np.vstack([D_eq.reshape(core.m_eq, S.nx), D_in.reshape(core.m_in, S.nx)])
+    rhs = gphi.ravel() - np.asarray(lam_end, dtype=float).ravel()
+    m = np.linalg.lstsq(D.T, rhs, rcond=None)[0] if D.size else np.zeros(0)
+    if not np.all(np.isfinite(m)):
+        return None, None
+    return m[: core.m_eq], np.maximum(m[core.m_eq :], 0.0)
+
+
+def z_zero_costate(S: ShootingSystem, gamma: np.ndarray) -> np.ndarray:
+    """Newton start with every costate and multiplier 0 (``u = argmin H`` at ``lambda = 0``)
+    and the guessed event times: the reference's own start on a problem with terminal
+    constraints or a free final time, where no other start may exist (the sources that do
+    not honour them are skipped, and the guess's adjoint ignores the constraints)."""
+    zeros = np.zeros(S.nx)
+    return S.pack(zeros, gamma, np.zeros(S.K), [zeros] * S.K, T=S.T)
+
+
 def z_from_gradient(S: ShootingSystem, grad: Any, gamma: np.ndarray) -> np.ndarray:
     """Newton start from the judge's adjoint costate of a control with these events."""
     ct, cs = np.asarray(grad.costate_times), np.asarray(grad.costates)
@@ -120,7 +159,8 @@ def z_from_gradient(S: ShootingSystem, grad: Any, gamma: np.ndarray) -> np.ndarr
         s_m = grad.evaluation.sample([g])[0]
         pis.append(_pi_from_jump(S, k, s_m, lm, lp))
         lps.append(lp)
-    return S.pack(np.asarray(grad.d_initial_state), gamma, pis, lps)
+    # the adjoint ends at grad phi: no terminal multipliers
+    return S.pack(np.asarray(grad.d_initial_state), gamma, pis, lps, T=S.T)
 
 
 def z_from_costates(S: ShootingSystem, w: PhaseCostates) -> np.ndarray:
@@ -130,7 +170,12 @@ def z_from_costates(S: ShootingSystem, w: PhaseCostates) -> np.ndarray:
         _pi_from_jump(S, k, np.asarray(w.state_end[k]), w.costate_end[k], w.costate_start[k + 1])
         for k in range(S.K)
     ]
-    return S.pack(w.costate_start[0], np.asarray(w.event_times), pis, list(w.costate_start[1:]))
+    nu, mu = _terminal_estimate(S, np.asarray(w.state_end[-1]), np.asarray(w.costate_end[-1]))
+    T = S.T if getattr(w, "horizon", None) is None else float(w.horizon)  # type: ignore[arg-type]
+    return S.pack(
+        w.costate_start[0], np.asarray(w.event_times), pis, list(w.costate_start[1:]), nu, mu,
+        T=T,
+    )  # fmt: skip
 
 
 def solve_sequence(
@@ -184,25 +229,70 @@ def solve_sequence(
     reasons: list[str] = []
     found: list[ReferenceResult] = []
 
-    def attempt(z0: np.ndarray, path: str) -> None:
+    def run(system: ShootingSystem, z0: np.ndarray) -> NewtonResult:
         if screen:
-            nr = newton(S, z0, tol=tol, verbose=verbose, max_iter=20, min_step=1e-3)
+            return newton(system, z0, tol=tol, verbose=verbose, max_iter=20, min_step=1e-3)
+        return newton(system, z0, tol=tol, verbose=verbose)
+
+    def keep(system: ShootingSystem, nr: NewtonResult, path: str) -> None:
+        ref = refine(system, nr, rtol=rtol, tol=tol, verbose=verbose)
+        if ref.ok:
+            found.append(make_result(ref.system, ref.newton, path, ref.error))
         else:
-            nr = newton(S, z0, tol=tol, verbose=verbose)
-        if nr.converged:
-            ref = refine(S, nr, rtol=rtol, tol=tol, verbose=verbose)
-            if ref.ok:
-                found.append(make_result(ref.system, ref.newton, path, ref.error))
-            else:
-                reasons.append(f"from the {path}: {ref.reason}")
-        elif nr.residual <= tol:
-            times = ", ".join(f"{float(g):.6g}" for g in S.unpack(nr.z)[1])
+            reasons.append(f"from the {path}: {ref.reason}")
+
+    def failed(system: ShootingSystem, nr: NewtonResult, path: str) -> None:
+        if nr.residual <= tol:
+            times = ", ".join(f"{float(g):.6g}" for g in system.unpack(nr.z)[1])
             reasons.append(
                 f"Newton from the {path} found a root with event times [{times}], not in "
-                f"order inside (0, T = {S.T:g})"
+                f"order inside (0, T = {system.horizon_of(nr.z):g})"
             )
         else:
             reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
+
+    def attempt(z0: np.ndarray, path: str) -> None:
+        nr = run(S, z0)
+        if not S.core.free:
+            if nr.converged:
+                keep(S, nr, path)
+            else:
+                failed(S, nr, path)
+            return
+        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
+        T = S.horizon_of(nr.z)
+        if nr.converged and lo <= T <= hi:
+            keep(S, nr, path)
+            return
+        if nr.converged:
+            reasons.append(
+                f"from the {path}: H(T) = 0 at T = {T:.6g}, outside [{lo:g}, {hi:g}]: "
+                "solved at the bounds"
+            )
+        else:
+            failed(S, nr, path)
+        _at_bounds(z0[:-1], path, T if nr.converged else S.T)
+
+    def _at_bounds(z0: np.ndarray, path: str, near: float) -> None:
+        """A final time at a bound: solved there with ``T`` fixed, kept where ``H(T)``
+        has the sign of a minimum (``>= 0`` at ``T_min``, ``<= 0`` at ``T_max``)."""
+        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
+        for bound in sorted({lo, hi}, key=lambda b: abs(b - near)):
+            Sb = shooting_system(ocp.replace(horizon=bound), list(sequence), free=False)
+            where = f"{path} at T = {bound:g}"
+            nr = run(Sb, z0)
+            if not nr.converged:
+                failed(Sb, nr, where)
+                continue
+            H_T = float(Sb.traj(nr.z)[12].item())
+            slack = BOUND_SIGN_TOL * max(1.0, abs(H_T))
+            if (bound == lo and H_T >= -slack) or (bound == hi and H_T <= slack):
+                keep(Sb, nr, where)
+            else:
+                reasons.append(
+                    f"from the {where}: H(T) = {H_T:.3g} has the sign of a larger cost "
+                    "there (not a minimum in T)"
+                )
 
     if estimate and (S.disc or grad is not None):
         z0 = (
@@ -226,6 +316,8 @@ def solve_sequence(
             )
         else:
             attempt(z0, "nlp")
+    if not found and (ocp.has_terminal_constraints or ocp.free_horizon):
+        attempt(z_zero_costate(S, gamma0), "zero costate")
     for starter in starters if guess_ev is not None else ():
         if found:
             break
@@ -278,7 +370,25 @@ def _compare(
     if times.size and np.max(np.abs(times - res.event_times)) > 1e-7 * ocp.horizon:
         return False, sim, "re-simulated event times differ from the modelled ones", None, True
     rel = abs(sim.cost - res.cost) / max(abs(res.cost), 1e-300)
+    viol = judged_violation(ocp, sim)
+    if viol > TERMINAL_TOL:
+        # the integration moved s(T): refined like a cost disagreement (judged_reference)
+        msg = (
+            f"the judge's re-simulation violates the terminal constraints by {viol:.2e} "
+            f"(> {TERMINAL_TOL:g})"
+        )
+        return False, sim, msg, rel, True
     return rel <= rtol, sim, "", rel, True
+
+
+def judged_violation(ocp: HybridOCP, sim: Evaluation) -> float:
+    """The terminal constraints' violation at the judge's final state (0 without them)."""
+    if not ocp.has_terminal_constraints:
+        return 0.0
+    judged = getattr(sim, "terminal_violation", None)
+    if judged is not None:
+        return float(judged)
+    return float(ocp.terminal_violation(sim.final_state))
 
 
 def _disagreement(res: ReferenceResult, sim: Evaluation, rel: float, rtol: float) -> str:
@@ -286,6 +396,12 @@ def _disagreement(res: ReferenceResult, sim: Evaluation, rel: float, rtol: float
         f" with {max(res.levels)} DOP853 steps on its longest-resolved phase (estimated "
         f"integration error {res.integration_error:.1e})"
     )  # fmt: skip
+    viol = judged_violation(res.ocp, sim)
+    if rel <= rtol and viol > TERMINAL_TOL:
+        return (
+            f"reference for {res.sequence}: the judge's re-simulation of u(t) violates the "
+            f"terminal constraints by {viol:.2e} (> {TERMINAL_TOL:g}){steps}"
+        )
     return (
         f"reference for {res.sequence}: shooting cost {res.cost:.12g} but the judge gives "
         f"{sim.cost:.12g} for the same u(t) (relative {rel:.2e} > rtol = {rtol:g}){steps}"
@@ -338,6 +454,8 @@ def judged_reference(
     target = rtol
     for attempt in range(JUDGE_RETRIES + 1):
         ok, sim, msg, rel, same = _compare(res, rtol)
+        if sim is not None:
+            res.judged_terminal_violation = judged_violation(res.ocp, sim)
         if ok or not same or res.system.disc:
             if rel is not None and not ok:  # a disc scene's costs disagree: a real error
                 assert sim is not None

@@ -16,6 +16,20 @@ where the phases between events carry ``(s, lambda)`` forward under ``u = argmin
 Taking ``lambda(gamma+)`` as an unknown (a light multiple shooting) avoids inverting the
 reset Jacobian, which is singular for restitution 0.
 
+Terminal constraints and a free final time (DESIGN.md section 6)
+    With terminal equalities ``h_eq(s(T)) = 0`` (``m_e`` of them) and inequalities
+    ``h_in(s(T)) >= 0`` (``m_i``), ``z`` ends with their multipliers ``nu`` and ``mu``, and
+    transversality reads ``lambda(T) - grad phi + Dh_eq^T nu + Dh_in^T mu = 0`` (the
+    Lagrangian ``phi - nu . h_eq - mu . h_in``, so ``mu >= 0``); the residual gains
+    ``h_eq(s(T))`` and, per inequality, the Fischer-Burmeister function
+    ``mu + h - sqrt(mu^2 + h^2)``, zero exactly when ``mu >= 0``, ``h >= 0`` and
+    ``mu h = 0``, smooth wherever strict complementarity holds (one compiled system, no
+    active-set loop). With a free final time ``T`` is the last unknown and the last
+    residual is ``H(s(T), lambda(T), u*(T))``: the derivative of the optimal cost with
+    respect to ``T`` (an autonomous problem, ``phi`` independent of ``T``). A final time at
+    one of its bounds is solved with ``T`` fixed there
+    (:func:`~hybridoc.reference.sequence.solve_sequence` checks the sign of ``H(T)``).
+
 Compiled once per problem structure
     The initial state and the horizon are parameters of the compiled functions, so problems
     that differ only in their data (:meth:`hybridoc.HybridOCP.replace`, a sweep over initial
@@ -79,12 +93,14 @@ __all__ = [
     "Refinement",
     "ShootingSystem",
     "dop853_step",
+    "fischer_burmeister",
     "hamiltonian_check",
     "is_disc_scene",
     "newton",
     "prepare",
     "refine",
     "shooting_system",
+    "terminal_sizes",
 ]
 
 SUBSTEPS_POLYNOMIAL = 1
@@ -113,8 +129,10 @@ _LOCK = threading.RLock()
 
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
-    """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``."""
-    return isinstance(ocp, DiscOCP)
+    """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``, without
+    terminal constraints or a free final time (those take the generic flow, whose phases are
+    exact for the disc scenes' polynomial flow too: one DOP853 step each)."""
+    return isinstance(ocp, DiscOCP) and not (ocp.has_terminal_constraints or ocp.free_horizon)
 
 
 def hamiltonian_check(ocp: HybridOCP) -> str | None:
@@ -263,6 +281,7 @@ class _Flow:
             )
         phi = ocp.phi(s)
         self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
+        self.terminal = _terminal_fn(ocp, s)
         self._maps: dict[int, tuple[ca.Function, ca.Function]] = {}
 
     def _steps(self, n: int) -> tuple[ca.Function, ca.Function]:
@@ -295,6 +314,30 @@ class _Flow:
         return self._steps(n)[1]
 
 
+def _terminal_fn(ocp: HybridOCP, s: Any) -> ca.Function | None:
+    """``s -> (h_eq, Dh_eq, h_in, Dh_in)`` (empty blocks where a kind is absent), or
+    ``None`` without terminal constraints."""
+    if not ocp.has_terminal_constraints:
+        return None
+    parts = []
+    for fn in (ocp.terminal_eq, ocp.terminal_ineq):
+        h = fn(s) if fn is not None else ca.SX(0, 1)
+        parts += [h, ca.jacobian(h, s) if fn is not None else ca.SX(0, ocp.nx)]
+    return ca.Function("terminal", [s], parts)
+
+
+def terminal_sizes(ocp: HybridOCP) -> tuple[int, int]:
+    """The numbers of terminal equalities and inequalities of ``ocp``."""
+    return tuple(  # type: ignore[return-value]
+        0 if fn is None else int(fn.size1_out(0)) for fn in (ocp.terminal_eq, ocp.terminal_ineq)
+    )
+
+
+def fischer_burmeister(a: Any, b: Any) -> Any:
+    """``a + b - sqrt(a^2 + b^2)``: zero exactly when ``a >= 0``, ``b >= 0`` and ``a b = 0``."""
+    return a + b - ca.sqrt(a**2 + b**2)
+
+
 def _flow(ocp: HybridOCP) -> _Flow:
     fl = _FLOWS.get(ocp.structure)
     if fl is None:
@@ -308,7 +351,7 @@ def _flow(ocp: HybridOCP) -> _Flow:
 class _CoreBase:
     """The unknowns of one (structure, sequence) and their layout."""
 
-    def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
+    def __init__(self, ocp: HybridOCP, sequence: list[str], free: bool = False) -> None:
         names = [g.name for g in ocp.guards]
         unknown = [s for s in sequence if s not in names]
         if unknown:
@@ -322,6 +365,8 @@ class _CoreBase:
         self.nx, self.nu = ocp.nx, ocp.nu
         self.disc = is_disc_scene(ocp)
         self.levels: tuple[int, ...] | None = None
+        self.m_eq, self.m_in = terminal_sizes(ocp)
+        self.free = bool(free)
         self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
 
@@ -352,7 +397,16 @@ class _CoreBase:
     @property
     def nz(self) -> int:
         """Number of unknowns."""
-        return self.nx + self.K * (self.nx + 2)
+        return self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + int(self.free)
+
+    def horizon(self, z: Any, T: Any) -> Any:
+        """The final time at ``z``: its last entry when free, else the parameter ``T``."""
+        return z[self.nz - 1] if self.free else T
+
+    def unpack_terminal(self, z: Any) -> tuple[Any, Any]:
+        """The terminal multipliers ``nu`` (equalities) and ``mu`` (inequalities)."""
+        o = self.nx + self.K * (self.nx + 2)
+        return z[o : o + self.m_eq], z[o + self.m_eq : o + self.m_eq + self.m_in]
 
     def unpack(self, z: Any) -> tuple[Any, list[Any], list[Any], list[Any]]:
         """``lambda(0)``, event times, multipliers, post-event costates."""
@@ -366,12 +420,28 @@ class _CoreBase:
             lps.append(z[o + 2 : o + 2 + nx])
         return lam0, gam, pis, lps
 
-    def pack(self, lam0: np.ndarray, gam: Any, pis: Any, lps: Any) -> np.ndarray:
-        """Inverse of :meth:`unpack` for numbers."""
+    def pack(
+        self,
+        lam0: np.ndarray,
+        gam: Any,
+        pis: Any,
+        lps: Any,
+        nu: Any = None,
+        mu: Any = None,
+        T: float | None = None,
+    ) -> np.ndarray:
+        """Inverse of :meth:`unpack` (and :meth:`unpack_terminal`) for numbers: the terminal
+        multipliers default to 0, a free final time to ``T`` (required then)."""
         parts = [np.asarray(lam0, float).ravel()]
         for k in range(self.K):
             parts += [[float(gam[k]), float(pis[k])], np.asarray(lps[k], float).ravel()]
-        return np.concatenate(parts) if parts else np.zeros(0)
+        parts.append(np.zeros(self.m_eq) if nu is None else np.asarray(nu, float).ravel())
+        parts.append(np.zeros(self.m_in) if mu is None else np.asarray(mu, float).ravel())
+        if self.free:
+            if T is None:
+                raise ValueError("a free final time needs its value in pack(T=...)")
+            parts.append(np.array([float(T)]))
+        return np.concatenate(parts)
 
     def _assemble(self, ocp: HybridOCP, phase: Any, sym: Any) -> tuple[ca.Function, ca.Function]:
         """The residual (with its Jacobian) and the trajectory function, from ``phase(k, s,
@@ -379,7 +449,8 @@ class _CoreBase:
         nx = self.nx
         z = sym.sym("z", self.nz)
         x0 = sym.sym("x0", nx)
-        T = sym.sym("T")
+        T_par = sym.sym("T")
+        T = self.horizon(z, T_par)
         lam, gam, pis, lps = self.unpack(z)
         s: Any = x0
         t: Any = 0.0
@@ -406,14 +477,25 @@ class _CoreBase:
         sT, lT, J = phase(self.K, s, lam, T - t)
         costs.append(J)
         phiT, gphi = self.phi(sT)
-        res.insert(0, lT - gphi)
+        if self.terminal is None:
+            res.insert(0, lT - gphi)
+        else:
+            # lambda(T) = grad phi - Dh_eq^T nu - Dh_in^T mu (module notes)
+            nu, mu = self.unpack_terminal(z)
+            h_eq, D_eq, h_in, D_in = self.terminal(sT)
+            res.insert(0, lT - gphi + ca.mtimes(D_eq.T, nu) + ca.mtimes(D_in.T, mu))
+            res.append(h_eq)
+            res.append(fischer_burmeister(mu, h_in))
+        H_T = self.H_star(sT, lT)
+        if self.free:
+            res.append(H_T)
         R = ca.vertcat(*res)
-        F = ca.Function("hmp_F", [z, x0, T], [R, ca.jacobian(R, z)])
+        F = ca.Function("hmp_F", [z, x0, T_par], [R, ca.jacobian(R, z)])
         running = sum(costs[1:], costs[0])
         hc = ca.horzcat
         traj = ca.Function(
             "hmp_traj",
-            [z, x0, T],
+            [z, x0, T_par],
             [
                 hc(*starts),
                 hc(*s_starts),
@@ -426,6 +508,8 @@ class _CoreBase:
                 hc(*rates) if rates else ca.DM(1, 0),
                 sT,
                 lT,
+                T,
+                H_T,
             ],
         )
         return F, traj
@@ -480,6 +564,7 @@ class _DiscCore(_CoreBase):
         self.f = ocp.f
         self.guard_fns = [pieces.guards[j] for j in self.guard_index]
         self.A, self.eps = pieces.A, pieces.eps
+        self.terminal = None  # disc scenes have none (is_disc_scene)
 
     def phase_u(self, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
         """State after ``h`` under ``u(tau) = c0 + c1 tau`` and its running cost."""
@@ -509,8 +594,10 @@ class _FlowCore(_CoreBase):
     """Other problems: one (structure, sequence, steps per phase); the phases are the
     structure's DOP853 maps (:class:`_Flow`), composed in MX."""
 
-    def __init__(self, ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...]) -> None:
-        super().__init__(ocp, sequence)
+    def __init__(
+        self, ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...], free: bool = False
+    ) -> None:
+        super().__init__(ocp, sequence, free)
         fl = _flow(ocp)
         self.flow = fl
         if len(levels) != self.K + 1 or any(int(n) < 1 for n in levels):
@@ -518,6 +605,7 @@ class _FlowCore(_CoreBase):
         self.levels = tuple(int(n) for n in levels)
         self.u_star, self.H, self.H_star, self.f = fl.u_star, fl.H, fl.H_star, fl.f
         self.rhs, self.polynomial, self.phi = fl.rhs, fl.polynomial, fl.phi
+        self.terminal = fl.terminal
         self.guard_fns = [fl.guards[j] for j in self.guard_index]
 
     def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
@@ -538,7 +626,7 @@ class _FlowCore(_CoreBase):
         out = [np.asarray(x) for x in self.traj(z, x0, T)]
         starts, s0, l0 = out[0].ravel(), out[1], out[2]
         cost = float(out[4].item()) + float(out[5].item())
-        lengths = np.diff(np.append(starts, T))
+        lengths = np.diff(np.append(starts, float(out[11].item())))
         errors = np.zeros(self.K + 1)
         for k, n in enumerate(self.levels):
             a = [np.asarray(v).ravel() for v in self.flow.phase(n)(s0[:, k], l0[:, k], lengths[k])]
@@ -729,6 +817,27 @@ class ShootingSystem:
         self.core = core if core is not None else _core(ocp, list(sequence), None)
         self.x0 = np.asarray(ocp.x0, dtype=float)
         self.T = float(ocp.horizon)
+        """The final time (a free final time's initial guess)."""
+
+    def horizon_of(self, z: np.ndarray) -> float:
+        """The final time at ``z`` (its last entry when free, else :attr:`T`)."""
+        return float(z[-1]) if self.core.free else self.T
+
+    def fixed_at(self, z: np.ndarray) -> tuple[ShootingSystem, np.ndarray]:
+        """A free final time's system and point as the fixed-time system of the problem at
+        the final time of ``z`` (``problem.replace(horizon=T)``) and its point: the same
+        equations less ``H(T) = 0``. A fixed-time system returns itself."""
+        if not self.core.free:
+            return self, z
+        ocp = self.ocp.replace(horizon=self.horizon_of(z))
+        levels = None if self.disc else self.core.levels
+        return ShootingSystem(ocp, self.sequence, _core(ocp, self.sequence, levels, False)), z[:-1]
+
+    def with_free(self, T: float | None = None) -> ShootingSystem:
+        """The free-final-time system of the same sequence and steps (problem at ``T``)."""
+        ocp = self.ocp if T is None else self.ocp.replace(horizon=float(T))
+        levels = None if self.disc else self.core.levels
+        return ShootingSystem(ocp, self.sequence, _core(ocp, self.sequence, levels, True))
 
     def __getattr__(self, name: str) -> Any:
         # the core's compiled pieces (sequence, K, nx, nu, disc, levels, A, eps, guard_fns,
@@ -759,11 +868,17 @@ class ShootingSystem:
         return errors, cost
 
     def nodes(
-        self, starts: np.ndarray, states: np.ndarray, costates: np.ndarray
+        self,
+        starts: np.ndarray,
+        states: np.ndarray,
+        costates: np.ndarray,
+        T: float | None = None,
     ) -> list[np.ndarray]:
         """Generic problems: the nodes ``(n_k + 1, 2 nx + 1)`` of each phase's steps, from the
-        phase starts, states and costates (``(K + 1,)``, ``(K + 1, nx)`` twice)."""
-        lengths = np.diff(np.append(np.asarray(starts, dtype=float), self.T))
+        phase starts, states and costates (``(K + 1,)``, ``(K + 1, nx)`` twice), up to the
+        final time ``T`` (default :attr:`T`)."""
+        end = self.T if T is None else float(T)
+        lengths = np.diff(np.append(np.asarray(starts, dtype=float), end))
         fl = self.core.flow
         return [
             np.asarray(fl.nodes(n)(states[k], costates[k], lengths[k])).T.copy()
@@ -772,7 +887,8 @@ class ShootingSystem:
 
     def with_levels(self, levels: tuple[int, ...]) -> ShootingSystem:
         """The same system with other numbers of steps per phase (generic problems)."""
-        return ShootingSystem(self.ocp, self.sequence, _core(self.ocp, self.sequence, levels))
+        core = _core(self.ocp, self.sequence, levels, self.core.free)
+        return ShootingSystem(self.ocp, self.sequence, core)
 
     def solve_nlp(
         self, gamma0: np.ndarray, coeffs0: np.ndarray, max_iter: int = 100
@@ -837,14 +953,16 @@ def _nilpotent_linear(rhs: Any, x: Any) -> bool:
     return bool(np.allclose(P, 0.0, atol=1e-12 * max(1.0, float(np.abs(Mn).max()) ** 4)))
 
 
-def _core(ocp: HybridOCP, sequence: list[str], levels: Any) -> Any:
-    """The compiled core of ``(structure, sequence)`` (and steps per phase), shared."""
+def _core(ocp: HybridOCP, sequence: list[str], levels: Any, free: bool | None = None) -> Any:
+    """The compiled core of ``(structure, sequence)`` (and steps per phase, and whether the
+    final time is an unknown: default, whether the problem's is free), shared."""
     disc = is_disc_scene(ocp)
+    free = ocp.free_horizon if free is None else bool(free)
     if not disc and levels is None:
         levels = _LEVELS.get(ocp.structure, {}).get(tuple(sequence))
         if levels is None:
             levels = (_flow(ocp).start_steps,) * (len(sequence) + 1)
-    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels))
+    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free)
     cores = _CORES.setdefault(ocp.structure, {})
     core = cores.get(key)
     if core is None:
@@ -854,14 +972,18 @@ def _core(ocp: HybridOCP, sequence: list[str], levels: Any) -> Any:
                 core = (
                     _DiscCore(ocp, list(sequence))
                     if disc
-                    else _FlowCore(ocp, list(sequence), key[1])
+                    else _FlowCore(ocp, list(sequence), key[1], free)
                 )
                 cores[key] = core
     return core
 
 
 def shooting_system(
-    ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...] | None = None
+    ocp: HybridOCP,
+    sequence: list[str],
+    levels: tuple[int, ...] | None = None,
+    *,
+    free: bool | None = None,
 ) -> ShootingSystem:
     """The system for ``(ocp, sequence)``; the compiled core is shared by every problem with
     the same structure.
@@ -874,8 +996,12 @@ def shooting_system(
         Generic problems: DOP853 steps on each of the ``K + 1`` phases; default: those the
         sequence was last accepted at by :func:`refine` (for this structure), else
         :data:`SUBSTEPS_POLYNOMIAL` or :data:`SUBSTEPS` each. Ignored for disc scenes.
+    free
+        Whether the final time is an unknown (its guess ``ocp.horizon``); default: whether
+        ``ocp`` has a free final time. ``False`` on such a problem solves it at
+        ``ocp.horizon`` (a final time at its bound, or an extremal already found).
     """
-    return ShootingSystem(ocp, list(sequence), _core(ocp, list(sequence), levels))
+    return ShootingSystem(ocp, list(sequence), _core(ocp, list(sequence), levels, free))
 
 
 @dataclass
@@ -1039,12 +1165,13 @@ def newton(
         if len(hist) > 8 and norm > 0.5 * hist[-6] and norm > tol:
             break  # stagnating far from a root: not this sequence's basin
     _, gam, _, _ = system.unpack(z)
-    T = system.T
+    T = system.horizon_of(z)
     times = np.array([float(g) for g in gam])
     # event times may coincide (simultaneous events); the judge decides whether that is
     # well defined (commuting jumps) when it re-simulates the result
     ordered = bool(
-        np.all(np.diff(times) >= -1e-12 * T)
+        T > 0
+        and np.all(np.diff(times) >= -1e-12 * T)
         and (not times.size or (times[0] > 0 and times[-1] < T))
     )
     return NewtonResult(z, norm, it, bool(norm <= tol and ordered), hist)

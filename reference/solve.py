@@ -65,7 +65,7 @@ from hybridoc.errors import (
 )
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate, gradient
-from hybridoc.methods import Method, option
+from hybridoc.methods import FEATURES, Method, option, problem_features
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
@@ -81,8 +81,10 @@ from hybridoc.reference.sequence import (
     COST_RTOL,
     RTOL_RANGE,
     SCREEN_NLP_ITER,
+    TERMINAL_TOL,
     check_rtol,
     judged_reference,
+    judged_violation,
     solve_sequence,
 )
 from hybridoc.reference.shooting import (
@@ -277,6 +279,13 @@ def coverage_line(coverage: dict[str, Any] | None) -> str:
     )
     if coverage.get("budget_stopped"):
         text += f"; stopped by the budget of {coverage['budget_s']:g} s"
+    unsupported = [
+        f"{row['name']} ({row['reason'].removeprefix('not run: ')})"
+        for row in coverage.get("skipped_sources") or []
+        if "budget" not in row["reason"]
+    ]
+    if unsupported:
+        text += "; not run: " + ", ".join(unsupported)
     return text
 
 
@@ -311,13 +320,31 @@ def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
 
 @dataclass
 class _Known:
-    """A control met during the search, with its true (judged) cost."""
+    """A control met during the search, with its true (judged) cost. Only a ``feasible``
+    one (terminal constraints met, a final time within its bounds) bounds the optimum; any
+    may start Newton on its events."""
 
     source: str
     cost: float
     sequence: list[str]
     controls: np.ndarray
     evaluation: Evaluation | None = None
+    feasible: bool = True
+
+
+def _feasible(ocp: HybridOCP, ev: Evaluation | None) -> bool:
+    """Whether a judged control is feasible for ``ocp``'s terminal constraints and final-time
+    bounds (always, without them): an infeasible control's cost bounds nothing."""
+    if not (ocp.has_terminal_constraints or ocp.free_horizon):
+        return True
+    if ev is None:
+        return False
+    if ocp.free_horizon:
+        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
+        T = float(ev.ocp.horizon)
+        if not lo <= T <= hi:
+            return False
+    return judged_violation(ocp, ev) <= TERMINAL_TOL
 
 
 @dataclass
@@ -349,6 +376,8 @@ class _Book:
     budget_stopped: bool = False
     # the known controls (by id) a failed sequence was started from (from_known)
     known_tried: dict[tuple[str, ...], set[int]] = field(default_factory=dict)
+    # (extremal, re-simulated sequence) pairs whose neighbour start was tried
+    neighbours_tried: set[tuple[tuple[str, ...], tuple[str, ...]]] = field(default_factory=set)
 
     def left(self) -> float:
         """Seconds of the budget left (0 when spent)."""
@@ -358,7 +387,11 @@ class _Book:
         """The cheapest verified extremal or known control: a sequence whose lower bound
         is not below it cannot hold a cheaper optimum."""
         verified = [r.cost for k, r in self.results.items() if self.verdicts.get(k, (False,))[0]]
-        return min([*verified, *(k.cost for k in self.known)], default=math.inf)
+        return min([*verified, *(k.cost for k in self.rivals())], default=math.inf)
+
+    def rivals(self) -> list[_Known]:
+        """The known controls that bound the optimum (the feasible ones)."""
+        return [k for k in self.known if k.feasible]
 
     def say(self, text: str) -> None:
         if self.verbose:
@@ -463,21 +496,37 @@ class _Book:
     def follow_resimulations(self, rounds: int = 3) -> None:
         """A re-simulation with other events proposes its own sequence (started from the
         extremal's control, whose trajectory has those events)."""
+        # terminal constraints or a free final time: the extremal's own costates, cut at
+        # the re-simulated events, start the new sequence (the control's adjoint knows
+        # nothing of the terminal multipliers), also where it failed from other starts
+        neighbour = self.ocp.has_terminal_constraints or self.ocp.free_horizon
         for _ in range(rounds):
             new = False
             for key, sim in list(self.resimulated.items()):
                 seq = sim.sequence
-                if tuple(seq) in self.results or tuple(seq) in self.reasons:
+                if tuple(seq) in self.results:
                     continue
+                pair = (key, tuple(seq))
+                failed_before = tuple(seq) in self.reasons
+                if failed_before and (not neighbour or pair in self.neighbours_tried):
+                    continue
+                self.neighbours_tried.add(pair)
                 res = self.results[key]
                 u = res.cell_averages()
                 try:
-                    ev = evaluate(self.ocp, u)
+                    ev = evaluate(res.ocp, u)
                 except HybridocError:
                     continue
                 origin = f"re-simulation of {list(key)}"
                 times = guess_times(self.ocp, ev.sequence, ev)
-                self.attempt(ev.sequence, times, u, origin, estimate=True, guess_ev=ev)
+                warm = None
+                if neighbour:
+                    own = np.array([e.time for e in sim.events])
+                    warm = res.phase_costates_at(own)
+                self.attempt(
+                    ev.sequence, times, u, origin, estimate=True, guess_ev=ev,
+                    warm_start=warm, retry=failed_before,
+                )  # fmt: skip
                 new = True
             self.best_verified()
             if not new:
@@ -736,6 +785,16 @@ def _check_arguments(
     return seq
 
 
+def source_lacks(ocp: HybridOCP, source: Any) -> str:
+    """The words for the features of ``ocp`` (:data:`hybridoc.methods.FEATURES`) that a
+    candidate source does not declare in its ``features`` attribute (none declared: none
+    honoured), or ``""``. Such a source is not run on ``ocp`` (its proposals would answer a
+    simpler problem) and its warm starts are not asked for."""
+    have = frozenset(getattr(source, "features", frozenset()) or ())
+    missing = [FEATURES[f] for f in problem_features(ocp) if f not in have]
+    return " or ".join(missing)
+
+
 def _active_sources(
     sources: Sequence[Any] | None, transcription: bool, multistart: int
 ) -> tuple[tuple[Any, ...], tuple[Any, ...], str]:
@@ -796,14 +855,20 @@ def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
     u0, given = _initial_controls(ocp, run.initial)
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
     guess = _Guess(u_used, ev, grad, given or grad is not None)
+    starters = tuple(s for s in run.starters if not source_lacks(ocp, s))
     book = _Book(
-        ocp, run.tol, run.verbose, run.starters, run.rtol, progress=progress,
+        ocp, run.tol, run.verbose, starters, run.rtol, progress=progress,
         deadline=run.t_start + run.budget,
     )  # fmt: skip
-    book.known.append(_Known("the initial guess", ev.cost, ev.sequence, u_used, ev))
+    for s in run.starters:
+        if s not in starters:
+            book.say(f"warm start {s.name!r}: not used, it does not honour {source_lacks(ocp, s)}")
+    book.known.append(
+        _Known("the initial guess", ev.cost, ev.sequence, u_used, ev, _feasible(ocp, ev))
+    )
     if run.seq is not None:
         best = _solve_given(ocp, run, book, guess)
-        same = [k for k in book.known if k.sequence == run.seq]
+        same = [k for k in book.rivals() if k.sequence == run.seq]
         cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
     else:
         _discover(ocp, run, book, guess)
@@ -867,6 +932,14 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         )  # fmt: skip
     _note_source(book, "initial guess", "reference", len(cands), t0)
     for source in run.proposers:
+        lacking = source_lacks(ocp, source)
+        if lacking:
+            book.say(f"source {source.name!r}: not run, it does not honour {lacking}")
+            _note_source(
+                book, source.name, run.kind, 0, time.perf_counter(),
+                skipped=f"not run: it does not honour {lacking}",
+            )  # fmt: skip
+            continue
         if book.left() <= 0:
             book.budget_stopped = True
             book.say(f"source {source.name!r}: not run, the budget of {run.budget:g} s is spent")
@@ -889,7 +962,7 @@ def _note_source(
     t0: float,
     failed: str = "",
     *,
-    skipped: bool = False,
+    skipped: bool | str = False,
     **extra: Any,
 ) -> None:
     """Record a source used (or, ``skipped``, not started: the budget was spent) in
@@ -904,7 +977,7 @@ def _note_source(
     if failed:
         row["failed"] = failed
     if skipped:
-        row["skipped"] = "not run: the budget was spent"
+        row["skipped"] = skipped if isinstance(skipped, str) else "not run: the budget was spent"
     book.sources.append(row)
 
 
@@ -914,7 +987,7 @@ def _run_source(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess, source: A
     context = SourceContext(
         controls=guess.controls, evaluation=guess.evaluation, progress=book.progress,
         multistart=int(run.multistart), max_events=MAX_EVENTS,
-        best_cost=min((k.cost for k in book.known), default=math.inf), say=book.say,
+        best_cost=min((k.cost for k in book.rivals()), default=math.inf), say=book.say,
         budget_s=book.left(),
     )  # fmt: skip
     try:
@@ -941,7 +1014,8 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
     if p.known and p.controls is not None and cost is not None and seq is not None:
         label = p.label or f"the source {p.source!r}"
         controls = np.asarray(p.controls, dtype=float)
-        book.known.append(_Known(label, cost, seq, controls, p.evaluation))
+        feasible = _feasible(ocp, p.evaluation)
+        book.known.append(_Known(label, cost, seq, controls, p.evaluation, feasible))
     if not p.solve or seq is None:
         return
     key = tuple(seq)
@@ -994,7 +1068,7 @@ def _revisit_cheaper(
 ) -> tuple[ReferenceResult, list[_Known]]:
     """Trust: no known control may be cheaper. The sequences of cheaper ones are solved
     again from them; returns the best extremal and the known controls still cheaper."""
-    for k in sorted(book.known, key=lambda k: k.cost):
+    for k in sorted(book.rivals(), key=lambda k: k.cost):
         if k.cost >= best.cost * (1 - _OPT_RTOL) - 1e-15:
             break
         if k.evaluation is None:
@@ -1005,7 +1079,7 @@ def _revisit_cheaper(
             guess_ev=k.evaluation, retry=True,
         )  # fmt: skip
         best = book.best_verified() or best
-    cheaper = [k for k in book.known if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
+    cheaper = [k for k in book.rivals() if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
     return best, cheaper
 
 
@@ -1094,11 +1168,17 @@ def _finish(
         "verified": bool(run.verify or run.seq is None),
         "candidates": candidates,
         "known_controls": [
-            {"source": k.source, "cost": k.cost, "sequence": k.sequence} for k in book.known
+            {"source": k.source, "cost": k.cost, "sequence": k.sequence, "feasible": k.feasible}
+            for k in book.known
         ],
         "sources": list(book.sources),
-        "warm_starts": [s.name for s in run.starters],
+        "warm_starts": [s.name for s in book.starters],
     }
+    unused = [s for s in run.starters if s not in book.starters]
+    if unused:
+        info["warm_starts_skipped"] = [
+            {"name": s.name, "reason": f"it does not honour {source_lacks(ocp, s)}"} for s in unused
+        ]
     if cheapest is not None:
         info["cheaper"] = cheapest
     if landscape is not None:
@@ -1133,6 +1213,11 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
     failed = sorted((k for k in attempted if k not in book.results), key=lambda k: (len(k), k))
     return {
         "sources": [row["name"] for row in book.sources if "skipped" not in row],
+        "skipped_sources": [
+            {"name": row["name"], "reason": row["skipped"]}
+            for row in book.sources
+            if "skipped" in row
+        ],
         "proposed": len(book.proposed | set(book.results) | set(book.reasons)),
         "attempted": len(attempted),
         "solved": len(book.results),
@@ -1202,7 +1287,7 @@ def _judge_given_sequence(
     """
     bound = best.cost * (1 - _OPT_RTOL) - 1e-15
     if search is None:
-        beaten = [k for k in book.known if k.sequence != seq and k.cost < bound]
+        beaten = [k for k in book.rivals() if k.sequence != seq and k.cost < bound]
         if not beaten:
             return status, message, None, None
         c = min(beaten, key=lambda k: k.cost)
@@ -1309,7 +1394,8 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 _SEARCH_STATE: dict[str, Any] = {}
 
 
-_Outcome = tuple[list[str], np.ndarray | None, tuple[int, ...] | None, str, float]
+# (sequence, point, steps per phase, reason, seconds, final time)
+_Outcome = tuple[list[str], np.ndarray | None, tuple[int, ...] | None, str, float, float]
 
 
 def _search_one(seq: list[str]) -> _Outcome:
@@ -1327,9 +1413,10 @@ def _search_one(seq: list[str]) -> _Outcome:
     except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
         res, why = None, str(exc)
     if res is None:
-        return seq, None, None, why, time.perf_counter() - t0
-    # the steps per phase travel with the point: a worker's cache is not the parent's
-    return seq, res.z, res.levels, why, time.perf_counter() - t0
+        return seq, None, None, why, time.perf_counter() - t0, ocp.horizon
+    # the steps per phase (and a free final time) travel with the point: a worker's cache is
+    # not the parent's
+    return seq, res.z, res.levels, why, time.perf_counter() - t0, res.horizon
 
 
 def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
@@ -1393,8 +1480,8 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
             deadline=book.deadline if bounded else None,
         )  # fmt: skip
         solved += len(outcomes)
-        for seq, z, levels, why, took in outcomes:
-            _record(ocp, book, seq, z, levels, why, took)
+        for seq, z, levels, why, took, horizon in outcomes:
+            _record(ocp, book, seq, z, levels, why, took, horizon)
         if len(outcomes) < len(todo):
             book.budget_stopped = True
             book.say(
@@ -1419,9 +1506,11 @@ def _record(
     levels: tuple[int, ...] | None,
     why: str,
     took: float,
+    horizon: float,
 ) -> None:
     """One enumerated sequence's outcome: its extremal (Newton polishes the worker's point
-    here, in one step, at the worker's steps per phase) or the reason it has none."""
+    here, in one step, at the worker's steps per phase and final time) or the reason it has
+    none."""
     key = tuple(seq)
     book.origins.setdefault(key, "enumeration")
     book.times[key] = book.times.get(key, 0.0) + took
@@ -1430,7 +1519,9 @@ def _record(
         book.say(f"{seq} (enumeration): {why}")
         book.from_known(key)
         return
-    S = shooting_system(ocp, seq, levels)
+    # a free final time comes back fixed at the value found (result.make_result)
+    at = ocp.replace(horizon=horizon) if ocp.free_horizon else ocp
+    S = shooting_system(at, seq, levels, free=False)
     nr = newton(S, z, tol=book.tol)
     if not nr.converged:
         book.reasons[key] = f"Newton from the enumeration's point: residual {nr.residual:.2e}"
@@ -1507,5 +1598,6 @@ METHOD = Method(
     tolerance=1e-9,
     supports=reference_supports,
     summary_lines=_summary_lines,
+    features=frozenset({"terminal", "free_horizon"}),
 )
 """The method ``"reference"`` (:mod:`hybridoc.methods`)."""

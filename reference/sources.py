@@ -66,12 +66,17 @@ class PhaseCostates:
         ``K + 1`` costates ``(nx,)``: at the start and at the end of each phase.
     state_end
         ``K + 1`` states ``(nx,)`` at the end of each phase (before each event's jump).
+    horizon
+        The final time of these phases, for a problem with a free final time (``None``: the
+        problem's ``horizon``, its guess). The terminal constraints' multipliers are
+        estimated from the last costate.
     """
 
     event_times: np.ndarray
     costate_start: Sequence[np.ndarray]
     costate_end: Sequence[np.ndarray]
     state_end: Sequence[np.ndarray]
+    horizon: float | None = None
 
 
 @dataclass

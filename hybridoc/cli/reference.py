@@ -25,7 +25,7 @@ from hybridoc.cli._util import (
     solution_payload,
 )
 
-__all__ = ["register", "write_landscape", "write_reference_outputs"]
+__all__ = ["register", "terminal_lines", "write_landscape", "write_reference_outputs"]
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
@@ -63,7 +63,9 @@ def cmd_reference(args: argparse.Namespace) -> int:
         ("coverage", coverage_line(sol.info.get("coverage"))),
         ("families", families_line(sol.info.get("coverage"))),
     ]
-    print_solution(args, sol, ocp, details)
+    details += terminal_lines(sol)
+    shown = ocp if sol.info.get("horizon") is None else ocp.replace(horizon=sol.info["horizon"])
+    print_solution(args, sol, shown, details)
     if sol.info.get("grazing"):
         say(args, "note: a grazing event (approach speed ~ 0): the HMP may not hold there")
     if landscape:
@@ -84,6 +86,35 @@ def cmd_reference(args: argparse.Namespace) -> int:
     return exit_code(sol.status, sol.message)
 
 
+def terminal_lines(sol: Any) -> list[tuple[str, str]]:
+    """The final time found (a free one) and the terminal constraints' multipliers and
+    judged violation, as ``(label, text)`` rows; none for a problem without them."""
+    rows = []
+    info = sol.info
+    if info.get("horizon") is not None:
+        at = info.get("horizon_at_bound")
+        where = f"at its {'lower' if at == 'min' else 'upper'} bound" if at else "free"
+        rows.append(
+            (
+                "final time",
+                f"T = {info['horizon']:.12g} ({where}; H(T) = {info['final_hamiltonian']:.2e})",
+            )
+        )
+    mult = info.get("terminal_multipliers")
+    if mult is not None:
+        parts = []
+        if mult["eq"]:
+            parts.append("nu = [" + ", ".join(f"{v:.10g}" for v in mult["eq"]) + "]")
+        if mult["ineq"]:
+            parts.append("mu = [" + ", ".join(f"{v:.10g}" for v in mult["ineq"]) + "]")
+        rows.append(
+            ("multipliers", "; ".join(parts) + " (lambda(T) = grad phi - Dh_eq^T nu - Dh_in^T mu)")
+        )
+        if info.get("terminal_violation") is not None:
+            rows.append(("terminal", f"violation {info['terminal_violation']:.2e} (judged)"))
+    return rows
+
+
 def _short(text: str, width: int = 72) -> str:
     """A verdict cut to one table cell (the JSON and ``--verbose`` keep the whole text)."""
     text = " ".join(text.split())
@@ -102,6 +133,8 @@ def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
     from hybridoc.reference import reference_control
 
     files = list(sol.save(stem))
+    if sol.info.get("horizon") is not None:
+        ocp = ocp.replace(horizon=float(sol.info["horizon"]))  # a free final time as found
     u, bps = reference_control(sol)
     sim = evaluate_callable(ocp, u, breakpoints=bps)
     # draw the paths from the reference's own samples (grid and events): the integrator's
