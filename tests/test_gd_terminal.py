@@ -274,3 +274,85 @@ def test_features_declared_and_refusals() -> None:
     # through hybridoc.solve too: gd declares both features
     sol = hybridoc.solve(double_integrator(N=10, T=3.0, free=(0.5, 5.0)), "gd")
     assert sol.status == Status.SUCCESS and "horizon" in sol.info
+
+
+# ---------------------------------------------------------------------- friction patch
+SMOOTH, ROUGH = 0.2, 3.0  # viscous friction for x < 0 and x > 0
+
+
+def friction_patch(free: bool = False) -> HybridOCP:
+    """Issue #15's ``friction-patch`` (``-free-time`` with ``free``), written here from its
+    definition: x' = v, v' = u - c v with c = 0.2 for x < 0 and 3 for x > 0; x(0) = -1,
+    v(0) = 0; x(T) = 1, v(T) = 0; T = 2 (free in [0.5, 5]), N = 200; J = int u^2 (+ T)."""
+    s, u = ca.SX.sym("s", 2), ca.SX.sym("u", 1)
+    x, v = s[0], s[1]
+    L = u[0] ** 2 + (1.0 if free else 0.0)
+    modes = {
+        "smooth": (ca.vertcat(v, u - SMOOTH * v), L),
+        "rough": (ca.vertcat(v, u - ROUGH * v), L),
+    }
+    transitions = [
+        Guard.from_expressions("enter", s, -x, s, source="smooth", target="rough"),
+        Guard.from_expressions("leave", s, x, s, source="rough", target="smooth"),
+    ]
+    return HybridOCP.from_modes(
+        s, u, modes=modes, transitions=transitions, initial_mode="smooth", phi=ca.SX(0),
+        x0=[-1.0, 0.0], horizon=2.0, steps=200, terminal_eq=ca.vertcat(x - 1, v),
+        horizon_bounds=(0.5, 5.0) if free else None, name="friction-patch",
+    )  # fmt: skip
+
+
+def pwc_friction_patch(N: int, T: float | None, u0: np.ndarray, tau0: float, T0: float) -> dict:
+    """The exact optimum over N piecewise-constant controls of the friction patch entering
+    the rough part once, in the cell of ``tau0``: an IPOPT NLP in the controls, the crossing
+    time (``x(tau) = 0``) and, when free (``T`` None), T, on the closed-form flow of
+    v' = u - c v written here."""
+    free = T is None
+
+    def flow(x: ca.MX, v: ca.MX, w: ca.MX, c: float, d: ca.MX) -> tuple[ca.MX, ca.MX]:
+        e = ca.exp(-c * d)
+        return x + v * (1 - e) / c + w / c * (d - (1 - e) / c), v * e + w / c * (1 - e)
+
+    u = ca.MX.sym("u", N)
+    th = ca.MX.sym("theta")
+    Tv = ca.MX.sym("T") if free else ca.MX(T)
+    h = Tv / N
+    j = int(tau0 / (T0 / N))
+    x, v = ca.MX(-1.0), ca.MX(0.0)
+    for n in range(N):
+        if n < j:
+            x, v = flow(x, v, u[n], SMOOTH, h)
+        elif n == j:
+            x, v = flow(x, v, u[n], SMOOTH, th * h)
+            x_hit = x
+            x, v = flow(x, v, u[n], ROUGH, (1 - th) * h)
+        else:
+            x, v = flow(x, v, u[n], ROUGH, h)
+    J = h * ca.sumsqr(u) + (Tv if free else 0)
+    z = ca.vertcat(u, th, Tv) if free else ca.vertcat(u, th)
+    solver = ca.nlpsol(
+        "fp", "ipopt", {"x": z, "f": J, "g": ca.vertcat(x_hit, x - 1, v)},
+        {"print_time": 0, "ipopt": {"print_level": 0, "tol": 1e-12, "sb": "yes"}},
+    )  # fmt: skip
+    guess = np.concatenate([u0, [(tau0 - j * T0 / N) / (T0 / N)], [T0] if free else []])
+    lbx = np.concatenate([-np.inf * np.ones(N), [0.0], [0.5] if free else []])
+    ubx = np.concatenate([np.inf * np.ones(N), [1.0], [5.0] if free else []])
+    res = solver(x0=guess, lbx=lbx, ubx=ubx, lbg=0, ubg=0)
+    assert solver.stats()["success"]
+    zs = np.asarray(res["x"]).ravel()
+    return {"cost": float(res["f"]), "T": float(zs[N + 1]) if free else T}
+
+
+@pytest.mark.slow  # the VM takes over a minute on 2 cores until the compiled loss is cached
+@pytest.mark.parametrize("free", [False, True])
+def test_friction_patch_against_an_independent_nlp(free: bool) -> None:
+    ocp = friction_patch(free)
+    sol = solve_gd(ocp)
+    _check_met(ocp, sol)
+    assert sol.sequence == ["enter"]
+    T = sol.info["horizon"] if free else 2.0
+    ref = pwc_friction_patch(200, None if free else 2.0, sol.controls.ravel(),
+                             sol.events[0]["time"], T)  # fmt: skip
+    assert sol.cost == pytest.approx(ref["cost"], rel=RTOL)
+    if free:
+        assert T == pytest.approx(ref["T"], abs=1e-3)
