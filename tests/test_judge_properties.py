@@ -9,6 +9,8 @@ message. Cases whose outcome is ill-conditioned (a perturbation of one initial p
 1e-10 changes the oracle's own event sequence, or moves its answer by more than 1e-4:
 chaotic billiards, near-grazes) are skipped, since no two correct simulators need agree on
 them; otherwise the tolerances are 1e-7 plus ten times what that perturbation moved.
+Random mode switches (issue #15): a random two-mode linear system with hysteresis guards
+against its exact linear flows (the last test).
 Further invariants: no penetration at densely
 sampled times, momentum conserved across disc-disc impacts, kinetic energy conserved at
 e = 1, and the adjoint gradient equal to central differences where the event sequence does
@@ -631,3 +633,122 @@ def test_scaling_lengths_scales_the_answer(
     # an inexact factor rounds every input once
     d, dt = _disturbance(want, T, length, 0 if power_of_two else 3)
     _assert_same_answer(got, want, T, spread, d / DELTA, length=lam, cost_scale=lam**2, direct_t=dt)
+
+
+# ------------------------------------------------------------------ random mode switches
+# A random two-mode linear system, s' = A_q s + b u + c_q, with a thermostat's hysteresis:
+# "down" (mode a -> b) when s_0 falls through theta, "up" (b -> a) when it rises through
+# theta + gap; the resets scale s_1 by r_q; the running cost rho_q u^2 depends on the mode.
+# The independent simulation: the exact linear flow (matrix exponential of the augmented
+# system), the guard sampled densely along it on each cell and its crossing bracketed by
+# brentq. Near-grazing crossings (a dip of the guard within 1e-6 of zero, or an approach
+# slower than 1e-3) are ill-conditioned and skipped.
+@st.composite
+def mode_systems(draw: Any) -> dict[str, Any]:
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    sysd: dict[str, Any] = {"A": [], "c": [], "r": [], "rho": []}
+    for _ in range(2):
+        w = rng.uniform(1.0, 4.0)
+        sysd["A"].append(np.array([[rng.uniform(-0.5, 0.5), w], [-w, rng.uniform(-0.5, 0.5)]]))
+        sysd["c"].append(rng.uniform(-1, 1, 2))
+        sysd["r"].append(float(rng.uniform(0.5, 1.0)))
+        sysd["rho"].append(float(rng.uniform(0.1, 2.0)))
+    theta = float(rng.uniform(-0.5, 0.0))
+    gap = float(rng.uniform(0.05, 0.5))
+    sysd.update(
+        theta=theta,
+        gap=gap,
+        x0=np.array([theta + gap + rng.uniform(0.0, 0.5), rng.uniform(-1, 1)]),
+        T=float(rng.uniform(0.5, 3.0)),
+        steps=int(rng.integers(1, 10)),
+    )
+    sysd["u"] = rng.uniform(-2, 2, (sysd["steps"], 1))
+    return sysd
+
+
+def _mode_ocp(d: dict[str, Any]) -> hybridoc.HybridOCP:
+    import casadi as ca
+
+    s, u = ca.SX.sym("s", 2), ca.SX.sym("u")
+    modes = {
+        name: (ca.mtimes(ca.DM(d["A"][q]), s) + ca.vertcat(0, u) + ca.DM(d["c"][q]),
+               d["rho"][q] * u**2)
+        for q, name in enumerate(("a", "b"))
+    }  # fmt: skip
+    th, gap = d["theta"], d["gap"]
+    down = hybridoc.Guard.from_expressions(
+        "down", s, s[0] - th, ca.vertcat(s[0], d["r"][0] * s[1]), source="a", target="b"
+    )
+    up = hybridoc.Guard.from_expressions(
+        "up", s, th + gap - s[0], ca.vertcat(s[0], d["r"][1] * s[1]), source="b", target="a"
+    )
+    return hybridoc.HybridOCP.from_modes(
+        s, u, modes=modes, transitions=[down, up], initial_mode="a",
+        phi=s[0] ** 2 + s[1] ** 2, x0=d["x0"], horizon=d["T"], steps=d["steps"],
+    )  # fmt: skip
+
+
+def _mode_oracle(d: dict[str, Any]) -> tuple[list[tuple[float, str, str]], np.ndarray, float]:
+    """Events ``(time, guard, mode after)``, the final state and the cost (module notes)."""
+    from scipy.linalg import expm
+    from scipy.optimize import brentq
+
+    def flow(q: int, s: np.ndarray, u: float, tau: Any) -> np.ndarray:
+        """The exact flow at one time or (batched) at an array of times."""
+        M = np.zeros((3, 3))
+        M[:2, :2] = d["A"][q]
+        M[:2, 2] = d["c"][q] + np.array([0.0, u])
+        E = expm(np.multiply.outer(np.atleast_1d(tau), M))
+        out = (E @ np.r_[s, 1.0])[:, :2]
+        return out if np.ndim(tau) else out[0]
+
+    def psi(q: int, s: np.ndarray) -> Any:
+        x = s[..., 0]
+        return x - d["theta"] if q == 0 else d["theta"] + d["gap"] - x
+
+    s, q, cost, events = np.array(d["x0"], dtype=float), 0, 0.0, []
+    h = d["T"] / d["steps"]
+    for n in range(d["steps"]):
+        u = float(d["u"][n, 0])
+        t, left = n * h, h
+        while True:
+            taus = np.linspace(0.0, left, 401)
+            vals = psi(q, flow(q, s, u, taus))
+            cross = np.flatnonzero((vals[:-1] > 0) & (vals[1:] <= 0))
+            if cross.size == 0:
+                assume(np.min(vals[1:]) > 1e-6)  # no near-graze
+                cost += d["rho"][q] * u * u * left
+                s = flow(q, s, u, left)
+                break
+            i = int(cross[0])
+            assume(np.min(vals[1 : i + 1], initial=1.0) > 1e-6)
+            tau = brentq(
+                lambda x, q=q, s=s, u=u: psi(q, flow(q, s, u, x)), taus[i], taus[i + 1],
+                xtol=1e-15,
+            )  # fmt: skip
+            s_ev = flow(q, s, u, tau)
+            rate = (psi(q, flow(q, s, u, tau + 1e-7)) - psi(q, flow(q, s, u, tau - 1e-7))) / 2e-7
+            assume(rate < -1e-3)
+            cost += d["rho"][q] * u * u * tau
+            s = np.array([s_ev[0], d["r"][q] * s_ev[1]])
+            name = "down" if q == 0 else "up"
+            q = 1 - q
+            t, left = t + tau, left - tau
+            events.append((t, name, "ab"[q]))
+            assume(len(events) <= 30)
+    return events, s, cost + float(s @ s)
+
+
+@settings(max_examples=examples(3), deadline=None)  # about 1 s each (CVODES kernels)
+@given(d=mode_systems())
+def test_judge_agrees_with_an_exact_simulation_of_random_mode_switches(d: dict[str, Any]) -> None:
+    events, s_T, cost = _mode_oracle(d)
+    event(f"{len(events)} switches")
+    ev = hybridoc.evaluate(_mode_ocp(d), d["u"])
+    note(f"oracle {events}; judge {[(e.time, e.name, e.mode_after) for e in ev.events]}")
+    assert [(e.name, e.mode_after) for e in ev.events] == [(n, m) for _, n, m in events]
+    assert all(e.mode_before != e.mode_after for e in ev.events)
+    np.testing.assert_allclose([e.time for e in ev.events], [t for t, _, _ in events], atol=1e-8)
+    np.testing.assert_allclose(ev.final_state[:2], s_T, rtol=1e-7, atol=1e-7)
+    assert ev.final_state[2] == (0.0 if not events or events[-1][2] == "a" else 1.0)
+    assert ev.cost == pytest.approx(cost, rel=1e-7, abs=1e-9)

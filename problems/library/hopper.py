@@ -98,8 +98,9 @@ def hopper(
     -----
     The defaults (the issue's specification: g = 9.81, k = 400, l0 = 1, y(0) = 1.3,
     v(0) = 0, T = 1.2, N = 240, y_target = 1.6, eps = 0.01): two stance phases,
-    touchdown, liftoff, touchdown, liftoff; the leg pushes in both stances and the hopper is
-    in flight at ``T``.
+    touchdown, liftoff, touchdown, liftoff, cost 0.1225506580 (``u = 0`` in flight; in the
+    first stance the leg pushes, then pulls, in the second it pulls, then pushes); the
+    hopper is in flight at ``T``.
     """
     args = dict(locals())
     k = check_positive("stiffness", stiffness)
