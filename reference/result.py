@@ -523,6 +523,8 @@ def make_result(
         integration_error=float(error),
         nodes=nodes,
         terminal_eq_multipliers=np.asarray(nu, dtype=float).ravel().copy(),
-        terminal_ineq_multipliers=np.asarray(mu, dtype=float).ravel().copy(),
+        # a Fischer-Burmeister root has mu >= 0 up to rounding: the sign shown is the one
+        # the conditions require
+        terminal_ineq_multipliers=np.maximum(np.asarray(mu, dtype=float).ravel(), 0.0),
         final_hamiltonian=float(H_T.item()),
     )
