@@ -44,6 +44,7 @@ __all__ = [
     "add_initial_arg",
     "add_json_out",
     "add_method_options",
+    "add_policy_arg",
     "add_progress_arg",
     "add_substeps_arg",
     "emit_json",
@@ -438,6 +439,18 @@ def problem_slug(text: str | Path, ocp: Any) -> str:
 
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-") or "problem"
+
+
+def add_policy_arg(parser: argparse.ArgumentParser, *, extra: str = "") -> None:
+    """Add ``--policy SPEC``, the one flag for a feedback policy."""
+    parser.add_argument(
+        "--policy",
+        metavar="SPEC",
+        default=None,
+        help="a feedback policy (t, state) -> u: an MLP policy file (policy.json, as "
+        "train-policy writes it; runs no code), a TorchScript file (.pt) or "
+        "path/to/file.py:name" + extra,
+    )
 
 
 def add_progress_arg(parser: argparse.ArgumentParser) -> None:

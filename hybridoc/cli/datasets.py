@@ -1,5 +1,6 @@
-"""``hybridoc dataset`` and ``validate-policy``: references over a scene's distribution
-(library: :mod:`hybridoc.workflows.datasets`, :mod:`hybridoc.workflows.policies`)."""
+"""``hybridoc dataset`` and ``validate-policy``: references over a problem's distribution
+of initial states, a scene's ``[distribution]`` or a Python one (library:
+:mod:`hybridoc.workflows.datasets`, :mod:`hybridoc.workflows.policies`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 from hybridoc.cli._util import (
     add_json_out,
+    add_policy_arg,
+    add_progress_arg,
     emit_json,
     ensure_dir,
     fmt,
@@ -19,6 +22,7 @@ from hybridoc.cli._util import (
     positive_float,
     positive_int,
     problem_arg,
+    problem_slug,
     say,
     to_jsonable,
     warn,
@@ -26,6 +30,7 @@ from hybridoc.cli._util import (
 from hybridoc.errors import HybridocError
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problems import Scene
     from hybridoc.workflows.policies import PolicyReport
 
@@ -35,7 +40,8 @@ __all__ = ["register"]
 def _add_engine(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--samples", type=positive_int, required=True, metavar="M",
-        help="number of initial states drawn from the scene's [distribution]",
+        help="number of initial states drawn from the problem's distribution (a scene's "
+        "[distribution] table or a HybridOCP's distribution)",
     )  # fmt: skip
     p.add_argument(
         "--seed", type=nonnegative_int, default=None, metavar="S",
@@ -50,18 +56,22 @@ def _add_engine(p: argparse.ArgumentParser) -> None:
         help="run on a dask.distributed cluster: a scheduler address (tcp://host:port) or "
         "'local' for a LocalCluster of --workers processes",
     )  # fmt: skip
-    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_progress_arg(p)
 
 
-def _scene_arg(text: str) -> Scene:
-    from hybridoc.workflows.datasets import distribution_scene
+def _source_arg(text: str) -> Scene | HybridOCP:
+    from hybridoc.workflows.datasets import distribution_problem
 
-    return distribution_scene(text)
+    return distribution_problem(text)
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    """Exact optimal controls, events, costates and costs of M draws of a scene's
-    [distribution]: DIR/dataset.npz (one row per draw) and DIR/manifest.json.
+    """Exact optimal controls, events, costates and costs of M draws of a problem's
+    distribution of initial states (a scene's [distribution] table, or a HybridOCP's
+    distribution from path/to/file.py:function): DIR/dataset.npz (one row per draw) and
+    DIR/manifest.json. Unlike the other commands' --out, DIR is the dataset itself: a
+    resumable folder (its shards, manifest and lock) that validate-policy --dataset reads
+    whole; validate-policy --out names it <problem>_dataset.
 
     An interrupted run resumes when started again with the same options (shards that are
     damaged are computed again); one run at a time writes into DIR, and a dataset found
@@ -70,10 +80,10 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     """
     from hybridoc.workflows.datasets import DATA_FILE, MANIFEST_FILE, make_dataset
 
-    scene = _scene_arg(args.problem)
+    scene = _source_arg(args.problem)
     ensure_dir(args.out)
     ds = make_dataset(
-        scene, args.samples, args.out, seed=args.seed, workers=args.workers, dask=args.dask,
+        args.problem, args.samples, args.out, seed=args.seed, workers=args.workers, dask=args.dask,
         tol=args.tol, full=args.full, progress=not args.no_progress,
     )  # fmt: skip
     m = ds.manifest
@@ -111,9 +121,20 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _policy_arg(args: argparse.Namespace) -> str:
+    """The policy of ``validate-policy``: ``--policy`` or the deprecated positional one."""
+    given = [p for p in (args.policy, args.policy_positional) if p is not None]
+    if len(given) != 1:
+        raise HybridocError(
+            "give the policy once, as --policy FILE" if given else "no policy: give --policy FILE"
+        )
+    return str(given[0])
+
+
 def cmd_validate_policy(args: argparse.Namespace) -> int:
-    """Judge a feedback policy in closed loop on M draws of a scene's [distribution] against
-    the exact reference of each: the cost gap (mean, median, p95, max), how often the event
+    """Judge a feedback policy in closed loop on M draws of a problem's distribution of
+    initial states (a scene's [distribution] table or a HybridOCP's) against the exact
+    reference of each: the cost gap (mean, median, p95, max), how often the event
     sequence differs from the optimal one, the worst cases with their initial states.
 
     Exit code 1 when some draw's policy beats its reference (a reference that is not
@@ -121,17 +142,19 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     """
     from hybridoc.workflows.policies import validate_policy
 
-    scene = _scene_arg(args.problem)
+    scene = _source_arg(args.problem)
+    policy = _policy_arg(args)
     out = None if args.out is None else ensure_dir(args.out)
+    slug = problem_slug(args.problem, scene)
     report = validate_policy(
-        scene, args.policy, args.samples, seed=args.seed, dataset=args.dataset,
-        dataset_out=None if out is None else output_stem(out, scene.name, "dataset"),
+        args.problem, policy, args.samples, seed=args.seed, dataset=args.dataset,
+        dataset_out=None if out is None else output_stem(out, slug, "dataset"),
         hold=args.hold, workers=args.workers, dask=args.dask, progress=not args.no_progress,
         rollouts=args.rollouts,
     )  # fmt: skip
     s = report.summary
     payload = {"problem": scene.name, **report.to_json()}
-    written = [] if out is None else _write_policy_report(out, scene, report, payload)
+    written = [] if out is None else _write_policy_report(out, slug, scene, report, payload)
     if args.json:
         emit_json(payload)
     else:
@@ -153,15 +176,16 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
 
 
 def _write_policy_report(
-    out: Path, scene: Scene, report: PolicyReport, payload: dict[str, Any]
+    out: Path, slug: str, scene: Scene | HybridOCP, report: PolicyReport, payload: dict[str, Any]
 ) -> list[Path]:
     """``<problem>_validate-policy.json``/``.npz`` and the figures in ``out``."""
     import numpy as np
 
+    from hybridoc.problem import as_ocp
     from hybridoc.workflows.policies import report_figures
 
     written: list[Path] = []
-    stem = output_stem(out, scene.name, "validate-policy")
+    stem = output_stem(out, slug, "validate-policy")
     try:
         p = Path(f"{stem}.json")
         p.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
@@ -171,19 +195,22 @@ def _write_policy_report(
         written.append(Path(f"{stem}.npz"))
     except OSError as exc:
         raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
-    ocp = scene.to_ocp()
+    ocp = as_ocp(scene)
+    labels = list(ocp.state_labels or [f"x{i}" for i in range(ocp.nx)])
     try:
-        written += report_figures(report, list(ocp.state_labels), stem, title=scene.name)
+        written += report_figures(report, labels, stem, title=scene.name)
     except OSError as exc:
         raise HybridocError(f"cannot write figures: {exc.strerror or exc}") from None
     return written
 
 
-def _print_policy_report(args: argparse.Namespace, scene: Scene, report: PolicyReport) -> None:
+def _print_policy_report(
+    args: argparse.Namespace, scene: Scene | HybridOCP, report: PolicyReport
+) -> None:
     """The summary, the gap table and the worst cases, on stdout."""
     s = report.summary
     say(args, f"problem    {scene.name} ({s['samples']} draws, hold {args.hold})")
-    say(args, f"policy     {args.policy}")
+    say(args, f"policy     {_policy_arg(args)}")
     say(args, f"compared   {s['compared']} (reference failed {s['reference_failed']}, "
               f"rollout failed {s['rollout_failed']})")  # fmt: skip
     rows = [
@@ -247,10 +274,10 @@ def register(sub: Any) -> None:
     )
     problem_arg(p)
     p.add_argument(
-        "policy", metavar="POLICY",
-        help="an MLP policy file (policy.json, runs no code), a TorchScript file (.pt) or "
-        "path/to/file.py:name, a callable (t, state) -> u",
+        "policy_positional", metavar="POLICY", nargs="?", default=None,
+        help="deprecated: the same as --policy",
     )  # fmt: skip
+    add_policy_arg(p)
     _add_engine(p)
     p.add_argument(
         "--dataset", metavar="DIR", type=Path, default=None,

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from hybridoc.cli._util import (
     add_controls_arg,
     add_json_out,
+    add_policy_arg,
     add_substeps_arg,
     emit_json,
     ensure_dir,
@@ -304,11 +305,7 @@ def register(sub: Any) -> None:
     problem_arg(p)
     add_controls_arg(p)
     add_substeps_arg(p)
-    p.add_argument(
-        "--policy", metavar="SPEC", default=None,
-        help="a feedback policy instead of controls: a TorchScript file (.pt) or "
-        "path/to/file.py:name, a callable (t, state) -> u",
-    )  # fmt: skip
+    add_policy_arg(p, extra=", instead of controls")
     p.add_argument(
         "--hold", choices=("zoh", "continuous"), default="zoh",
         help="with --policy: sampled at the grid times and held (zoh, default) or continuous",

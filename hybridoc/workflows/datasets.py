@@ -1,8 +1,15 @@
-"""Reference datasets: the exact optimal control of many initial states of one scene.
+"""Reference datasets: the exact optimal control of many initial states of one problem.
 
-:func:`make_dataset` draws ``M`` concrete scenes from a scene's ``[distribution]`` table
-(:class:`~hybridoc.problems.scene.Distribution`) and solves each with the HMP reference;
-:func:`load_dataset` reads the result back.
+:func:`make_dataset` draws ``M`` initial states and solves each with the HMP reference;
+:func:`load_dataset` reads the result back. The draws come from a disc scene's
+``[distribution]`` table (:class:`~hybridoc.problems.scene.Distribution`: concrete scenes,
+targets included), or, for any :class:`~hybridoc.HybridOCP`, from a distribution declared
+in Python: :attr:`HybridOCP.distribution <hybridoc.HybridOCP>` or ``make_dataset``'s
+``distribution`` argument, a callable ``(rng, M) -> (M, nx)`` initial states, called for
+draw ``i`` with ``M = 1`` and its own generator ``default_rng([seed, i])``
+(:func:`draw_initial_states`). The draws of such a problem are made in the calling process;
+pool workers get the problem by ``fork`` (or, with Dask or without ``fork``, load it again
+from its name: a problem given as a name or ``file.py:function``).
 
 How each draw is solved
     The nominal scene is solved once with the reference's full discovery
@@ -104,6 +111,7 @@ from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solvers.threads import usable_cores
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problems import DiscOCP, Scene
     from hybridoc.reference import ReferenceResult
 
@@ -121,14 +129,20 @@ __all__ = [
     "DrawContext",
     "check_count",
     "check_dask",
+    "distribution_problem",
     "distribution_scene",
     "draw_context",
+    "draw_initial_states",
     "draw_ocp",
     "draw_problem",
+    "initial_states_sha256",
     "iter_chunks",
     "load_dataset",
     "make_dataset",
+    "problem_spec",
     "run_chunks",
+    "source_draws",
+    "source_seed",
     "usable_cores",
 ]
 
@@ -211,6 +225,98 @@ def distribution_scene(problem: Any) -> Scene:
     return obj
 
 
+def distribution_problem(problem: Any, distribution: Any = None) -> Scene | HybridOCP:
+    """What a dataset of ``problem`` is drawn from: a disc scene with a ``[distribution]``
+    table, or a :class:`~hybridoc.HybridOCP` with a Python distribution.
+
+    Parameters
+    ----------
+    problem
+        A built-in name, a ``.toml`` path, ``file.py:function``, a
+        :class:`~hybridoc.problems.Scene` or a :class:`~hybridoc.HybridOCP`.
+    distribution
+        A callable ``(rng, M) -> (M, nx)`` (:attr:`HybridOCP.distribution
+        <hybridoc.HybridOCP>`) overriding the problem's own; default: the problem's
+        (its ``distribution`` field, or its scene's ``[distribution]`` table).
+
+    Returns
+    -------
+    Scene or HybridOCP
+        The scene (with its distribution) when the draws come from a ``[distribution]``
+        table, otherwise the problem with ``distribution`` set.
+
+    Raises
+    ------
+    SceneError
+        No distribution anywhere, or one that is not callable.
+    """
+    from hybridoc.problem import as_ocp
+    from hybridoc.problems import DiscOCP, Scene, load_problem
+
+    obj = load_problem(problem) if isinstance(problem, str | Path) else problem
+    if distribution is None:
+        if isinstance(obj, Scene) and obj.distribution is not None:
+            return obj
+        if isinstance(obj, DiscOCP) and obj.distribution is None:
+            if obj.scene.distribution is not None:
+                return obj.scene
+    ocp = as_ocp(obj)
+    dist = distribution if distribution is not None else ocp.distribution
+    if dist is None:
+        python = (
+            "a distribution in Python (HybridOCP(distribution=...) or "
+            "problem.replace(distribution=...): a callable (rng, M) -> (M, nx) initial states; "
+            "see docs: datasets)"
+        )
+        if isinstance(ocp, DiscOCP):
+            raise SceneError(
+                f"scene {ocp.name!r} has no [distribution] table: add one to draw initial "
+                f"states, or give the problem {python}"
+            )
+        raise SceneError(f"{ocp.name!r} has no distribution of initial states: give it {python}")
+    if not callable(dist):
+        raise SceneError(
+            f"the distribution of {ocp.name!r} must be a callable (rng, M) -> (M, nx), "
+            f"got {type(dist).__name__}"
+        )
+    return ocp if dist is ocp.distribution else ocp.replace(distribution=dist)
+
+
+def draw_initial_states(ocp: HybridOCP, samples: int, seed: int) -> np.ndarray:
+    """The ``(samples, nx)`` initial states of draws ``0 .. samples - 1`` of a problem's
+    Python distribution: draw ``i`` is ``distribution(default_rng([seed, i]), 1)[0]``.
+
+    Raises
+    ------
+    SceneError
+        A distribution that raises, or returns another shape than ``(1, nx)`` (or
+        ``(nx,)``), or non-finite values; the message names the draw.
+    """
+    dist = ocp.distribution
+    if dist is None:
+        raise SceneError(f"{ocp.name!r} has no distribution of initial states")
+    out = np.empty((samples, ocp.nx))
+    for i in range(samples):
+        try:
+            x = np.asarray(dist(np.random.default_rng([seed, i]), 1), dtype=float)
+        except SceneError:
+            raise
+        except Exception as exc:  # the user's callable: any error is theirs, said as one line
+            raise SceneError(
+                f"the distribution of {ocp.name!r} failed on draw {i}: {type(exc).__name__}: {exc}"
+            ) from None
+        if x.shape not in ((1, ocp.nx), (ocp.nx,)):
+            raise SceneError(
+                f"the distribution of {ocp.name!r} returned shape {x.shape} for M = 1; "
+                f"expected (1, {ocp.nx}) (M initial states of nx = {ocp.nx})"
+            )
+        if not np.all(np.isfinite(x)):
+            raise SceneError(f"the distribution of {ocp.name!r} returned a non-finite state "
+                             f"on draw {i}: {x.ravel().tolist()}")  # fmt: skip
+        out[i] = x.ravel()
+    return out
+
+
 def check_count(value: Any, what: str, low: int) -> int:
     """``value`` as an ``int`` when it is an integer (not a bool) of at least ``low``.
 
@@ -235,10 +341,10 @@ class DrawContext:
     Attributes
     ----------
     scene
-        The scene with its distribution.
+        The scene with its distribution; ``None`` for a problem with a Python distribution.
     ocp
-        The nominal scene's compiled problem (draws that change only the initial state reuse
-        it, :func:`draw_ocp`).
+        The nominal problem (draws that change only the initial state reuse its compiled
+        structure, :func:`draw_ocp`).
     seed
         The seed of the draws.
     sequence, z
@@ -248,18 +354,50 @@ class DrawContext:
         HMP residual required of every extremal.
     full
         Every draw with the full discovery (no warm start).
+    x0
+        The ``(M, nx)`` initial states of a problem with a Python distribution (drawn by the
+        calling process, :func:`draw_initial_states`); ``None`` for a scene.
     """
 
-    scene: Scene
-    ocp: DiscOCP
+    scene: Scene | None
+    ocp: HybridOCP
     seed: int
     sequence: list[str] | None
     z: np.ndarray | None
     tol: float
     full: bool
+    x0: np.ndarray | None = None
 
 
 _CONTEXTS: dict[str, DrawContext] = {}
+_PROBLEMS: dict[str, HybridOCP] = {}
+"""Problems with a Python distribution, by the key in their draws' specification: set by
+the calling process before its pool forks, so that workers inherit them."""
+
+
+def problem_spec(ocp: HybridOCP, text: str | None, x0: np.ndarray) -> dict[str, Any]:
+    """The part of a task specification that names a problem with a Python distribution:
+    ``{"problem": key, "load": text or None, "x0": draws}`` (the problem registered in this
+    process under ``key`` for forked workers; ``text`` loads it elsewhere)."""
+    key = f"{ocp.name}@{id(ocp):x}"
+    _PROBLEMS.clear()  # one dataset at a time per process
+    _PROBLEMS[key] = ocp
+    return {"problem": key, "load": text, "x0": np.asarray(x0, dtype=float).tolist()}
+
+
+def _problem_of(spec: dict[str, Any]) -> HybridOCP:
+    ocp = _PROBLEMS.get(spec["problem"])
+    if ocp is not None:
+        return ocp
+    if spec.get("load") is None:
+        raise HybridocError(
+            f"problem {spec['problem'].rpartition('@')[0]!r} is a Python object that this "
+            "worker cannot load: run with workers=1 or a fork-based pool, or give the problem "
+            "by name (path/to/file.py:function) for Dask"
+        )
+    from hybridoc.problem import as_ocp
+
+    return as_ocp(spec["load"])
 
 
 def draw_context(spec: dict[str, Any]) -> DrawContext:
@@ -269,26 +407,30 @@ def draw_context(spec: dict[str, Any]) -> DrawContext:
     ----------
     spec
         ``{"scene": TOML text, "seed", "tol", "full", "nominal": None or {"sequence",
-        "z"}}``.
+        "z"}}``; for a problem with a Python distribution ``"problem"``, ``"load"`` and
+        ``"x0"`` (:func:`problem_spec`) instead of ``"scene"``.
     """
     key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
     ctx = _CONTEXTS.get(key)
     if ctx is None:
-        import tomllib
-
-        from hybridoc.problems import Scene
-
-        scene = Scene.from_dict(tomllib.loads(spec["scene"]), default_name="scene")
         nominal = spec.get("nominal")
-        ctx = DrawContext(
-            scene=scene,
-            ocp=scene.to_ocp(),
-            seed=int(spec["seed"]),
-            sequence=None if nominal is None else list(nominal["sequence"]),
-            z=None if nominal is None else np.array(nominal["z"], dtype=float),
-            tol=float(spec["tol"]),
-            full=bool(spec["full"]),
-        )
+        common = {
+            "seed": int(spec["seed"]),
+            "sequence": None if nominal is None else list(nominal["sequence"]),
+            "z": None if nominal is None else np.array(nominal["z"], dtype=float),
+            "tol": float(spec["tol"]),
+            "full": bool(spec["full"]),
+        }
+        if "scene" in spec:
+            import tomllib
+
+            from hybridoc.problems import Scene
+
+            scene = Scene.from_dict(tomllib.loads(spec["scene"]), default_name="scene")
+            ctx = DrawContext(scene=scene, ocp=scene.to_ocp(), **common)
+        else:
+            x0 = np.array(spec["x0"], dtype=float)
+            ctx = DrawContext(scene=None, ocp=_problem_of(spec), x0=x0, **common)
         _CONTEXTS.clear()  # one dataset at a time per process
         _CONTEXTS[key] = ctx
     return ctx
@@ -303,9 +445,13 @@ def draw_ocp(ctx_scene: Scene, ocp: DiscOCP, scene_i: Scene) -> DiscOCP:
     return scene_i.to_ocp()
 
 
-def draw_problem(ctx: DrawContext, index: int) -> tuple[Scene, DiscOCP]:
-    """Draw ``index`` of the context's distribution: its scene (named ``<scene>#<index>``)
-    and its problem (:func:`draw_ocp`)."""
+def draw_problem(ctx: DrawContext, index: int) -> tuple[Scene | None, HybridOCP]:
+    """Draw ``index`` of the context's distribution: its scene (named ``<scene>#<index>``;
+    ``None`` for a problem with a Python distribution) and its problem (:func:`draw_ocp`;
+    the nominal problem with the draw's ``x0``, named ``<problem>#<index>``)."""
+    if ctx.scene is None:
+        assert ctx.x0 is not None
+        return None, ctx.ocp.replace(x0=ctx.x0[index], name=f"{ctx.ocp.name}#{index}")
     scene_i = ctx.scene.distribution.draw(ctx.scene, index, ctx.seed)
     scene_i = dataclasses.replace(scene_i, name=f"{ctx.scene.name}#{index}")
     return scene_i, draw_ocp(ctx.scene, ctx.ocp, scene_i)
@@ -342,7 +488,7 @@ def _record_of(res: ReferenceResult, status: str, method: str, message: str) -> 
     }
 
 
-def _failed_record(ocp: DiscOCP, message: str) -> dict[str, Any]:
+def _failed_record(ocp: HybridOCP, message: str) -> dict[str, Any]:
     nx, nu, N = ocp.nx, ocp.nu, ocp.steps
     nan = float("nan")
     return {
@@ -371,7 +517,7 @@ def _failed_record(ocp: DiscOCP, message: str) -> dict[str, Any]:
     }
 
 
-def _warm(ctx: DrawContext, ocp: DiscOCP) -> tuple[ReferenceResult | None, str]:
+def _warm(ctx: DrawContext, ocp: HybridOCP) -> tuple[ReferenceResult | None, str]:
     """The nominal sequence's extremal from the nominal point, verified; or why not."""
     from hybridoc.reference import warm_extremal
 
@@ -384,7 +530,11 @@ def _solve_draw(ctx: DrawContext, index: int) -> dict[str, Any]:
     from hybridoc.reference import solve_reference
 
     scene_i, ocp = draw_problem(ctx, index)
-    head = {"index": index, "x0": scene_i.initial_state(), "targets": scene_i.targets()}
+    head = {
+        "index": index,
+        "x0": np.array(ocp.x0, dtype=float) if scene_i is None else scene_i.initial_state(),
+        "targets": np.zeros((0, 2)) if scene_i is None else scene_i.targets(),
+    }
     why = "full discovery requested"
     if not ctx.full and ctx.sequence is not None:
         try:
@@ -896,12 +1046,25 @@ class Dataset:
 
     @property
     def scene(self) -> Scene:
-        """The scene (with its distribution) the dataset was drawn from."""
+        """The scene (with its distribution) the dataset was drawn from.
+
+        Raises
+        ------
+        HybridocError
+            A dataset of a problem with a Python distribution (its settings name the
+            problem and the SHA-256 of its initial states instead).
+        """
         import tomllib
 
         from hybridoc.problems import Scene
 
-        return Scene.from_dict(tomllib.loads(self.manifest["settings"]["scene"]))
+        settings = self.manifest["settings"]
+        if "scene" not in settings:
+            raise HybridocError(
+                f"the dataset in {str(self.path)!r} was drawn from a problem with a Python "
+                f"distribution ({settings.get('problem')!r}), not from a scene"
+            )
+        return Scene.from_dict(tomllib.loads(settings["scene"]))
 
     @property
     def ok(self) -> np.ndarray:
@@ -909,13 +1072,26 @@ class Dataset:
         return self.columns["status"] == "success"
 
 
-def _settings(scene: Scene, samples: int, seed: int, tol: float, full: bool) -> dict[str, Any]:
+def _settings(
+    source: Scene | HybridOCP, samples: int, seed: int, tol: float, full: bool,
+    x0: np.ndarray | None = None,
+) -> dict[str, Any]:  # fmt: skip
+    """The settings a dataset is made with (a resumed run must have the same): the scene as
+    TOML, or a problem's name with the SHA-256 of its drawn initial states."""
     from hybridoc import __version__
 
+    if x0 is None:
+        what: dict[str, Any] = {"scene": source.to_toml()}
+    else:
+        what = {
+            "problem": source.name,
+            "nominal_x0": [float(v) for v in source.x0],
+            "x0_sha256": initial_states_sha256(x0),
+        }
     return {
         "format": FORMAT,
         "hybridoc": __version__,
-        "scene": scene.to_toml(),
+        **what,
         "samples": samples,
         "seed": seed,
         "chunk": CHUNK,
@@ -930,21 +1106,26 @@ def _notice(text: str) -> None:
     print(f"dataset: {text}", file=sys.stderr, flush=True)
 
 
-def _nominal(scene: Scene, tol: float, progress: Progress) -> dict[str, Any] | None:
+def _nominal(source: Scene | HybridOCP, tol: float, progress: Progress) -> dict[str, Any] | None:
+    from hybridoc.problems import Scene
     from hybridoc.reference import solve_reference
 
-    progress.stage("nominal scene")
+    label = "nominal scene" if isinstance(source, Scene) else "nominal problem"
+    progress.stage(label)
     t0 = time.perf_counter()
+    nominal = (
+        dataclasses.replace(source, distribution=None)
+        if isinstance(source, Scene)
+        else source.replace(distribution=None)
+    )
     try:
-        sol = solve_reference(
-            dataclasses.replace(scene, distribution=None), tol=tol, progress=progress
-        )
+        sol = solve_reference(nominal, tol=tol, progress=progress)
     except HybridocError as exc:
-        _notice(f"nominal scene: no reference ({exc}); every draw gets the full discovery")
+        _notice(f"{label}: no reference ({exc}); every draw gets the full discovery")
         return None
     res = sol.reference
     _notice(
-        f"nominal scene: {sol.status.value}, cost {sol.cost:.12g}, events {sol.sequence} "
+        f"{label}: {sol.status.value}, cost {sol.cost:.12g}, events {sol.sequence} "
         f"({time.perf_counter() - t0:.2f} s)"
     )
     if not sol.success:
@@ -968,15 +1149,18 @@ def make_dataset(
     tol: float = 1e-10,
     full: bool = False,
     progress: ProgressLike = True,
+    distribution: Any = None,
 ) -> Dataset:
-    """Solve the reference for ``samples`` draws of a scene's distribution; write and return
-    the dataset (module notes).
+    """Solve the reference for ``samples`` draws of a problem's distribution; write and
+    return the dataset (module notes).
 
     Parameters
     ----------
     problem
-        A disc scene with a ``[distribution]`` table (a name, a ``.toml`` path,
-        ``file.py:function`` or a :class:`~hybridoc.problems.scene.Scene`).
+        A disc scene with a ``[distribution]`` table, or any problem with a Python
+        distribution (:attr:`HybridOCP.distribution <hybridoc.HybridOCP>`, or
+        ``distribution``): a name, a ``.toml`` path, ``file.py:function``, a
+        :class:`~hybridoc.problems.scene.Scene` or a :class:`~hybridoc.HybridOCP`.
     samples
         ``M`` >= 1.
     out
@@ -1001,6 +1185,9 @@ def make_dataset(
         stages and the draws done, with the failures. The nominal solve's line and what the
         run finds in ``out`` (a resumed run, shards computed again, files kept) are said on
         stderr in any case.
+    distribution
+        A callable ``(rng, M) -> (M, nx)`` initial states overriding the problem's own
+        (:func:`distribution_problem`); its seed is ``seed`` (default 0).
 
     Returns
     -------
@@ -1015,14 +1202,13 @@ def make_dataset(
         an unreachable Dask scheduler.
     """
     samples = check_count(samples, "samples", 1)
-    scene = distribution_scene(problem)
-    seed = scene.distribution.seed if seed is None else check_count(seed, "seed", 0)
+    source = distribution_problem(problem, distribution)
+    seed = source_seed(source, seed)
     workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
     check_dask(dask)
     if not (isinstance(tol, int | float) and math.isfinite(tol) and tol > 0):
         raise HybridocError(f"tol must be a positive number, got {tol!r}")
-    # the first draw fails here, in this process, if the distribution cannot be drawn
-    scene.distribution.draw(scene, 0, seed)
+    draws = source_draws(source, problem, samples, seed)
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -1030,9 +1216,38 @@ def make_dataset(
         raise HybridocError(
             f"cannot create output directory {str(out)!r}: {exc.strerror}"
         ) from None
-    settings = _settings(scene, samples, seed, float(tol), bool(full))
+    settings = _settings(source, samples, seed, float(tol), bool(full), draws.get("x0"))
     with _locked(out), progress_scope(progress, "dataset") as p:
-        return _make(out, scene, settings, workers, dask, p)
+        return _make(out, source, settings, draws, workers, dask, p)
+
+
+def initial_states_sha256(x0: np.ndarray) -> str:
+    """The SHA-256 of ``(M, nx)`` initial states (little-endian float64, row-major): what a
+    dataset of a problem with a Python distribution records of its draws."""
+    return hashlib.sha256(np.ascontiguousarray(x0, dtype="<f8").tobytes()).hexdigest()
+
+
+def source_seed(source: Scene | HybridOCP, seed: int | None) -> int:
+    """The seed of the draws: ``seed``, else a scene distribution's own, else 0."""
+    if seed is not None:
+        return check_count(seed, "seed", 0)
+    dist = getattr(source, "distribution", None)
+    return int(getattr(dist, "seed", 0))
+
+
+def source_draws(
+    source: Scene | HybridOCP, problem: Any, samples: int, seed: int
+) -> dict[str, Any]:
+    """The draws' part of a task specification (:func:`draw_context`): a scene's TOML, or
+    a problem's initial states drawn here (:func:`problem_spec`). Draw 0 of a scene is made
+    here too, so that a distribution that cannot be drawn fails in this process."""
+    from hybridoc.problems import Scene
+
+    if isinstance(source, Scene):
+        source.distribution.draw(source, 0, seed)
+        return {"scene": source.to_toml()}
+    text = str(problem) if isinstance(problem, str | Path) else None
+    return problem_spec(source, text, draw_initial_states(source, samples, seed))
 
 
 def _existing(out: Path, settings: dict[str, Any]) -> dict[str, Any] | Dataset | None:
@@ -1091,8 +1306,9 @@ def _good_shards(
 
 def _make(
     out: Path,
-    scene: Scene,
+    source: Scene | HybridOCP,
     settings: dict[str, Any],
+    draws: dict[str, Any],
     workers: int,
     dask: Any,
     progress: Progress,
@@ -1108,7 +1324,7 @@ def _make(
     t0 = time.perf_counter()
     samples, seed, tol, full = (settings[k] for k in ("samples", "seed", "tol", "full"))
     if manifest is None:
-        nominal = None if full else _nominal(scene, tol, progress)
+        nominal = None if full else _nominal(source, tol, progress)
         manifest = {
             "format": FORMAT,
             "complete": False,
@@ -1117,7 +1333,7 @@ def _make(
         }
         _write_json(out / MANIFEST_FILE, manifest)
     nominal = manifest.get("nominal")
-    spec = {"scene": settings["scene"], "seed": seed, "tol": tol, "full": full, "nominal": nominal}
+    spec = {**draws, "seed": seed, "tol": tol, "full": full, "nominal": nominal}
     spec_hash = hashlib.sha256(
         json.dumps({"settings": settings, "nominal": nominal}, sort_keys=True).encode()
     ).hexdigest()

@@ -9,14 +9,16 @@ run code when loaded: load them only from people you trust. A ``casadi.Function`
 ``(t, s) -> u`` is a policy too. The judge calls a policy with ``(t, state)`` (torch
 modules with float64 tensors) and checks what it returns (:func:`hybridoc.evaluate`).
 
-:func:`validate_policy` judges a policy in closed loop on ``M`` draws of a scene's
-``[distribution]`` and compares each with the exact reference of the same draw (from a
-dataset of :mod:`hybridoc.workflows.datasets`, computed when not given): the cost gap, whether the
-event sequence differs from the optimal one, the worst cases. Rollouts run in the same
-engines as datasets (a local process pool, or Dask), one chunk of draws per task. An MLP
-policy file or a CasADi policy is compiled into the closed-loop step and each chunk runs
-as one call, every rollout certified by the judge (:mod:`hybridoc.workflows.rollouts`);
-other policies, and rollouts the judge does not certify, go through the per-step judge.
+:func:`validate_policy` judges a policy in closed loop on ``M`` draws of a problem's
+distribution (a scene's ``[distribution]`` or a Python one,
+:func:`~hybridoc.workflows.datasets.distribution_problem`) and compares each with the exact
+reference of the same draw (from a dataset of :mod:`hybridoc.workflows.datasets`, computed
+when not given): the cost gap, whether the event sequence differs from the optimal one, the
+worst cases. Rollouts run in the same engines as datasets (a local process pool, or Dask),
+one chunk of draws per task. An MLP policy file or a CasADi policy is compiled into the
+closed-loop step and each chunk runs as one call, every rollout certified by the judge
+(:mod:`hybridoc.workflows.rollouts`); other policies, and rollouts the judge does not
+certify, go through the per-step judge.
 """
 
 from __future__ import annotations
@@ -38,18 +40,23 @@ from hybridoc.workflows.datasets import (
     Dataset,
     check_count,
     check_dask,
-    distribution_scene,
+    distribution_problem,
     draw_context,
+    draw_initial_states,
     draw_problem,
+    initial_states_sha256,
     iter_chunks,
     load_dataset,
     make_dataset,
     run_chunks,
+    source_draws,
+    source_seed,
     usable_cores,
 )
 from hybridoc.workflows.policy_format import CasadiPolicy, PolicyError, load_mlp_policy
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problems import Scene
 
 __all__ = [
@@ -300,13 +307,15 @@ def validate_policy(
     dask: Any = None,
     progress: ProgressLike = True,
     rollouts: str = "auto",
+    distribution: Any = None,
 ) -> PolicyReport:
-    """Judge a feedback policy against the exact references over a scene's distribution.
+    """Judge a feedback policy against the exact references over a problem's distribution.
 
     Parameters
     ----------
     problem
-        A disc scene with a ``[distribution]`` table.
+        A disc scene with a ``[distribution]`` table, or any problem with a Python
+        distribution (:func:`~hybridoc.workflows.datasets.distribution_problem`).
     policy
         A callable ``(t, state) -> u``, a ``torch.nn.Module``, or a spec for
         :func:`load_policy`. With ``dask`` or a process pool without ``fork``, a spec.
@@ -330,6 +339,8 @@ def validate_policy(
         policy or problem has no compiled form) or ``"judge"``. Compiled rollouts that the
         judge does not certify run in the per-step judge; the report counts them
         (``summary["rollouts"]``, the ``rollout_path`` column).
+    distribution
+        A callable ``(rng, M) -> (M, nx)`` overriding the problem's distribution.
 
     Returns
     -------
@@ -347,8 +358,8 @@ def validate_policy(
         raise HybridocError(f"hold must be 'zoh' or 'continuous', got {hold!r}")
     if rollouts not in ROLLOUTS:
         raise HybridocError(f"rollouts must be one of {', '.join(ROLLOUTS)}, got {rollouts!r}")
-    scene = distribution_scene(problem)
-    seed = scene.distribution.seed if seed is None else check_count(seed, "seed", 0)
+    source = distribution_problem(problem, distribution)
+    seed = source_seed(source, seed)
     workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
     check_dask(dask)
     spec_text = str(policy) if isinstance(policy, str | Path) else None
@@ -358,23 +369,22 @@ def validate_policy(
             "with dask, give the policy as a spec (model.pt or file.py:name) so that the "
             "workers can load it"
         )
-    mode = _rollout_mode(rollouts, scene, pol, hold)
+    mode = _rollout_mode(rollouts, source, pol, hold)
     engine = {"workers": workers, "dask": dask}
     with progress_scope(progress, "validate-policy") as p:
         p.stage("references")
-        ref, ref_settings, ds_path = _references(
-            scene, samples, seed, dataset, dataset_out, engine, p
-        )
-        scene_toml = ref_settings.get("scene", scene.to_toml())
+        ref, _, ds_path = _references(source, samples, seed, dataset, dataset_out, engine, p)
+        # drawn again after the references (whose run registers its own problem spec)
+        draws = source_draws(source, problem, samples, seed)
         common = {
-            "dataset": _draws_spec(scene_toml, seed), "policy": spec_text, "hold": hold,
+            "dataset": _draws_spec(draws, seed), "policy": spec_text, "hold": hold,
             "rollouts": mode,
         }  # fmt: skip
         roll, rollout_time = _rollouts(common, pol, samples, engine, p)
     report = _report(ref, roll, rollout_time)
     report.summary["rollouts"] = _rollout_summary(mode, roll)
     report.settings = {
-        "scene": scene.name,
+        "scene": source.name,
         "policy": spec_text or repr(policy),
         "samples": samples,
         "seed": seed,
@@ -385,8 +395,9 @@ def validate_policy(
     return report
 
 
-def _rollout_mode(rollouts: str, scene: Scene, policy: Any, hold: str) -> str:
-    """``"compiled"`` or ``"judge"``: what ``rollouts`` means for this policy and scene."""
+def _rollout_mode(rollouts: str, source: Scene | HybridOCP, policy: Any, hold: str) -> str:
+    """``"compiled"`` or ``"judge"``: what ``rollouts`` means for this policy and problem."""
+    from hybridoc.problem import as_ocp
     from hybridoc.workflows.rollouts import compilable, unsupported
 
     if rollouts == "judge" or (rollouts == "auto" and not compilable(policy)):
@@ -394,7 +405,7 @@ def _rollout_mode(rollouts: str, scene: Scene, policy: Any, hold: str) -> str:
     why = (
         "compiled rollouts hold the control over each grid interval: use hold='zoh'"
         if hold != "zoh"
-        else unsupported(scene.to_ocp(), policy)
+        else unsupported(as_ocp(source), policy)
     )
     if why is None:
         return "compiled"
@@ -420,14 +431,14 @@ def _rollout_summary(mode: str, roll: dict[str, np.ndarray]) -> dict[str, Any]:
     }
 
 
-def _draws_spec(scene_toml: str, seed: int) -> dict[str, Any]:
+def _draws_spec(draws: dict[str, Any], seed: int) -> dict[str, Any]:
     """The :func:`~hybridoc.workflows.datasets.draw_context` specification of the draws that
     a rollout task needs (no warm start: rollouts solve nothing)."""
-    return {"scene": scene_toml, "seed": seed, "tol": 1e-10, "full": False, "nominal": None}
+    return {**draws, "seed": seed, "tol": 1e-10, "full": False, "nominal": None}
 
 
 def _references(
-    scene: Scene,
+    source: Scene | HybridOCP,
     samples: int,
     seed: int,
     dataset: Any,
@@ -444,10 +455,10 @@ def _references(
         if dataset_out is None:
             tmp = tempfile.TemporaryDirectory(prefix="hybridoc-refs-")
             dataset_out = tmp.name
-        ds = make_dataset(scene, samples, dataset_out, seed=seed, progress=progress, **engine)
+        ds = make_dataset(source, samples, dataset_out, seed=seed, progress=progress, **engine)
     else:
         ds = dataset if hasattr(dataset, "columns") else load_dataset(dataset)
-        _check_references(ds, scene, seed, samples)
+        _check_references(ds, source, seed, samples)
     ref = {k: v[:samples] for k, v in ds.columns.items()}
     ref_settings = dict(ds.manifest.get("settings", {}))
     if tmp is not None:
@@ -455,12 +466,20 @@ def _references(
     return ref, ref_settings, str(ds.path) if tmp is None else None
 
 
-def _check_references(ds: Dataset, scene: Scene, seed: int, samples: int) -> None:
+def _check_references(ds: Dataset, source: Scene | HybridOCP, seed: int, samples: int) -> None:
+    from hybridoc.problems import Scene
+
     settings = ds.manifest.get("settings", {})
-    if settings.get("scene") != scene.to_toml() or int(settings.get("seed", -1)) != seed:
+    if isinstance(source, Scene):
+        same = settings.get("scene") == source.to_toml()
+    else:  # the initial states of the dataset's draws, drawn again here
+        x0 = draw_initial_states(source, int(settings.get("samples", 0)), seed)
+        same = initial_states_sha256(x0) == settings.get("x0_sha256")
+    if not same or int(settings.get("seed", -1)) != seed:
+        what = "scene" if isinstance(source, Scene) else "problem, distribution"
         raise HybridocError(
-            f"the dataset in {str(ds.path)!r} was drawn from another scene or seed than "
-            f"{scene.name!r} with seed {seed}"
+            f"the dataset in {str(ds.path)!r} was drawn from another {what} or seed than "
+            f"{source.name!r} with seed {seed}"
         )
     if len(ds) < samples:
         raise HybridocError(
