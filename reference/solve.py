@@ -1168,7 +1168,9 @@ def _finish(
         "verified": bool(run.verify or run.seq is None),
         "candidates": candidates,
         "known_controls": [
-            {"source": k.source, "cost": k.cost, "sequence": k.sequence, "feasible": k.feasible}
+            {"source": k.source, "cost": k.cost, "sequence": k.sequence}
+            # only where feasibility is in question (terminal constraints, a free final time)
+            | ({"feasible": k.feasible} if problem_features(ocp) else {})
             for k in book.known
         ],
         "sources": list(book.sources),
@@ -1213,11 +1215,6 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
     failed = sorted((k for k in attempted if k not in book.results), key=lambda k: (len(k), k))
     return {
         "sources": [row["name"] for row in book.sources if "skipped" not in row],
-        "skipped_sources": [
-            {"name": row["name"], "reason": row["skipped"]}
-            for row in book.sources
-            if "skipped" in row
-        ],
         "proposed": len(book.proposed | set(book.results) | set(book.reasons)),
         "attempted": len(attempted),
         "solved": len(book.results),
@@ -1232,7 +1229,20 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
             {"events": k, "best_cost": c, "sequence": list(key)}
             for k, (c, key) in sorted(families.items())
         ],
+        **_skipped_sources(book),
     }
+
+
+def _skipped_sources(book: _Book) -> dict[str, Any]:
+    """``{"skipped_sources": [{"name", "reason"}]}``: the sources not run because they do not
+    honour the problem's features (:func:`source_lacks`), or ``{}`` (a source the budget
+    stopped is only in ``info["sources"]``)."""
+    rows = [
+        {"name": r["name"], "reason": r["skipped"]}
+        for r in book.sources
+        if "skipped" in r and "does not honour" in r["skipped"]
+    ]
+    return {"skipped_sources": rows} if rows else {}
 
 
 def _exhaustive(book: _Book) -> int | None:
