@@ -1,9 +1,8 @@
 """The ``hybridoc`` command: every command in one package.
 
 One module per group of commands (:mod:`.problems`, :mod:`.evaluate`, :mod:`.reference`,
-:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`, :mod:`.export`,
-:mod:`.trajectory`, :mod:`.cache`), each with
-``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
+:mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`, :mod:`.training`,
+:mod:`.export`, :mod:`.trajectory`, :mod:`.cache`), each with ``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
 in :mod:`._util`. The modules hold no library code: they parse, call the library, and print.
 
 Building the parser imports no numpy, CasADi, torch, SciPy or matplotlib, so that
@@ -36,6 +35,7 @@ COMMAND_MODULES = (
     "solve",
     "validation",
     "datasets",
+    "training",
     "contacts",
     "export",
     "trajectory",

@@ -242,8 +242,11 @@ def disc_scene_of(ocp: HybridOCP, command: str) -> Scene:
     return ocp.scene
 
 
-def add_json_out(parser: argparse.ArgumentParser, *, out_help: str | None = None) -> None:
-    """Add ``--json`` (one JSON object on stdout) and ``--out DIR``."""
+def add_json_out(
+    parser: argparse.ArgumentParser, *, out_help: str | None = None, out_required: bool = False
+) -> None:
+    """Add ``--json`` (one JSON object on stdout) and ``--out DIR`` (required when the files
+    are the result, ``out_required``)."""
     parser.add_argument(
         "--json",
         action="store_true",
@@ -254,6 +257,7 @@ def add_json_out(parser: argparse.ArgumentParser, *, out_help: str | None = None
         metavar="DIR",
         type=Path,
         default=None,
+        required=out_required,
         help=out_help or "also write results and figures to this directory",
     )
 
