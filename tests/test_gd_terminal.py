@@ -205,6 +205,9 @@ def test_free_final_time_double_integrator() -> None:
     assert sol.info["horizon"] == pytest.approx(res.x, abs=1e-3)
     assert sol.cost == pytest.approx(res.fun, rel=RTOL)
     assert sol.time_grid[-1] == pytest.approx(sol.info["horizon"], rel=1e-14)
+    # the judge takes a free final time's Solution at its info["horizon"]
+    ev = hybridoc.evaluate(ocp, sol)
+    assert ev.cost == sol.cost and ev.terminal_violation == sol.info["terminal_violation"]
 
 
 def test_wall_bounce_against_an_independent_nlp() -> None:
@@ -245,6 +248,8 @@ def test_horizon_gradient_against_the_judge() -> None:
         plus = hybridoc.evaluate(ocp.replace(horizon=T + d), u).cost
         minus = hybridoc.evaluate(ocp.replace(horizon=T - d), u).cost
         assert gT == pytest.approx((plus - minus) / (2 * d), rel=1e-6)
+        # and the judge's own adjoint dJ/dT
+        assert gT == pytest.approx(hybridoc.gradient(ocp.replace(horizon=T), u).d_horizon, rel=1e-9)
 
 
 def test_violation_above_the_tolerance_is_not_success() -> None:
@@ -352,6 +357,22 @@ def test_friction_patch_against_an_independent_nlp(free: bool) -> None:
     assert sol.sequence == ["enter"]
     T = sol.info["horizon"] if free else 2.0
     ref = pwc_friction_patch(200, None if free else 2.0, sol.controls.ravel(),
+                             sol.events[0]["time"], T)  # fmt: skip
+    assert sol.cost == pytest.approx(ref["cost"], rel=RTOL)
+    if free:
+        assert T == pytest.approx(ref["T"], abs=1e-3)
+
+
+@pytest.mark.slow  # as above; the library's problems, with their exact flow maps
+@pytest.mark.parametrize("name", ["friction-patch", "friction-patch-free-time"])
+def test_library_friction_patch(name: str) -> None:
+    ocp = hybridoc.as_ocp(name)
+    free = ocp.free_horizon
+    sol = hybridoc.solve(ocp, "gd")
+    _check_met(ocp, sol)
+    assert len(sol.events) == 1
+    T = sol.info["horizon"] if free else ocp.horizon
+    ref = pwc_friction_patch(ocp.steps, None if free else ocp.horizon, sol.controls.ravel(),
                              sol.events[0]["time"], T)  # fmt: skip
     assert sol.cost == pytest.approx(ref["cost"], rel=RTOL)
     if free:
