@@ -48,7 +48,7 @@ from hybridoc.errors import (
     SceneError,
     SimultaneousEventError,
 )
-from hybridoc.evaluation import Evaluation
+from hybridoc.evaluation import TERMINAL_TOL, Evaluation
 from hybridoc.evaluator import evaluate
 from hybridoc.methods import Method, option, positive_float, settings_lines
 from hybridoc.ocp import HybridOCP
@@ -90,6 +90,7 @@ _BOUND_TOL = 1e-9  # judged control-bound violation above which a result is INFE
 _PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INFEASIBLE
 _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
 _GUESS_PERTURBATIONS = 3  # perturbed retries of a guess with simultaneous events
+_TERMINAL_REFINEMENTS = 4  # mesh doublings (default mesh 4 -> up to 64) for terminal constraints
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
@@ -183,14 +184,21 @@ class _PhaseNLP:
         self.n_w = w_all.size1()
 
         cons = _Constraints()
-        cons.add("sum_h", ca.sum1(h), ocp.horizon, ocp.horizon)
+        # the final time: fixed, or free in its bounds (the phase durations scale with it)
+        T_lo, T_hi = _horizon_range(ocp)
+        cons.add("sum_h", ca.sum1(h), T_lo, T_hi)
         cons.add("x0", Xs[0][:, 0] - ca.DM(ocp.x0), 0.0, 0.0)
         cost = 0
         for k in range(P):
             cost = self._add_phase(cons, cost, k, h[k], Xs[k], Us[k])
             if k < P - 1:
                 self._add_event(cons, k, Xs[k], Us[k], Xs[k + 1])
-        cost = cost + ocp.phi(Xs[-1][:, -1])
+        s_T = Xs[-1][:, -1]
+        cost = cost + ocp.phi(s_T)
+        if ocp.terminal_eq is not None:
+            cons.add("terminal_eq", ocp.terminal_eq(s_T), 0.0, 0.0)
+        if ocp.terminal_ineq is not None:
+            cons.add("terminal_ineq", ocp.terminal_ineq(s_T), 0.0, np.inf)
 
         self.cost_fn = ca.Function("J", [w_all], [cost])
         self._nlp = {"x": w_all, "f": cost, "g": ca.vertcat(*cons.exprs)}
@@ -212,8 +220,7 @@ class _PhaseNLP:
         funcs = (
             [ocp.f, ocp.L, ocp.phi] + [g.psi for g in ocp.guards] + [g.reset for g in ocp.guards]
         )
-        if ocp.path is not None:
-            funcs.append(ocp.path)
+        funcs += [fn for fn in (ocp.path, ocp.terminal_eq, ocp.terminal_ineq) if fn is not None]
         return ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
 
     def _add_phase(self, cons: _Constraints, cost: Any, k: int, hk: Any, X: Any, U: Any) -> Any:
@@ -272,13 +279,15 @@ class _PhaseNLP:
         cons.add(f"link{k}", X_next[:, 0] - gd.reset(s_minus), 0.0, 0.0)
 
     def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """``lbx``, ``ubx``: phase durations in ``[1e-6 T, T]``, every Radau-point control in
-        the control bounds, the states free."""
-        ocp, P, T = self.ocp, self.P, self.ocp.horizon
+        """``lbx``, ``ubx``: phase durations in ``[1e-6 T, T]`` (``[1e-6 T_min, T_max]`` for
+        a free final time), every Radau-point control in the control bounds, the states
+        free."""
+        ocp, P = self.ocp, self.P
+        T_lo, T_hi = _horizon_range(ocp)
         lbx = np.full(self.n_w, -np.inf)
         ubx = np.full(self.n_w, np.inf)
-        lbx[:P] = 1e-6 * T
-        ubx[:P] = T
+        lbx[:P] = 1e-6 * T_lo
+        ubx[:P] = T_hi
         # U is stored column by column
         o = self._offsets
         n_u = int(o[-1] - o[1 + P])
@@ -299,6 +308,10 @@ class _PhaseNLP:
                 "print_time": bool(verbose),
                 "iteration_callback": self.callback,
             }
+            if self.ocp.has_terminal_constraints:
+                # IPOPT relaxes constraint bounds by 1e-8 (relative) by default: an active
+                # terminal inequality would then end violated by the judge's tolerance
+                opts["ipopt.bound_relax_factor"] = 0.0
             self._solvers[verbose] = ca.nlpsol("dt", "ipopt", self._nlp, opts)
         return self._solvers[verbose]
 
@@ -416,6 +429,19 @@ class _IterationCallback(ca.Callback):
         return [1 if mon.expired() else 0]
 
 
+def _horizon_range(ocp: HybridOCP) -> tuple[float, float]:
+    """The final time's range: ``(T, T)``, or ``horizon_bounds`` when it is free."""
+    if ocp.horizon_bounds is not None:
+        return ocp.horizon_bounds
+    return ocp.horizon, ocp.horizon
+
+
+def _terminal_count(ocp: HybridOCP) -> int:
+    """The number of terminal constraints (equalities and inequalities)."""
+    fns = (ocp.terminal_eq, ocp.terminal_ineq)
+    return sum(int(fn.size1_out(0)) for fn in fns if fn is not None)
+
+
 def nlp_size(
     ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]
 ) -> tuple[int, int]:
@@ -438,7 +464,7 @@ def nlp_size(
     n_b = int(np.count_nonzero(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max)))
     n_c = 0 if ocp.path is None else int(ocp.path.size1_out(0))
     n_w = P + sum(nx * (m * d + 1) + nu * m * d for m in mesh)
-    n_g = 1 + nx
+    n_g = 1 + nx + _terminal_count(ocp)
     for k, m in enumerate(mesh):
         n_g += m * nx * d
         if n_b and d > 1:
@@ -572,6 +598,9 @@ class DTResult:
         Multipliers of the guard equations (``pi_k`` of the HMP jump condition, up to sign).
     lambda0
         ``lambda(0) = dJ/ds(0)``.
+    horizon
+        The final time, the sum of the phase durations (a decision variable for a free
+        final time, clipped into its bounds).
     iterations, status
         IPOPT's counters.
     active_path
@@ -590,6 +619,7 @@ class DTResult:
     costates: np.ndarray
     jump_multipliers: np.ndarray
     lambda0: np.ndarray
+    horizon: float
     iterations: int
     status: str
     active_path: float
@@ -710,6 +740,22 @@ def _checked_mesh(mesh: Any, phases: int | None) -> list[int]:
     return [int(m) for m in values]
 
 
+def _found_horizon(ocp: HybridOCP, h: np.ndarray) -> float:
+    """The final time of the phase durations ``h``: ``T`` when fixed; for a free final time
+    their sum, clipped into the bounds (IPOPT may relax a bound by about ``1e-8``)."""
+    if ocp.horizon_bounds is None:
+        return ocp.horizon
+    lo, hi = ocp.horizon_bounds
+    return float(min(max(float(np.sum(h)), lo), hi))
+
+
+def _at(ocp: HybridOCP, r: DTResult) -> HybridOCP:
+    """The problem at ``r``'s final time (itself for a fixed final time)."""
+    if ocp.horizon_bounds is None or r.horizon == ocp.horizon:
+        return ocp
+    return ocp.replace(horizon=r.horizon)
+
+
 def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: bool) -> DTResult:
     """Run IPOPT on a transcribed NLP from ``w0`` and collect the result (reporting to the
     :func:`solve_dt` run in progress, if any)."""
@@ -730,9 +776,21 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
             f"{_short_sequence(sequence)} ({nlp.n_w} variables, {nlp.n_g} constraints)"
         )
     if not stats.get("success", False) and status != "Solved_To_Acceptable_Level":
+        g = np.asarray(res["g"]).ravel()
+        viol = float(np.max(np.maximum(nlp.lbg - g, g - nlp.ubg), initial=0.0))
+        what = "did not converge"
+        if status in ("Infeasible_Problem_Detected", "Restoration_Failed"):
+            what = "found its constraints infeasible"
+        hint = "try another initial guess or event sequence"
+        if _terminal_count(ocp) or ocp.horizon_bounds is not None:
+            hint = (
+                "the terminal constraints may be unreachable with these events, bounds and "
+                "final time; " + hint
+            )
         raise ConvergenceError(
-            f"direct transcription for sequence {list(sequence)} did not converge (IPOPT: "
-            f"{status}); try another initial guess or event sequence"
+            f"direct transcription for sequence {list(sequence)} {what} (IPOPT: {status}, "
+            f"constraint violation {viol:.2e} after {int(stats.get('iter_count', -1))} "
+            f"iterations); {hint}"
         )
     w = np.asarray(res["x"]).ravel()
     lam_g = np.asarray(res["lam_g"]).ravel()
@@ -773,6 +831,7 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
         costates=np.concatenate(cs, axis=0),
         jump_multipliers=jumps,
         lambda0=lam0,
+        horizon=_found_horizon(ocp, h),
         iterations=int(stats.get("iter_count", -1)),
         status=status,
         active_path=float(max(path)) if path else 0.0,
@@ -831,7 +890,7 @@ def _candidates(observed: list[str]) -> list[list[str]]:
 def _resimulate(ocp: HybridOCP, r: DTResult) -> Evaluation:
     from hybridoc.callable_eval import evaluate_callable
 
-    return evaluate_callable(ocp, r.control_function(), breakpoints=r.element_bounds[1:-1])
+    return evaluate_callable(_at(ocp, r), r.control_function(), breakpoints=r.element_bounds[1:-1])
 
 
 def _resimulated_names(ocp: HybridOCP, ev: Evaluation) -> list[str]:
@@ -852,8 +911,7 @@ def _sequence_matches(ocp: HybridOCP, r: DTResult, ev: Evaluation, tol: float = 
 
 
 def _phase_durations(r: DTResult) -> list[float]:
-    T = r._nlp.ocp.horizon
-    return [float(x) for x in np.diff(np.concatenate([[0.0], r.event_times, [T]]))]
+    return [float(x) for x in np.diff(np.concatenate([[0.0], r.event_times, [r.horizon]]))]
 
 
 def _lagrange_basis(pts: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -925,11 +983,16 @@ class _Judged:
     result: DTResult
     ev: Evaluation | None
     error: str = ""
+    terminal_tol: float = TERMINAL_TOL
 
     @property
     def feasible(self) -> bool:
         assert self.ev is not None
-        return self.ev.bound_violation <= _BOUND_TOL and self.ev.path_violation <= _PATH_TOL
+        return (
+            self.ev.bound_violation <= _BOUND_TOL
+            and self.ev.path_violation <= _PATH_TOL
+            and self.ev.terminal_violation <= self.terminal_tol
+        )
 
 
 # ----------------------------------------------------------------------------------------
@@ -992,6 +1055,13 @@ class DTOptions:
         parse=positive_float,
         metavar="SECONDS",
     )
+    terminal_tol: float = option(
+        TERMINAL_TOL,
+        "the judged terminal-constraint violation above which a result is infeasible "
+        f"(default {TERMINAL_TOL:g})",
+        parse=positive_float,
+        metavar="TOL",
+    )
     verbose: bool = option(False, "print IPOPT's log and the candidates to stderr", cli=False)
 
 
@@ -1009,8 +1079,13 @@ def solve_dt(
     verbose: bool = False,
     progress: ProgressLike = None,
     time_limit: float | None = None,
+    terminal_tol: float = TERMINAL_TOL,
 ) -> Solution:
     """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
+
+    Terminal constraints ``h(s(T)) = 0`` / ``>= 0`` are constraints of the NLP at the last
+    phase's final node; a free final time (``horizon_bounds``) makes the sum of the phase
+    durations a decision variable within its bounds.
 
     Parameters
     ----------
@@ -1050,6 +1125,12 @@ def solve_dt(
         :class:`~hybridoc.errors.HybridocError` names the limit (``None``: no limit; the
         work is at most one NLP of at most 500 IPOPT iterations per candidate, and a
         refinement).
+    terminal_tol
+        The judged terminal-constraint violation (of the re-simulated control) above which
+        the result is :attr:`~hybridoc.solution.Status.INFEASIBLE`. The NLP meets the
+        constraints at its collocated final state; the re-simulation misses them by the
+        collocation's error, so at the default mesh a candidate above the tolerance is
+        solved again with twice the elements, up to 4 times (mesh 64).
 
     Returns
     -------
@@ -1059,16 +1140,19 @@ def solve_dt(
         cell averages of ``u(t)`` on the N-grid; ``costates`` are the multiplier estimates
         (events appear twice). ``info`` holds ``sequence``, ``event_times``, ``nlp_cost``,
         ``lambda0`` (``lambda(0)``, a warm start for the HMP reference), the candidates
-        tried and IPOPT's counters. The callable control is available through
-        :func:`control_function` on the solution.
+        tried and IPOPT's counters, ``horizon`` (the final time: for a free final time the
+        one found, at which :func:`hybridoc.evaluate` judges the solution and on which the
+        grid of ``controls`` lies) and ``terminal_violation`` (the judge's). The callable
+        control is available through :func:`control_function` on the solution.
 
         The NLP honours the control bounds at its Radau points (``u(t)`` is the Radau
         polynomial clipped into the bounds) and the path constraints at the Radau points and
         phase starts. ``status`` is :attr:`~hybridoc.solution.Status.SUCCESS` when the
         re-simulation reproduces the modelled events and is feasible;
         :attr:`~hybridoc.solution.Status.INFEASIBLE` when it reproduces them but violates
-        the bounds (by more than ``1e-9``) or the path constraints (by more than ``1e-6``)
-        (a feasible candidate is preferred); :attr:`~hybridoc.solution.Status.EVENTS_DIFFER`
+        the bounds (by more than ``1e-9``), the path constraints (by more than ``1e-6``) or
+        the terminal constraints (by more than ``terminal_tol``) (a feasible candidate is
+        preferred; ``message`` says by how much); :attr:`~hybridoc.solution.Status.EVENTS_DIFFER`
         when no converged candidate reproduces its events (the one with the lowest judged
         cost is returned; ``message`` names both sequences).
 
@@ -1081,7 +1165,8 @@ def solve_dt(
     HybridocError
         The run passed ``time_limit``.
     ConvergenceError
-        No candidate sequence's NLP converged.
+        No candidate sequence's NLP converged (the message names IPOPT's status for each,
+        e.g. ``Infeasible_Problem_Detected`` for terminal constraints it cannot meet).
     EvaluationError
         The judge cannot simulate the initial guess, or the control of any converged
         candidate (e.g. sustained contact).
@@ -1093,11 +1178,23 @@ def solve_dt(
     degree = _checked_degree(degree)  # before any work
     _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
     _checked_time_limit(time_limit)
+    if not (isinstance(terminal_tol, int | float) and 0 < terminal_tol < math.inf):
+        raise SceneError(f"terminal_tol must be a positive number, got {terminal_tol!r}")
     with progress_scope(progress, "dt") as meter:
         monitor = _Monitor(meter, time_limit)
         token = _MONITOR.set(monitor)
         try:
-            return _solve_dt(ocp, sequence, initial, degree, mesh, verbose, monitor, t_start)
+            return _solve_dt(
+                ocp,
+                sequence,
+                initial,
+                degree,
+                mesh,
+                verbose,
+                monitor,
+                t_start,
+                float(terminal_tol),
+            )
         finally:
             _MONITOR.reset(token)
 
@@ -1121,6 +1218,7 @@ METHOD = Method(
     options=DTOptions,
     tolerance=1e-6,
     summary_lines=_summary_lines,
+    features=frozenset({"terminal", "free_horizon"}),
 )
 """The ``"dt"`` method (:data:`hybridoc.methods.METHODS`): the transcription is exact for
 polynomial optima, so crossval expects it within ``1e-6`` of the reference."""
@@ -1135,6 +1233,7 @@ def _solve_dt(
     verbose: bool,
     monitor: _Monitor,
     t_start: float,
+    terminal_tol: float = TERMINAL_TOL,
 ) -> Solution:
     """:func:`solve_dt` after its arguments are checked: candidate sequences from the guess,
     their NLPs solved, the results judged, the best one assembled into a Solution."""
@@ -1147,7 +1246,9 @@ def _solve_dt(
         observed = seq_from_initial or [ocp.guards[e.guard].name for e in guess.events]
         cands = _candidates(observed)
     results, tried = _solve_candidates(ocp, cands, guess, u0, degree, mesh, verbose, monitor)
-    matched, differ = _judge_candidates(ocp, results, tried, mesh, verbose, monitor.progress)
+    matched, differ = _judge_candidates(
+        ocp, results, tried, mesh, verbose, monitor.progress, terminal_tol
+    )
     best_j, status, message = _choose(ocp, matched, differ, tried)
     solve_time = time.perf_counter() - t_start
     sol = _assemble(ocp, best_j, degree, mesh, sequence, tried, perturbation, solve_time)
@@ -1189,30 +1290,69 @@ def _solve_candidates(
         results.append(r)
         tried.append({"sequence": cand, "nlp_cost": r.nlp_cost, "status": r.status})
     if not results:
+        why = "; ".join(f"{t['sequence']}: {t['status']}" for t in tried)
         raise ConvergenceError(
             "direct transcription did not converge for any event sequence (tried "
             f"{[t['sequence'] for t in tried]}); give an explicit sequence or another "
-            "initial guess"
+            f"initial guess. Per sequence: {why}"
         )
     return results, tried
 
 
-def _judge(ocp: HybridOCP, r: DTResult) -> _Judged:
+def _judge(ocp: HybridOCP, r: DTResult, terminal_tol: float = TERMINAL_TOL) -> _Judged:
     """``r`` with the judge's re-simulation of its control (or the reason it failed)."""
     try:
-        return _Judged(r, _resimulate(ocp, r))
+        return _Judged(r, _resimulate(ocp, r), terminal_tol=terminal_tol)
     except EvaluationError as exc:
-        return _Judged(r, None, str(exc))
+        return _Judged(r, None, str(exc), terminal_tol=terminal_tol)
+
+
+def _refine_terminal(
+    ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress
+) -> tuple[_Judged, bool]:
+    """At the default mesh, a candidate that reproduces its events but whose re-simulated
+    final state misses the terminal constraints by more than the tolerance (the
+    collocation's error, which the NLP does not see) is solved again with twice the
+    elements, up to :data:`_TERMINAL_REFINEMENTS` times: Radau collocation's error at the
+    element ends falls as ``h^(2d-1)``. Returns the last judged candidate that still
+    reproduces its events and whether it was refined."""
+    refined = False
+    for _ in range(_TERMINAL_REFINEMENTS):
+        assert j.ev is not None
+        if j.ev.terminal_violation <= j.terminal_tol:
+            break
+        progress.stage(
+            f"refining the {len(j.result.sequence)}-event candidate (twice the mesh): the "
+            f"judged terminal violation is {j.ev.terminal_violation:.1e}"
+        )
+        try:
+            rf = _refined(ocp, j.result, verbose)
+        except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
+            break
+        jf = _judge(ocp, rf, j.terminal_tol)
+        if jf.ev is None or not _sequence_matches(ocp, rf, jf.ev):
+            break
+        j, refined = jf, True
+    return j, refined
 
 
 def _judge_or_refine(
-    ocp: HybridOCP, r: DTResult, mesh: Any, verbose: bool, progress: Progress
+    ocp: HybridOCP,
+    r: DTResult,
+    mesh: Any,
+    verbose: bool,
+    progress: Progress,
+    terminal_tol: float = TERMINAL_TOL,
 ) -> tuple[_Judged, bool, bool]:
     """The judged candidate, whether it reproduces its events, and whether it was refined:
     at the default mesh, a near miss (the same events at times off by a little) is solved
-    once more with twice the elements, since a finer mesh may fix it."""
-    j = _judge(ocp, r)
+    once more with twice the elements, since a finer mesh may fix it, and so is a candidate
+    that misses its terminal constraints (:func:`_refine_terminal`)."""
+    j = _judge(ocp, r, terminal_tol)
     ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
+    if ok and mesh is None and ocp.has_terminal_constraints:
+        j, refined = _refine_terminal(ocp, j, verbose, progress)
+        return j, ok, refined
     if ok or mesh is not None or j.ev is None:
         return j, ok, False
     gap = _event_time_gap(ocp, r, j.ev)
@@ -1223,10 +1363,13 @@ def _judge_or_refine(
         rf = _refined(ocp, r, verbose)
     except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
         return j, ok, False
-    jf = _judge(ocp, rf)
+    jf = _judge(ocp, rf, terminal_tol)
     if jf.ev is None:
         return j, ok, False
-    return jf, _sequence_matches(ocp, jf.result, jf.ev), True
+    ok_f = _sequence_matches(ocp, jf.result, jf.ev)
+    if ok_f and ocp.has_terminal_constraints:
+        jf = _refine_terminal(ocp, jf, verbose, progress)[0]
+    return jf, ok_f, True
 
 
 def _record(
@@ -1245,6 +1388,8 @@ def _record(
             else:
                 t["resimulated_sequence"] = _resimulated_names(ocp, j.ev)
                 t["judged_cost"] = float(j.ev.cost)
+                t["terminal_violation"] = float(j.ev.terminal_violation)
+                t["mesh"] = list(j.result._nlp.mesh)
 
 
 def _judge_candidates(
@@ -1254,6 +1399,7 @@ def _judge_candidates(
     mesh: Any,
     verbose: bool,
     progress: Progress,
+    terminal_tol: float = TERMINAL_TOL,
 ) -> tuple[list[_Judged], list[_Judged]]:
     """Re-simulate the converged candidates, in order of NLP cost, until one reproduces its
     events and is feasible. Returns those that reproduce their events and those that
@@ -1262,7 +1408,7 @@ def _judge_candidates(
     differ: list[_Judged] = []
     for r in sorted(results, key=lambda r: r.nlp_cost):
         progress.stage(f"re-simulating the {len(r.sequence)}-event candidate with the judge")
-        j, ok, refined = _judge_or_refine(ocp, r, mesh, verbose, progress)
+        j, ok, refined = _judge_or_refine(ocp, r, mesh, verbose, progress, terminal_tol)
         _record(ocp, tried, j, ok, refined)
         if verbose:
             print(
@@ -1301,6 +1447,13 @@ def _choose(
                 f"the path constraints by {ev.path_violation:.3g} (tolerance {_PATH_TOL:g}; "
                 "they hold at the collocation points only: a finer mesh may help)"
             )
+        tol = matched[0].terminal_tol
+        if ev.terminal_violation > tol:
+            parts.append(
+                f"the terminal constraints by {ev.terminal_violation:.3g} (tolerance {tol:g}, "
+                f"mesh {list(matched[0].result._nlp.mesh)}; the NLP meets them at its "
+                "collocated final state: a finer --mesh or a higher --degree may help)"
+            )
         message = "the re-simulated control violates " + " and ".join(parts)
         return matched[0], Status.INFEASIBLE, message
     judged = [j for j in differ if j.ev is not None]
@@ -1335,7 +1488,7 @@ def _assemble(
     """The Solution of the chosen candidate (its status not yet set)."""
     best, best_ev = best_j.result, best_j.ev
     assert best_ev is not None
-    grid = ocp.time_grid()
+    grid = _at(ocp, best).time_grid()
     controls = best.cell_averages(grid)
     scene_name = ocp.scene.name if isinstance(ocp, DiscOCP) else ocp.name
     info = {
@@ -1352,6 +1505,8 @@ def _assemble(
         "phase_durations": _phase_durations(best),
         "bound_violation": float(best_ev.bound_violation),
         "path_violation": float(best_ev.path_violation),
+        "horizon": float(best.horizon),
+        "terminal_violation": float(best_ev.terminal_violation),
         "guess_perturbation": perturbation,
         "candidates": tried,
     }

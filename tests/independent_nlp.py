@@ -46,7 +46,11 @@ import numpy as np
 import scipy.optimize as so
 
 __all__ = [
+    "FrictionResult",
     "NLPResult",
+    "check_friction",
+    "friction_optimum",
+    "friction_state",
     "check",
     "grid_controls",
     "guard_names",
@@ -494,3 +498,142 @@ def grid_controls(sc: Scene, res: NLPResult, steps: int) -> np.ndarray:
                 out[n] += res.a[k] * (e0 - s0) + res.b[k] * (e0**2 - s0**2) / 2
         out[n] /= hi - lo
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# friction patch (issue #15): a block x' = v, v' = u - c v whose friction c changes at x = 0
+#
+# The sequence-fixed optimum, from issue #15's specification alone. With the running cost
+# u^2 (or 1 + u^2) the minimum principle gives u = -lambda_v / 2, lambda_x' = 0 and
+# lambda_v' = c lambda_v - lambda_x on each phase, so the optimal force on a phase of friction
+# c is exactly ``a + b exp(c tau)`` (``tau`` the time since the phase began). Under that force
+# the phase's flow is closed form (below), and the NLP over (a_k, b_k, d_k) per phase, with
+# the switching condition x = 0 (crossed in the right direction) at each phase end and the
+# terminal equalities x(T) = x_target, v(T) = 0, contains the sequence-fixed continuous
+# optimum: a multiple-shooting NLP whose shooting intervals are the phases, with exact flows
+# (no grid, no integrator). The result is checked a posteriori (:func:`check_friction`): every
+# phase stays on its side of x = 0 between its ends.
+
+
+@dataclass
+class FrictionResult:
+    """The sequence-fixed optimum of the friction patch."""
+
+    cost: float
+    horizon: float
+    durations: np.ndarray  # per phase
+    a: np.ndarray
+    b: np.ndarray
+    frictions: list[float]
+    final_state: np.ndarray
+    status: str
+
+
+def _friction_phase(c: float, x0: Any, v0: Any, a: Any, b: Any, tau: Any, sym: bool) -> tuple:
+    """``(x, v, integral u^2)`` after ``tau`` under ``u = a + b exp(c tau)``."""
+    exp = ca.exp if sym else np.exp
+    em, ep = exp(-c * tau), exp(c * tau)
+    v = v0 * em + (a / c) * (1 - em) + b * (ep - em) / (2 * c)
+    x = x0 + v0 * (1 - em) / c + (a / c) * (tau - (1 - em) / c) + b * (ep + em - 2) / (2 * c**2)
+    usq = a**2 * tau + 2 * a * b * (ep - 1) / c + b**2 * (ep**2 - 1) / (2 * c)
+    return x, v, usq
+
+
+def friction_optimum(
+    frictions: list[float],
+    *,
+    x0: float = -1.0,
+    x_target: float = 1.0,
+    horizon: float | None = 2.0,
+    horizon_bounds: tuple[float, float] | None = None,
+    time_cost: float = 0.0,
+    starts: int = 6,
+) -> FrictionResult:
+    """The optimum for the phases of the given frictions, in order (the first is the
+    initial floor's; consecutive phases switch at ``x = 0``).
+
+    ``horizon`` fixes ``T``; ``horizon_bounds`` frees it (``horizon=None``). The running cost is
+    ``time_cost + u^2``. IPOPT (tol 1e-14) from ``starts`` guesses; the best result that
+    :func:`check_friction` accepts is returned.
+    """
+    P = len(frictions)
+    w = ca.SX.sym("w", 3 * P)
+    a, b, d = w[0:P], w[P : 2 * P], w[2 * P : 3 * P]
+    x, v, J = x0, 0.0, 0.0
+    g, lbg, ubg = [], [], []
+    for k, c in enumerate(frictions):
+        x, v, usq = _friction_phase(c, x, v, a[k], b[k], d[k], True)
+        J = J + usq + time_cost * d[k]
+        if k < P - 1:
+            g += [x, v]  # at the switch: on the boundary, crossing towards the next floor
+            sign = 1.0 if frictions[k] == frictions[0] else -1.0
+            lbg += [0.0, 0.0 if sign > 0 else -np.inf]
+            ubg += [0.0, np.inf if sign > 0 else 0.0]
+    g += [x - x_target, v, ca.sum1(d)]
+    lo, hi = (horizon, horizon) if horizon_bounds is None else horizon_bounds
+    lbg += [0.0, 0.0, lo]
+    ubg += [0.0, 0.0, hi]
+    solver = ca.nlpsol(
+        "friction",
+        "ipopt",
+        {"x": w, "f": J, "g": ca.vertcat(*g)},
+        {"ipopt.tol": 1e-14, "ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": 3000},
+    )
+    lbx = np.r_[np.full(2 * P, -np.inf), np.full(P, 1e-3)]
+    ubx = np.r_[np.full(2 * P, np.inf), np.full(P, hi)]
+    rng = np.random.default_rng(7)
+    best: FrictionResult | None = None
+    T0 = 0.5 * (lo + hi) if horizon_bounds is not None else lo
+    for i in range(starts):
+        d0 = np.full(P, T0 / P) if i == 0 else rng.dirichlet(np.ones(P)) * T0
+        w0 = np.r_[np.full(P, 1.0) if i == 0 else rng.normal(size=P), np.zeros(P), d0]
+        res = solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        if not solver.stats()["success"]:
+            continue
+        sol = np.asarray(res["x"]).ravel()
+        r = FrictionResult(
+            cost=float(res["f"]),
+            horizon=float(sol[2 * P :].sum()),
+            durations=sol[2 * P :],
+            a=sol[:P],
+            b=sol[P : 2 * P],
+            frictions=list(frictions),
+            final_state=np.zeros(2),
+            status=solver.stats()["return_status"],
+        )
+        if check_friction(r, x0=x0) and (best is None or r.cost < best.cost):
+            best = r
+    if best is None:
+        raise RuntimeError(f"no checked optimum for the frictions {frictions}")
+    return best
+
+
+def friction_state(r: FrictionResult, t: np.ndarray, *, x0: float = -1.0) -> np.ndarray:
+    """``(x, v, u)`` of the optimum at the times ``t`` (columns)."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    out = np.zeros((t.size, 3))
+    starts = np.r_[0.0, np.cumsum(r.durations)]
+    x, v = x0, 0.0
+    for k, c in enumerate(r.frictions):
+        last = k == len(r.frictions) - 1
+        sel = (t >= starts[k]) & ((t < starts[k + 1]) | last)
+        tau = t[sel] - starts[k]
+        xs, vs, _ = _friction_phase(c, x, v, r.a[k], r.b[k], tau, False)
+        out[sel] = np.c_[xs, vs, r.a[k] + r.b[k] * np.exp(c * tau)]
+        x, v, _ = _friction_phase(c, x, v, r.a[k], r.b[k], r.durations[k], False)
+    r.final_state = np.array([x, v])
+    return out
+
+
+def check_friction(r: FrictionResult, *, x0: float = -1.0, samples: int = 4000) -> bool:
+    """Whether each phase stays strictly on its floor's side of ``x = 0`` inside it."""
+    side = -1.0  # the first floor is x < 0
+    x, v = x0, 0.0
+    for k, c in enumerate(r.frictions):
+        tau = np.linspace(0.0, r.durations[k], samples)[1:-1]
+        xs, _, _ = _friction_phase(c, x, v, r.a[k], r.b[k], tau, False)
+        if np.any(side * xs <= 0):
+            return False
+        x, v, _ = _friction_phase(c, x, v, r.a[k], r.b[k], r.durations[k], False)
+        side = -side
+    return True

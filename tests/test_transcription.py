@@ -203,7 +203,7 @@ def test_dt_options_and_method_are_consistent(solved):
         assert params[f.name].default == f.default, f.name
     specs = {s.name: s for s in METHOD.specs()}
     assert [s.flag for s in specs.values() if s.cli] == [
-        "--sequence", "--mesh", "--degree", "--time-limit"
+        "--sequence", "--mesh", "--degree", "--time-limit", "--terminal-tol"
     ]  # fmt: skip
     assert not specs["verbose"].cli
     assert specs["mesh"].parser("8") == 8 and specs["degree"].parser("4") == 4
