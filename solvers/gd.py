@@ -1504,6 +1504,15 @@ def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
         lines.append(("loss", f"{_fmt(sol.info['loss'], 12)} (the simulation's discrete loss)"))
     if "iterations" in sol.info:
         lines.append(("iterations", str(sol.info["iterations"])))
+    if "horizon" in sol.info:
+        lines.append(("final time", f"{_fmt(sol.info['horizon'], 12)} (free)"))
+    if "terminal_violation" in sol.info:
+        outer = len(sol.info.get("outer", []))
+        lines.append((
+            "constraints",
+            f"terminal violation {_fmt(sol.info['terminal_violation'], 3)} (judged) after {outer} "
+            "augmented-Lagrangian iteration(s)",
+        ))  # fmt: skip
     return lines + settings_lines(sol)
 
 

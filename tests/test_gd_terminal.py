@@ -208,6 +208,9 @@ def test_free_final_time_double_integrator() -> None:
     # the judge takes a free final time's Solution at its info["horizon"]
     ev = hybridoc.evaluate(ocp, sol)
     assert ev.cost == sol.cost and ev.terminal_violation == sol.info["terminal_violation"]
+    lines = dict(METHOD.summary_lines(sol))
+    assert lines["final time"].startswith(f"{sol.info['horizon']:.12g}")
+    assert "terminal violation" in lines["constraints"]
 
 
 def test_wall_bounce_against_an_independent_nlp() -> None:
