@@ -1208,6 +1208,16 @@ def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
         x = sol.info["nlp_cost"]
         text = "-" if x is None or math.isnan(float(x)) else f"{float(x):.12g}"
         lines.append(("nlp cost", f"{text} (the transcription's)"))
+    if sol.info.get("free_horizon"):
+        lines.append(("final time", f"{float(sol.info['horizon']):.12g} (free)"))
+    if sol.info.get("terminal_constraints"):
+        lines.append(
+            (
+                "constraints",
+                f"terminal violated by {float(sol.info['terminal_violation']):.2e} (judged)",
+            )
+        )
+        lines.append(("final mesh", " ".join(map(str, sol.info.get("mesh", [])))))
     return lines + settings_lines(sol)
 
 
@@ -1506,6 +1516,8 @@ def _assemble(
         "bound_violation": float(best_ev.bound_violation),
         "path_violation": float(best_ev.path_violation),
         "horizon": float(best.horizon),
+        "free_horizon": bool(ocp.free_horizon),
+        "terminal_constraints": bool(ocp.has_terminal_constraints),
         "terminal_violation": float(best_ev.terminal_violation),
         "guess_perturbation": perturbation,
         "candidates": tried,

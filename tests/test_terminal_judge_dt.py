@@ -293,3 +293,11 @@ def test_dt_friction_patch_matches_the_independent_optimum(name: str, friction_o
         # independent optimum lies strictly inside the bounds
         assert 0.5 < ref.horizon < 5.0
         assert math.isclose(sol.info["horizon"], ref.horizon, rel_tol=1e-7)
+
+
+def test_dt_summary_names_the_final_time_and_the_violation() -> None:
+    sol = solve_dt(double_integrator(T=3.0, free=(0.5, 5.0)))
+    lines = dict(METHOD.summary_lines(sol))
+    assert lines["final time"] == f"{sol.info['horizon']:.12g} (free)"
+    assert lines["constraints"].startswith("terminal violated by ")
+    assert lines["final mesh"] == "4"
