@@ -2,8 +2,9 @@
 
 One module per group of commands (:mod:`.problems`, :mod:`.evaluate`, :mod:`.reference`,
 :mod:`.solve`, :mod:`.contacts`, :mod:`.validation`, :mod:`.datasets`, :mod:`.training`,
-:mod:`.export`, :mod:`.trajectory`, :mod:`.cache`), each with ``register(subparsers)``; what they share (arguments, the output convention, exit codes) is
-in :mod:`._util`. The modules hold no library code: they parse, call the library, and print.
+:mod:`.export`, :mod:`.trajectory`, :mod:`.cache`), each with ``register(subparsers)``; what
+they share (arguments, the output convention, exit codes) is in :mod:`._util`. The modules
+hold no library code: they parse, call the library, and print.
 
 Building the parser imports no numpy, CasADi, torch, SciPy or matplotlib, so that
 ``hybridoc --help`` answers at once: the command modules import the library inside their

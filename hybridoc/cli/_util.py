@@ -62,6 +62,7 @@ __all__ = [
     "option_type",
     "output_stem",
     "positive_float",
+    "plain_text",
     "positive_int",
     "print_solution",
     "problem_arg",
@@ -110,13 +111,21 @@ class HybridocArgumentParser(argparse.ArgumentParser):
 
     def format_help(self) -> str:
         self.complete()
-        return super().format_help()
+        return plain_text(super().format_help())
 
     def error(self, message: str) -> Any:
         command = self.prog.removeprefix("hybridoc").strip()
         where = f"{command}: " if command else ""
         message = " ".join(message.split())
         self.exit(2, f"hybridoc: error: {where}{message} (see '{self.prog} --help')\n")
+
+
+def plain_text(text: str) -> str:
+    """Help text without reStructuredText markup: roles (``:func:`x```) become their target
+    and double back-quoted literals become single-quoted (the command docstrings are also
+    the Sphinx pages' text)."""
+    text = re.sub(r":[a-z]+:`~?([^`<]+?)(?: <[^`]+>)?`", r"\1", text)
+    return re.sub(r"``([^`]+)``", r"'\1'", text)
 
 
 def option_type(parse: Callable[[str], Any], name: str = "value") -> Callable[[str], Any]:
@@ -252,13 +261,16 @@ def add_json_out(
         action="store_true",
         help="print one JSON object on stdout (messages go to stderr)",
     )
+    command = parser.prog.removeprefix("hybridoc").strip() or "command"
     parser.add_argument(
         "--out",
         metavar="DIR",
         type=Path,
         default=None,
         required=out_required,
-        help=out_help or "also write results and figures to this directory",
+        help=out_help
+        or f"write the results as DIR/<problem>_{command}.json (.npz) and the figures as "
+        f"DIR/<problem>_{command}_<figure>.png",
     )
 
 
@@ -275,13 +287,17 @@ def add_controls_arg(parser: argparse.ArgumentParser) -> None:
 
 
 def add_initial_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--initial FILE`` (the same file types as ``--controls``)."""
+    """Add ``--controls FILE`` as a solver's starting point (``args.initial``); ``--initial``
+    is its deprecated alias."""
     parser.add_argument(
+        "--controls",
         "--initial",
+        dest="initial",
         metavar="FILE",
         type=Path,
         default=None,
-        help="start from these controls: .npy, .csv or a saved Solution (.npz/.json)",
+        help="start from these controls: .npy, .csv or a saved Solution (.npz/.json) "
+        "(--initial is a deprecated alias)",
     )
 
 

@@ -24,6 +24,7 @@ from hybridoc.cli._util import (
     output_stem,
     positive_float,
     problem_arg,
+    problem_slug,
     say,
     to_jsonable,
 )
@@ -150,7 +151,7 @@ def _gradcheck_against(args: argparse.Namespace) -> int:
     report = {"gradient_file": str(args.against), "controls": source, **cmp.to_dict()}
     written: list[Path] = []
     if out is not None:
-        stem = output_stem(out, ocp.name, "gradcheck")
+        stem = output_stem(out, problem_slug(args.problem, ocp), "gradcheck")
         written.append(save(gradient_figure(cmp, label=args.against.stem), f"{stem}.png"))
         written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
@@ -260,7 +261,7 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
     if out is not None:
         from hybridoc.plotting import plot_controls
 
-        stem = output_stem(out, scene.name, "compare-contacts")
+        stem = output_stem(out, problem_slug(args.problem, scene), "compare-contacts")
         for name, sol in sols.items():
             sol.save(f"{stem}_{name.replace('/', '-')}")
         figures.append(str(save(_learning_curves(scene, sols), f"{stem}_learning_curves.png")))
@@ -369,7 +370,11 @@ def _gradcheck_arguments(p: argparse.ArgumentParser) -> None:
 
 def _compare_contacts_arguments(p: argparse.ArgumentParser) -> None:
     problem_arg(p)
-    add_json_out(p, out_help="write each model's Solution, the learning curves and the controls")
+    add_json_out(
+        p,
+        out_help="write each model's Solution DIR/<problem>_compare-contacts_<model>.npz/.json "
+        "and the figures DIR/<problem>_compare-contacts_<figure>.png",
+    )
     p.add_argument(
         "--iters", type=nonnegative_int, default=None, help="iterations (default: the paper's)"
     )

@@ -23,6 +23,7 @@ from hybridoc.cli._util import (
     load_substep_controls_arg,
     output_stem,
     problem_arg,
+    problem_slug,
     say,
 )
 from hybridoc.errors import EvaluationError, HybridocError
@@ -181,7 +182,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             ev, method="evaluate", scene=ocp.name, settings={"controls": source},
             timings={"evaluate_time_s": seconds},
         )  # fmt: skip
-        stem = output_stem(out, ocp.name, "evaluate")
+        stem = output_stem(out, problem_slug(args.problem, ocp), "evaluate")
         try:
             written = list(sol.save(stem))
         except OSError as exc:
@@ -333,6 +334,6 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--out", metavar="DIR", type=Path, default=Path("out"),
-        help="directory for the figures (default: ./out)",
+        help="write the figures as DIR/<problem>_demo_<figure>.png (default: ./out)",
     )  # fmt: skip
     p.set_defaults(func=cmd_demo)

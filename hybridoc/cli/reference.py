@@ -21,6 +21,7 @@ from hybridoc.cli._util import (
     output_stem,
     print_solution,
     problem_arg,
+    problem_slug,
     say,
     solution_payload,
 )
@@ -51,7 +52,8 @@ def cmd_reference(args: argparse.Namespace) -> int:
     )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
-        files = write_reference_outputs(ocp, sol, output_stem(out_dir, ocp.name, "reference"))
+        stem = output_stem(out_dir, problem_slug(args.problem, ocp), "reference")
+        files = write_reference_outputs(ocp, sol, stem)
     landscape = sol.info.get("landscape")
     if args.json:
         emit_json(solution_payload(sol, files=[str(f) for f in files]))

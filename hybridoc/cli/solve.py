@@ -26,6 +26,7 @@ from hybridoc.cli._util import (
     output_stem,
     print_solution,
     problem_arg,
+    problem_slug,
     say,
     solution_payload,
 )
@@ -84,7 +85,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         from hybridoc.cli.evaluate import save, write_figures
         from hybridoc.evaluator import evaluate
 
-        stem = output_stem(out, ocp.name, "solve", method.name)
+        stem = output_stem(out, problem_slug(args.problem, ocp), "solve", method.name)
         written += list(sol.save(stem))
         written += write_figures(ocp, evaluate(ocp, sol.controls), stem, label=method.name)
         if sol.info.get("landscape"):  # any method that reports extremals by sequence
@@ -187,7 +188,11 @@ def register(sub: Any) -> None:
         help="the paper's Table 1: TOI settings x paper problems (plain gd)",
     )
     p.defer(_ablation_description)  # the paper's settings, read on first use
-    add_json_out(p, out_help="write learning-curve and learned-control figures and Solutions")
+    add_json_out(
+        p,
+        out_help="write the Solutions and the figures (learning curves, learned controls) as "
+        "DIR/<problem>_ablation_*",
+    )
     p.set_defaults(func=cmd_ablation)
 
 

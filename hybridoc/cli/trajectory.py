@@ -21,6 +21,7 @@ from hybridoc.cli._util import (
     load_substep_controls_arg,
     output_stem,
     problem_arg,
+    problem_slug,
     say,
     to_jsonable,
 )
@@ -65,7 +66,7 @@ def cmd_compare_trajectory(args: argparse.Namespace) -> int:
     }
     written: list[Path] = []
     if out is not None:
-        stem = output_stem(out, ocp.name, "compare-trajectory")
+        stem = output_stem(out, problem_slug(args.problem, ocp), "compare-trajectory")
         written.append(save(trajectory_figure(cmp, label=args.states.stem), f"{stem}.png"))
         written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:

@@ -191,7 +191,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     report["controls_file"] = source
     written: list[Path] = []
     if out is not None:
-        stem = output_stem(out, ocp.name, "validate")
+        stem = output_stem(out, problem_slug(args.problem, ocp), "validate")
         # on the controls' grid: the reference's values held over the K substeps
         shown = ref if k == 1 else dataclasses.replace(
             ref, controls=np.repeat(ref.controls, k, axis=0), time_grid=fine.time_grid()
@@ -225,9 +225,9 @@ def _validate_controls_path(args: argparse.Namespace) -> Path:
     given = [p for p in (args.controls, args.controls_option) if p is not None]
     if len(given) != 1:
         raise HybridocError(
-            "give the controls file once: as CONTROLS or as --controls FILE"
+            "give the controls file once: as --controls FILE (or the deprecated CONTROLS)"
             if given
-            else "no controls file: give CONTROLS (or --controls FILE)"
+            else "no controls file: give --controls FILE"
         )
     return given[0]
 
@@ -244,7 +244,7 @@ def cmd_convergence(args: argparse.Namespace) -> int:
     report = convergence(ocp, steps=steps, include_gd=not args.no_gd)
     written: list[Path] = []
     if out is not None:
-        stem = output_stem(out, ocp.name, "convergence")
+        stem = output_stem(out, problem_slug(args.problem, ocp), "convergence")
         written.append(save(convergence_figure(report), f"{stem}.png"))
         written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
@@ -297,11 +297,12 @@ def register(sub: Any) -> None:
     problem_arg(p)
     p.add_argument(
         "controls", metavar="CONTROLS", type=Path, nargs="?", default=None,
-        help=".npy or .csv (N rows, one column per control) or a saved Solution (.npz/.json)",
+        help="deprecated: the same as --controls FILE",
     )  # fmt: skip
     p.add_argument(
         "--controls", dest="controls_option", metavar="FILE", type=Path, default=None,
-        help="the controls file, as an option (the same as CONTROLS)",
+        help="the controls to judge: .npy or .csv (N rows, one column per control) or a saved "
+        "Solution (.npz/.json)",
     )  # fmt: skip
     add_substeps_arg(p)
     add_json_out(p, out_help="write the overlay figures and DIR/<problem>_validate.json")
