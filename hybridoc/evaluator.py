@@ -605,13 +605,20 @@ def _segment_fL(
     num: Numeric, segs: list[Segment], u_all: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """``f`` and ``L`` at every segment's start state, ``(M, nx)`` and ``(M,)``."""
-    M = len(segs)
-    F = np.empty((M, num.k.nx))
-    Lv = np.empty(M)
-    for i, seg in enumerate(segs):
-        f_i, L_i = num.fL(seg.s0, u_all[seg.interval])
-        F[i], Lv[i] = f_i, L_i[0]
-    return F, Lv
+    k = num.k
+    M, C = len(segs), k.chunk
+    n_chunks = -(-M // C)
+    S0 = np.zeros((n_chunks * C, k.nx))
+    S0[:M] = [seg.s0 for seg in segs]
+    U = np.zeros((n_chunks * C, k.nu))
+    U[:M] = u_all[[seg.interval for seg in segs]]
+    F, Lv = [], []
+    for c in range(n_chunks):
+        sl = slice(c * C, (c + 1) * C)
+        f_c, L_c = num.fL_batch(S0[sl].ravel(), U[sl].ravel())
+        F.append(f_c.reshape(C, k.nx))  # column-major: one column (row here) per state
+        Lv.append(L_c)
+    return np.concatenate(F)[:M], np.concatenate(Lv)[:M]
 
 
 def _terminal_adjoint(

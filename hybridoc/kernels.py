@@ -362,6 +362,8 @@ class Kernels:
             for j, g in enumerate(ocp.guards)
         ]
         self.fL_fn = dense_fn("fL", [sp, u], [fs, ocp.L(sp, u)])
+        # the Hamiltonian of every segment (dJ/dT): many states per call, as seg_jac
+        self.fL_batch_fn = self.fL_fn.map(self.chunk) if self.chunk > 1 else self.fL_fn
         sf = sym.sym("sf", nx)
         self.phi_fn = dense_fn("phi_grad", [sf], [ocp.phi(sf), ca.gradient(ocp.phi(sf), sf)])
         if ocp.path is not None:
@@ -451,6 +453,10 @@ class Numeric:
     @cached_property
     def fL(self) -> Num:
         return Num(self.k.fL_fn)
+
+    @cached_property
+    def fL_batch(self) -> Num:
+        return Num(self.k.fL_batch_fn)
 
     @cached_property
     def phi_grad(self) -> Num:
