@@ -1018,6 +1018,11 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
         book.known.append(_Known(label, cost, seq, controls, p.evaluation, feasible))
     if not p.solve or seq is None:
         return
+    if not ocp.sequence_feasible(seq):
+        # a source's sequence that leaves a mode by a transition of another mode (its
+        # control is still a known control above; its sequence has no extremal)
+        book.say(f"{p.source}: the sequence {seq} is not mode-feasible: not solved")
+        return
     key = tuple(seq)
     own = p.controls is not None  # the proposal's own control starts Newton
     ev = p.evaluation if p.evaluation is not None else guess.evaluation

@@ -101,6 +101,8 @@ def test_library_api() -> None:
         "pendulum-wall",
         "hopper",
         "coulomb-block",
+        "friction-patch",
+        "friction-patch-free-time",
     }
     assert all(lib.describe(name) for name in lib.LIBRARY)
     for fn in lib.LIBRARY.values():

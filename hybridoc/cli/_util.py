@@ -525,6 +525,11 @@ def events_table(events: Sequence[dict[str, Any]]) -> str:
         [k, repr(float(e["time"])), e.get("guard") or "|".join(e["bodies"]), e["kind"]]
         for k, e in enumerate(events, start=1)
     ]
+    if events and all("mode_before" in e for e in events):  # a problem with modes
+        for row, e in zip(rows, events, strict=True):
+            row.append(f"{e['mode_before']} -> {e['mode_after']}")
+        headers = ["#", "time", "transition", "kind", "modes"]
+        return format_table(headers, rows, right=[True, False, False, False, False])
     return format_table(["#", "time", "guard", "kind"], rows, right=[True, False, False, False])
 
 
