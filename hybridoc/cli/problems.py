@@ -133,13 +133,31 @@ def _ocp_lines(ocp: Any) -> list[str]:
         lines.append(f"control bounds: {_vec(ocp.u_min)} <= u <= {_vec(ocp.u_max)}")
     if ocp.path is not None:
         lines.append(f"path constraints: {ocp.path.size1_out(0)} (c(s, u) >= 0)")
+    if ocp.horizon_bounds is not None:
+        lo, hi = ocp.horizon_bounds
+        lines.append(
+            f"free final time: T in [{fmt(lo)}, {fmt(hi)}] (the horizon above is its guess)"
+        )
+    for attr, rel in (("terminal_eq", "= 0"), ("terminal_ineq", ">= 0")):
+        fn = getattr(ocp, attr)
+        if fn is not None:
+            lines.append(f"terminal constraints: {fn.size1_out(0)} (h(s(T)) {rel})")
+    if ocp.modes is not None:
+        lines.append(
+            f"modes ({len(ocp.modes)}): {', '.join(ocp.modes)}; initial {ocp.initial_mode}"
+        )
     u = np.asarray(ocp.u_guess)
     lines.append(
         f"initial guess: {u.shape[0]} rows, values in [{fmt(u.min(), 4)}, {fmt(u.max(), 4)}]"
     )
     rows = [[g.name, g.kind, "-" if g.degree is None else str(g.degree)] for g in ocp.guards]
+    headers = ["name", "kind", "degree"]
+    if ocp.modes is not None:
+        headers.append("modes")
+        for row, g in zip(rows, ocp.guards, strict=True):
+            row.append(f"{g.source} -> {g.target}")
     lines += ["", "guards (psi >= 0 in free space; the reset fires when psi reaches 0)"]
-    lines.append(indent(format_table(["name", "kind", "degree"], rows, right=[False] * 3)))
+    lines.append(indent(format_table(headers, rows, right=[False] * len(headers))))
     return lines
 
 
@@ -166,6 +184,8 @@ def cmd_show(args: argparse.Namespace) -> int:
             f"initial guess cost: {fmt(ev.cost)} (terminal {fmt(ev.terminal_cost)}, running "
             f"{fmt(ev.running_cost)}), {len(ev.events)} event(s)"
         )
+        if ocp.has_terminal_constraints:
+            lines.append(f"initial guess terminal violation: {fmt(ev.terminal_violation, 3)}")
     print("\n".join(lines))
     if args.plot is not None:
         from hybridoc.cli.evaluate import save
