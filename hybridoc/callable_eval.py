@@ -85,7 +85,9 @@ def evaluate_callable(
     Returns
     -------
     Evaluation
-        ``controls`` holds ``u`` at the grid-interval midpoints (for reports).
+        ``controls`` holds ``u`` at the grid-interval midpoints (for reports);
+        :meth:`~hybridoc.Evaluation.sample` samples the trajectory at any time in
+        ``[0, T]`` from the integrator's dense output.
     """
     ocp = as_ocp(problem)
     if (control is None) == (state_feedback is None):
@@ -267,6 +269,8 @@ class _Simulation:
             ocp=ocp,
             bound_violation=bound,
             path_violation=path,
+            # the integrator's dense output per step: Evaluation.sample between the states
+            dense_pieces=[(t0, t1, dense) for t0, t1, dense, _, _ in self.pieces],
         )
 
 

@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hybridoc.errors import HybridocError
 from hybridoc.events import Event
 from hybridoc.ocp import HybridOCP
 
@@ -69,6 +70,7 @@ class Evaluation:
     final_state: np.ndarray
     ocp: HybridOCP = field(repr=False)
     segments: list[Segment] = field(repr=False, default_factory=list)
+    dense_pieces: list[tuple[float, float, Any]] = field(repr=False, default_factory=list)
     bound_violation: float = 0.0
     path_violation: float = 0.0
     terminal_violation: float = field(init=False, default=0.0)
@@ -112,12 +114,44 @@ class Evaluation:
         )
 
     def sample(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
-        """States at arbitrary times (after any jump at exactly that time)."""
+        """States at any times in ``[0, T]``, after any jump at exactly that time.
+
+        Exact between events: for piecewise-constant controls the flow of the segment that
+        holds the time, from its start; for a continuous control (:func:`~hybridoc.
+        evaluate_callable`) the integrator's own dense output on the step that holds it
+        (the judge's trajectory, to its tolerances).
+
+        Parameters
+        ----------
+        times
+            One time or a 1-D array of times in ``[0, T]``.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(len(times), nx)``.
+
+        Raises
+        ------
+        hybridoc.errors.HybridocError
+            For a time outside ``[0, T]`` (no extrapolation) or not a number.
+        """
         from hybridoc.kernels import kernels
 
+        T = self.horizon
+        try:
+            t = np.atleast_1d(np.asarray(times, dtype=float))
+        except (TypeError, ValueError):
+            raise HybridocError(f"times must be numbers, got {times!r}") from None
+        if t.ndim != 1:
+            raise HybridocError(f"times must be a number or a 1-D array, got shape {t.shape}")
+        bad = ~np.isfinite(t) | (t < 0.0) | (t > T)
+        if bad.any():
+            raise HybridocError(
+                f"times: {t[bad][0]!r} lies outside [0, T] = [0, {T!r}] (no extrapolation)"
+            )
         if not self.segments:
-            raise ValueError("dense sampling needs piecewise-constant controls")
-        t = np.atleast_1d(np.asarray(times, dtype=float))
+            return self._sample_dense(t)
         starts = np.array([seg.t0 for seg in self.segments])
         out = np.empty((t.size, self.ocp.nx))
         flow = kernels(self.ocp).numeric().flow
@@ -127,6 +161,21 @@ class Evaluation:
             seg = self.segments[i]
             tau = min(max(tk - seg.t0, 0.0), seg.h) if i < last else tk - seg.t0
             out[k] = flow(seg.s0, self.controls[seg.interval], tau)[0]
+        return out
+
+    def _sample_dense(self, t: np.ndarray) -> np.ndarray:
+        nx = self.ocp.nx
+        if not self.dense_pieces:
+            if np.all(t == 0.0):  # nothing was integrated (no step): only s(0)
+                return np.tile(np.asarray(self.states[0], dtype=float), (t.size, 1))
+            raise HybridocError("this evaluation kept no trajectory between its states")
+        starts = np.array([p[0] for p in self.dense_pieces])
+        out = np.empty((t.size, nx))
+        for k, tk in enumerate(t):
+            # the last piece starting at or before t: after a jump at t, the one from t
+            i = max(int(np.searchsorted(starts, tk, side="right")) - 1, 0)
+            t0, t1, dense = self.dense_pieces[i]
+            out[k] = np.asarray(dense(min(max(tk, t0), t1)), dtype=float)[:nx]
         return out
 
     def event_dicts(self) -> list[dict[str, Any]]:

@@ -33,6 +33,7 @@ Not modelled
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -76,12 +77,17 @@ def evaluate(
         A :class:`~hybridoc.HybridOCP`, a :class:`~hybridoc.problems.Scene`, a built-in name,
         a ``.toml`` path or ``file.py:function`` (see :func:`hybridoc.problem.as_ocp`).
     controls
-        ``(N, nu)`` values, constant on each grid interval (a :class:`~hybridoc.Solution` is
-        accepted and its controls are used; for a problem with a free final time, at the
-        final time it found, ``info["horizon"]``: see :func:`at_horizon`); default: the
-        problem's initial guess. A
-        callable ``u(t)`` goes to :func:`hybridoc.evaluate_callable` with the grid times as
-        breakpoints (``u`` may jump there).
+        ``(N, nu)`` values, constant on each grid interval; default: the problem's initial
+        guess. A :class:`~hybridoc.Solution` is judged by its own control
+        (:meth:`~hybridoc.Solution.control_function`: its ``controls`` when piecewise
+        constant, else its continuous ``u(t)`` through :func:`hybridoc.evaluate_callable`
+        with its breakpoints), so its ``cost`` comes back bit for bit; for a problem with a
+        free final time, at the final time it found, ``info["horizon"]`` (see
+        :func:`at_horizon`). A path to a saved Solution (``.npz`` or ``.json``) is loaded
+        and judged so; a ``.npy`` or ``.csv`` path is read as controls
+        (:func:`hybridoc.io.read_controls`). A callable ``u(t)`` goes to
+        :func:`hybridoc.evaluate_callable` with the grid times as breakpoints (``u`` may
+        jump there).
     policy
         A feedback policy ``u = pi(t, s)`` instead of ``controls``. With ``hold="zoh"`` it is
         sampled at the grid times from the exact state and held over the interval, as a
@@ -104,6 +110,10 @@ def evaluate(
     -------
     Evaluation
     """
+    if isinstance(controls, str | os.PathLike):
+        from hybridoc.io import read_controls
+
+        controls = read_controls(controls, problem)
     ocp = at_horizon(as_ocp(problem), controls)
     if policy is not None:
         if controls is not None:
@@ -116,6 +126,17 @@ def evaluate(
                 ocp, state_feedback=pol, graze_tol=graze_tol, penetration_tol=penetration_tol
             )
         return Forward(ocp, None, pol, graze_tol, penetration_tol, max_events).run()
+    control_function = getattr(controls, "control_function", None)
+    if control_function is not None and controls.control_kind != "piecewise-constant":
+        # a Solution whose control is continuous: judged as it is, with its breakpoints
+        u = control_function(ocp)
+        return evaluate_callable(
+            ocp,
+            u,
+            breakpoints=u.breakpoints,
+            graze_tol=graze_tol,
+            penetration_tol=penetration_tol,
+        )
     controls = getattr(controls, "controls", controls)  # a Solution
     if callable(controls):
         return evaluate_callable(

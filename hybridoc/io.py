@@ -31,6 +31,7 @@ Controls from another simulator
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -45,6 +46,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "load_controls",
     "read_array",
+    "read_controls",
     "save_controls",
     "substep_problem",
     "substeps_hint",
@@ -351,6 +353,40 @@ def load_controls(
             "controls must be finite"
         )
     return fine.check_controls(arr, what=where)
+
+
+def read_controls(path: str | os.PathLike[str], problem: Any) -> Any:
+    """A controls file for the judge: a saved Solution as a Solution, else an array.
+
+    Parameters
+    ----------
+    path
+        A saved :class:`~hybridoc.solution.Solution` (``stem.npz`` or ``stem.json`` of the
+        pair), judged by its own control; or a ``.npy`` / ``.csv`` file of ``(N, nu)``
+        controls (:func:`load_controls`).
+    problem
+        The problem the controls are for (it fixes the shape of an array).
+
+    Returns
+    -------
+    Solution or numpy.ndarray
+
+    Raises
+    ------
+    hybridoc.errors.ControlsError
+        If the file is missing, unreadable or of another type, naming it.
+    """
+    p = Path(path)
+    if p.suffix.lower() in (".npz", ".json"):
+        from hybridoc.solution import Solution
+
+        if not p.is_file():
+            raise ControlsError(f"controls file {str(p)!r} does not exist")
+        try:
+            return Solution.load(p)
+        except HybridocError as exc:
+            raise ControlsError(f"controls file {str(p)!r}: {exc}") from None
+    return load_controls(p, problem)
 
 
 def save_controls(

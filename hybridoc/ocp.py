@@ -354,9 +354,12 @@ class HybridOCP:
             raise SceneError(f"horizon must be positive and finite, got {self.horizon}")
         if not np.all(np.isfinite(self.x0)):
             raise SceneError("x0 must be finite")
-        if self.f.n_in() != 2 or self.f.size1_in(0) != self.x0.size:
+        if self.f.n_in() != 2:
+            raise SceneError(f"f must be a Function (s, u) -> ds/dt, got {self.f.n_in()} inputs")
+        if self.f.size1_in(0) != self.x0.size:
             raise SceneError(
-                f"f must be a Function (s, u) -> ds/dt with s of the size of x0 ({self.x0.size})"
+                f"x0 has {self.x0.size} entries but f's state s has {self.f.size1_in(0)}: "
+                "give x0 one value per state"
             )
         self.guards = list(self.guards)
         for g in self.guards:

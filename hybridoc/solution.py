@@ -1,5 +1,20 @@
 """The :class:`Solution` type shared by every solver, and its bit-identical file format.
 
+A solution *is* its control: :meth:`Solution.control` evaluates the control the method found
+in full (piecewise constants for gd, the transcription's polynomial per element for dt, the
+HMP control law ``u(t)`` of the reference), ``cost`` is the judge's cost of exactly that
+control, and :func:`hybridoc.evaluate` judges it again bit for bit (also after
+:meth:`Solution.save` and :meth:`Solution.load`). ``controls`` (alias ``x``) are its values on
+the N-step grid: the control itself for gd, cell averages for dt and the reference, whose
+own judged cost :meth:`Solution.to_grid` gives.
+
+The Solution is a result type of the model layer (docs/architecture.rst), below the problems,
+the judge and the reference. What it needs from them is named by ``"module:attribute"``
+strings and imported on first use, as the method registry names the methods: the judge
+(:data:`JUDGE`, which itself accepts Solutions and Solution files), ``as_ocp``
+(:data:`PROBLEM`) and the reference's control law of a generic problem
+(:data:`CONTROL_LAWS`).
+
 A solution is saved as two files with the same stem: ``stem.npz`` holds every array
 (``controls``, ``time_grid``, the optional trajectories and costates, and the method-specific
 ``arrays`` under the prefix ``arrays/``), ``stem.json`` holds everything else (method, scene,
@@ -10,13 +25,15 @@ keep their dtype and bits; floats are written with Python's shortest round-tripp
 
 from __future__ import annotations
 
+import bisect
+import importlib
 import json
 import math
 import platform
 import struct
 import sys
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
 from functools import lru_cache
@@ -29,9 +46,32 @@ import numpy as np
 from hybridoc.errors import HybridocError
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.evaluation import Evaluation
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problems.scene import Scene
 
-__all__ = ["Solution", "Status", "package_versions"]
+__all__ = [
+    "CONTROL_LAWS",
+    "JUDGE",
+    "PROBLEM",
+    "ControlFunction",
+    "Solution",
+    "SolutionSample",
+    "Status",
+    "lagrange_pieces",
+    "package_versions",
+]
+
+JUDGE = "hybridoc.evaluator:evaluate"
+"""The judge a Solution calls for its own cost, its grid projection and its samples."""
+
+PROBLEM = "hybridoc.problem:as_ocp"
+"""How a Solution turns the problem it is given (a name, a Scene, a file) into a HybridOCP."""
+
+CONTROL_LAWS: dict[str, str] = {"hmp": "hybridoc.reference.result:hmp_control"}
+"""Control kinds rebuilt by a higher layer: kind -> ``"module:function"``, the function
+``(solution, problem) -> (u, breakpoints)`` (the reference's HMP control law of a generic
+problem needs the problem's compiled Hamiltonian minimiser)."""
 
 _FORMAT = "hybridoc-solution"
 _FORMAT_VERSION = 2
@@ -73,12 +113,33 @@ class Status(StrEnum):
     DISAGREE = "disagree"
 
     @property
+    def code(self) -> int:
+        """An integer like scipy's ``status``: 0 for success, then in the order above
+        (``extremal`` 1, ``not-optimal`` 2, ``events-differ`` 3, ``infeasible`` 4,
+        ``not-converged`` 5, ``disagree`` 6). ``int(status)`` gives it too; the files keep
+        the string."""
+        return _STATUS_CODES[self.value]
+
+    def __int__(self) -> int:
+        return self.code
+
+    @property
     def exit_code(self) -> int:
         """The CLI's exit code: 0 success or extremal, 2 not converged, 1 any other finding."""
         if self in (Status.SUCCESS, Status.EXTREMAL):
             return 0
         return 2 if self is Status.NOT_CONVERGED else 1
 
+
+_STATUS_CODES = {
+    "success": 0,
+    "extremal": 1,
+    "not-optimal": 2,
+    "events-differ": 3,
+    "infeasible": 4,
+    "not-converged": 5,
+    "disagree": 6,
+}
 
 _ARRAY_PREFIX = "arrays/"
 # Array fields that are stored in the .npz (required ones first).
@@ -153,6 +214,24 @@ def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
+def _right_interpolation(times: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation of knots stored in time order (a jump: one time twice, before
+    then after), right-continuous: at a repeated time the last value."""
+    times = np.asarray(times, dtype=float)
+    values = np.asarray(values, dtype=float)
+    out = np.empty((t.size, values.shape[1]))
+    for k, tk in enumerate(t):
+        i = int(np.searchsorted(times, tk, side="right")) - 1
+        if i < 0:
+            out[k] = values[0]
+        elif i >= times.size - 1 or times[i + 1] == times[i]:
+            out[k] = values[i]
+        else:
+            w = (tk - times[i]) / (times[i + 1] - times[i])
+            out[k] = (1.0 - w) * values[i] + w * values[i + 1]
+    return out
+
+
 def _stem(path: str | Path) -> Path:
     """``x``, ``x.npz`` and ``x.json`` all name the pair ``x.npz`` + ``x.json``."""
     p = Path(path)
@@ -165,9 +244,173 @@ def _with(stem: Path, suffix: str) -> Path:
     return stem.with_name(stem.name + suffix)
 
 
-@dataclass(eq=False)
+def _hook(where: str) -> Any:
+    """The object a ``"module:attribute"`` string names, imported on first use."""
+    module, _, attr = where.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def _lagrange_basis(nodes: np.ndarray, s: np.ndarray) -> np.ndarray:
+    out = np.ones((s.size, nodes.size))
+    for j in range(nodes.size):
+        for m in range(nodes.size):
+            if m != j:
+                out[:, j] *= (s - nodes[m]) / (nodes[j] - nodes[m])
+    return out
+
+
+def lagrange_pieces(
+    t: Sequence[float] | np.ndarray,
+    bounds: np.ndarray,
+    nodes: np.ndarray,
+    values: np.ndarray,
+    lo: np.ndarray | float = -np.inf,
+    hi: np.ndarray | float = np.inf,
+) -> np.ndarray:
+    """A piecewise polynomial control at the times ``t``, shape ``(len(t), nu)``.
+
+    On element ``e``, ``[bounds[e], bounds[e + 1]]``, the control is the Lagrange polynomial
+    through ``values[:, e, j]`` at the relative positions ``nodes[j]`` in ``[0, 1]``, clipped
+    into ``[lo, hi]``; each element holds its right end (``t`` at a bound takes the element
+    that starts there). The transcription evaluates its control with this very function, so
+    a saved dt Solution's ``u(t)`` is the one it judged, bit for bit.
+
+    Parameters
+    ----------
+    t
+        Times.
+    bounds
+        ``(E + 1,)`` increasing element bounds.
+    nodes
+        ``(d,)`` interpolation positions in ``[0, 1]`` (dt: the Radau points).
+    values
+        ``(nu, E, d)`` control values at the nodes.
+    lo, hi
+        Control bounds.
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    idx = np.clip(np.searchsorted(bounds, t, side="right") - 1, 0, bounds.size - 2)
+    s = (t - bounds[idx]) / (bounds[idx + 1] - bounds[idx])
+    u = np.einsum("nj,unj->nu", _lagrange_basis(nodes, s), values[:, idx, :])
+    return np.clip(u, lo, hi)
+
+
+class ControlFunction:
+    """A Solution's control ``u(t)`` as the judge calls it: one time in, ``(nu,)`` out.
+
+    Attributes
+    ----------
+    kind
+        :attr:`Solution.control_kind`.
+    breakpoints
+        Times inside ``(0, T)`` where ``u`` may jump or kink (grid times, element bounds,
+        events): the judge restarts its integration there.
+    horizon
+        ``T``.
+    """
+
+    def __init__(
+        self, kind: str, fn: Callable[[float], Any], breakpoints: Any, horizon: float
+    ) -> None:
+        self.kind = kind
+        self.fn = fn
+        self.breakpoints = np.asarray(breakpoints, dtype=float).ravel()
+        self.horizon = float(horizon)
+
+    def __call__(self, t: float) -> np.ndarray:
+        return np.asarray(self.fn(t), dtype=float).ravel()
+
+    def __repr__(self) -> str:
+        return (
+            f"ControlFunction(kind={self.kind!r}, horizon={self.horizon!r}, "
+            f"breakpoints={self.breakpoints.size})"
+        )
+
+
+@dataclass(repr=False)
+class SolutionSample:
+    """What :meth:`Solution.sample` returns, one row per time.
+
+    Attributes
+    ----------
+    t
+        ``(M,)`` the times asked for.
+    states
+        ``(M, nx)`` the judge's state, after any jump at exactly that time.
+    controls
+        ``(M, nu)`` the Solution's control (right-continuous at its breakpoints).
+    costates
+        ``(M, nx)`` the method's costate, interpolated linearly between the times it stored
+        them (after a jump at an event time); ``None`` when the method stores none.
+    modes
+        The mode of each state (problems with modes); ``None`` otherwise.
+    """
+
+    t: np.ndarray
+    states: np.ndarray
+    controls: np.ndarray
+    costates: np.ndarray | None
+    modes: list[str] | None
+
+    def __repr__(self) -> str:
+        nx = self.states.shape[1] if self.states.ndim == 2 else 0
+        return (
+            f"SolutionSample({self.t.size} times, nx={nx}, nu={self.controls.shape[-1]}, "
+            f"costates={'yes' if self.costates is not None else 'no'}, "
+            f"modes={'yes' if self.modes is not None else 'no'})"
+        )
+
+
+def _cell_averages(
+    u: Callable[[float], np.ndarray], cuts: np.ndarray, grid: np.ndarray, n_gauss: int = 6
+) -> np.ndarray:
+    """Cell averages on ``grid`` of ``u``, smooth between ``cuts`` (Gauss-Legendre on each
+    piece: exact for polynomials up to degree 11)."""
+    xg, wg = np.polynomial.legendre.leggauss(n_gauss)
+    pts = np.union1d(grid, cuts)
+    pts = pts[(pts >= grid[0]) & (pts <= grid[-1])]
+    a, b = pts[:-1], pts[1:]
+    keep = b > a
+    a, b = a[keep], b[keep]
+    mid, half = 0.5 * (a + b), 0.5 * (b - a)
+    tq = (mid[:, None] + half[:, None] * xg[None, :]).ravel()
+    uq = np.array([u(float(tk)) for tk in tq]).reshape(a.size, n_gauss, -1)
+    integ = np.einsum("q,pqu->pu", wg, uq) * half[:, None]
+    cell = np.clip(np.searchsorted(grid, mid, side="right") - 1, 0, grid.size - 2)
+    out = np.zeros((grid.size - 1, uq.shape[-1]))
+    np.add.at(out, cell, integ)
+    return out / np.diff(grid)[:, None]
+
+
+def _checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray:
+    """``times`` as a 1-D float array inside ``[0, T]``, or a :class:`HybridocError`."""
+    try:
+        t = np.atleast_1d(np.asarray(times, dtype=float))
+    except (TypeError, ValueError):
+        raise HybridocError(f"{name} must be numbers, got {times!r}") from None
+    if t.ndim != 1:
+        raise HybridocError(f"{name} must be a number or a 1-D array, got shape {t.shape}")
+    bad = ~np.isfinite(t) | (t < 0.0) | (t > horizon)
+    if bad.any():
+        raise HybridocError(
+            f"{name}: {t[bad][0]!r} lies outside [0, T] = [0, {horizon!r}] (no extrapolation)"
+        )
+    return t
+
+
+@dataclass(eq=False, repr=False)
 class Solution:
     """A control with its cost, trajectory and provenance: what every solver returns.
+
+    A Solution is its control: :meth:`control` evaluates ``u(t)`` as the method found it
+    (:attr:`control_kind`), and ``cost`` is the judge's cost of exactly that control, which
+    ``hybridoc.evaluate(problem, sol)`` reproduces bit for bit, also after
+    :meth:`save` and :meth:`load`. :meth:`to_grid` projects it onto an N-step grid (with its
+    own judged cost); :meth:`sample` gives states, controls, costates and modes at any times.
+
+    Names as in :class:`scipy.optimize.OptimizeResult` where they fit: :attr:`x` (the
+    control on the grid), :attr:`fun` (the cost), :attr:`success`, :attr:`status` (``int``
+    gives scipy's integer), :attr:`message`, :attr:`nit`, :attr:`nfev`.
 
     ``==`` compares field by field, arrays bit for bit (see :meth:`equals`).
 
@@ -178,12 +421,13 @@ class Solution:
     scene
         Scene name.
     controls
-        ``(N, nu)`` values, piecewise constant on ``time_grid``.
+        ``(N, nu)`` values on ``time_grid``: the control itself for a piecewise-constant
+        method (gd), the cell averages of the continuous control for dt and the reference
+        (see :attr:`control_kind`).
     time_grid
         ``(N + 1,)`` grid times.
     cost, terminal_cost, running_cost
-        The cost ``J`` and its two parts (as computed by the producer; the evaluator's are
-        the judge's).
+        The cost ``J`` and its two parts: the judge's, of the control :meth:`control`.
     events
         ``[{"time", "kind", "bodies", "guard"}, ...]`` in time order; for a problem with
         modes also ``"mode_before"`` and ``"mode_after"`` (see :attr:`modes`).
@@ -304,6 +548,277 @@ class Solution:
         self.message = str(message)
         return self
 
+    # ------------------------------------------------------------------ scipy's names
+    @property
+    def x(self) -> np.ndarray:
+        """The control on the grid, ``(N, nu)`` (:attr:`controls`), as scipy's solution
+        vector ``x``; :meth:`control` is the control itself."""
+        return self.controls
+
+    @property
+    def fun(self) -> float:
+        """The cost (:attr:`cost`), as scipy's ``fun``."""
+        return self.cost
+
+    @property
+    def nit(self) -> int | None:
+        """The method's iterations (gd: descent steps, dt: IPOPT's, the reference: Newton's
+        of the returned extremal); ``None`` where the method does not count them."""
+        for key in ("iterations", "newton_iterations"):
+            value = self.info.get(key)
+            if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+                return value
+        return None
+
+    @property
+    def nfev(self) -> int | None:
+        """Evaluations of the method's objective (gd: loss evaluations); ``None`` where the
+        method does not count them."""
+        value = self.info.get("loss_evaluations")
+        return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+    # ------------------------------------------------------------------ the control
+    @property
+    def horizon(self) -> float:
+        """The final time ``T``: ``info["horizon"]`` (a free final time as found), else the
+        last grid time."""
+        value = self.info.get("horizon")
+        return float(self.time_grid[-1]) if value is None else float(value)
+
+    @property
+    def control_kind(self) -> str:
+        """What :meth:`control` is, read from the arrays the method stored.
+
+        ``"piecewise-constant"``
+            :attr:`controls` on :attr:`time_grid` (gd, a user's controls).
+        ``"piecewise-polynomial"``
+            dt: per collocation element the polynomial through the controls at the Radau
+            points (arrays ``element_bounds``, ``radau_controls``, ``control_nodes``).
+        ``"phase-linear"``
+            The reference on a disc scene: ``u = c0 + c1 (t - t_k)`` on each phase
+            (arrays ``phase_starts``, ``control_coefficients``).
+        ``"hmp"``
+            The reference on a generic problem: the HMP control law ``u = argmin H`` along
+            the state and costate rebuilt from each phase's start (arrays ``phase_starts``,
+            ``phase_states``, ``phase_costates``, ``substeps``); needs the problem.
+        """
+        a = self.arrays
+        if "element_bounds" in a and "radau_controls" in a:
+            return "piecewise-polynomial"
+        if "phase_starts" in a and "control_coefficients" in a:
+            return "phase-linear"
+        if {"phase_starts", "phase_states", "phase_costates"} <= a.keys():
+            return "hmp"
+        return "piecewise-constant"
+
+    @property
+    def problem(self) -> HybridOCP | None:
+        """The problem this Solution is bound to (:meth:`bind`; a method binds the problem
+        it solved); ``None`` for a Solution loaded from a file until it is bound."""
+        return self.__dict__.get("_bound_problem")
+
+    def bind(self, problem: Any) -> Solution:
+        """Bind the problem (anything :func:`hybridoc.problem.as_ocp` takes) that the
+        methods below use when they are given none; returns ``self``."""
+        self.__dict__["_bound_problem"] = _hook(PROBLEM)(problem)
+        return self
+
+    def _ocp(self, problem: Any) -> HybridOCP:
+        if problem is not None:
+            return _hook(PROBLEM)(problem)
+        bound = self.problem
+        if bound is None:
+            raise HybridocError(
+                f"this {self.method} Solution of {self.scene!r} is bound to no problem: pass "
+                "problem= or call sol.bind(problem) (a loaded Solution knows only the name)"
+            )
+        return bound
+
+    def control_function(self, problem: Any = None) -> ControlFunction:
+        """The control ``u(t)`` for one time at a time, with its breakpoints: what
+        :func:`hybridoc.evaluate` judges.
+
+        Parameters
+        ----------
+        problem
+            Needed only by the reference's control law on a generic problem
+            (:attr:`control_kind` ``"hmp"``); default: the bound problem.
+        """
+        kind, a, T = self.control_kind, self.arrays, self.horizon
+        if kind == "piecewise-constant":
+            grid = [float(g) for g in self.time_grid]
+            values, last = self.controls, self.controls.shape[0] - 1
+
+            def u_grid(t: float) -> np.ndarray:
+                return values[min(max(bisect.bisect_right(grid, t) - 1, 0), last)]
+
+            return ControlFunction(kind, u_grid, self.time_grid[1:-1], T)
+        if kind == "piecewise-polynomial":
+            bounds = np.asarray(a["element_bounds"], dtype=float)
+            nodes = self._control_nodes()
+            flat = np.asarray(a["radau_controls"], dtype=float)
+            vals = flat.reshape(flat.shape[0], -1, nodes.size)
+            nu = vals.shape[0]
+            lo = np.asarray(a.get("u_min", np.full(nu, -np.inf)), dtype=float)
+            hi = np.asarray(a.get("u_max", np.full(nu, np.inf)), dtype=float)
+
+            def u_poly(t: float) -> np.ndarray:
+                return lagrange_pieces(np.array([t]), bounds, nodes, vals, lo, hi)[0]
+
+            return ControlFunction(kind, u_poly, bounds[1:-1], T)
+        if kind == "phase-linear":
+            C = np.asarray(a["control_coefficients"], dtype=float)
+            starts = np.asarray(a["phase_starts"], dtype=float)
+
+            def u_lin(t: float) -> np.ndarray:
+                k = max(int(np.searchsorted(starts, t, side="right")) - 1, 0)
+                return C[k, 0] + C[k, 1] * (t - starts[k])
+
+            return ControlFunction(kind, u_lin, starts[1:], T)
+        u, breakpoints = _hook(CONTROL_LAWS[kind])(self, self._ocp(problem))
+        return ControlFunction(kind, u, breakpoints, T)
+
+    def _control_nodes(self) -> np.ndarray:
+        nodes = self.arrays.get("control_nodes")
+        if nodes is not None:
+            return np.asarray(nodes, dtype=float)
+        # a dt file from before the nodes were stored: the Radau points of its degree
+        import casadi as ca
+
+        try:
+            degree = int(self.settings["degree"])
+        except (KeyError, TypeError, ValueError):
+            raise HybridocError(
+                "this dt Solution stores neither control_nodes nor its collocation degree"
+            ) from None
+        return np.array(ca.collocation_points(degree, "radau"), dtype=float)
+
+    def control(self, t: float | Sequence[float] | np.ndarray, problem: Any = None) -> np.ndarray:
+        """The control at ``t``: ``(nu,)`` for one time, ``(M, nu)`` for ``M`` times.
+
+        Right-continuous at its breakpoints (grid times, element bounds, events).
+
+        Raises
+        ------
+        hybridoc.errors.HybridocError
+            For a time outside ``[0, T]`` (named ``t``).
+        """
+        times = _checked_times(t, self.horizon, "t")
+        fn = self.control_function(problem)
+        out = np.array([fn(float(tk)) for tk in times]).reshape(times.size, -1)
+        return out[0] if np.ndim(t) == 0 else out
+
+    def evaluation(self, problem: Any = None) -> Evaluation:
+        """The judge's evaluation of :meth:`control`: ``hybridoc.evaluate(problem, self)``
+        (default: the bound problem)."""
+        return _hook(JUDGE)(self._ocp(problem), self)
+
+    def judge(self, problem: Any = None) -> Evaluation:
+        """Set ``cost``, ``terminal_cost`` and ``running_cost`` to the judge's, of
+        :meth:`control`, and return that evaluation (methods call it on what they return)."""
+        ev = self.evaluation(problem)
+        self.cost = float(ev.cost)
+        self.terminal_cost = float(ev.terminal_cost)
+        self.running_cost = float(ev.running_cost)
+        return ev
+
+    def to_grid(self, N: int | None = None, problem: Any = None) -> Solution:
+        """The control projected onto the N-step grid: cell averages, held constant.
+
+        Parameters
+        ----------
+        N
+            Grid intervals on ``[0, T]``; default: the problem's.
+        problem
+            Default: the bound problem.
+
+        Returns
+        -------
+        Solution
+            Piecewise constant (:attr:`control_kind` ``"piecewise-constant"``) with its own
+            judged cost, events and trajectory, bound to ``problem.replace(steps=N)`` (which
+            ``hybridoc.evaluate`` needs when ``N`` is not the problem's); ``info``
+            ``"projected_from"`` names the control kind and ``"projected_cost"`` the cost of
+            the control projected. The best a piecewise-constant method can reach on that
+            grid is at most this cost.
+        """
+        ocp = self._ocp(problem)
+        n = ocp.steps if N is None else N
+        grid_ocp = ocp.replace(steps=n)
+        if ocp.free_horizon:
+            grid_ocp = grid_ocp.replace(horizon=self.horizon)
+        grid = grid_ocp.time_grid()
+        if self.control_kind == "piecewise-constant" and np.array_equal(grid, self.time_grid):
+            averages = np.array(self.controls, dtype=float)
+        else:
+            fn = self.control_function(ocp)
+            averages = _cell_averages(fn, fn.breakpoints, grid)
+        info: dict[str, Any] = {
+            "projected_from": self.control_kind,
+            "projected_cost": self.cost,
+            "steps": int(n),
+        }
+        if ocp.free_horizon:
+            info["horizon"] = self.horizon
+        ev = _hook(JUDGE)(grid_ocp, averages)
+        out = Solution.from_evaluation(ev, method=self.method, scene=self.scene, info=info)
+        out.time_grid = np.array(grid)
+        out.settings = dict(self.settings)
+        out.set_status(
+            self.status,
+            f"the {self.control_kind} control of {self.method} averaged on N = {n} cells",
+        )
+        out.__dict__["_bound_problem"] = grid_ocp
+        return out
+
+    def sample(
+        self, t: float | Sequence[float] | np.ndarray, problem: Any = None
+    ) -> SolutionSample:
+        """States, controls, costates and modes at any times in ``[0, T]``.
+
+        The states are the judge's event-exact simulation of :meth:`control`
+        (:meth:`Evaluation.sample <hybridoc.Evaluation.sample>`), after any jump at exactly
+        that time; the costates (where the method stores them) are interpolated linearly
+        between the stored ones.
+
+        Parameters
+        ----------
+        t
+            One time or an array of times in ``[0, T]``.
+        problem
+            Default: the bound problem.
+
+        Raises
+        ------
+        hybridoc.errors.HybridocError
+            For a time outside ``[0, T]`` (named ``t``), or no problem to simulate.
+        """
+        times = _checked_times(t, self.horizon, "t")
+        ev = self.evaluation(problem)
+        states = ev.sample(times)
+        fn = self.control_function(ev.ocp)
+        controls = np.array([fn(float(tk)) for tk in times]).reshape(times.size, -1)
+        costates = None
+        if self.costates is not None and self.costate_times is not None:
+            costates = _right_interpolation(self.costate_times, self.costates, times)
+        modes = None
+        if ev.ocp.modes is not None:
+            modes = [ev.ocp.mode_of(s) for s in states]
+        return SolutionSample(times, states, controls, costates, modes)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_bound_problem", None)  # compiled functions: bind again after unpickling
+        return state
+
+    def __repr__(self) -> str:
+        n, nu = self.controls.shape
+        return (
+            f"Solution(method={self.method!r}, scene={self.scene!r}, "
+            f"status={Status(self.status).value!r}, cost={self.cost!r}, "
+            f"control={self.control_kind!r}, N={n}, nu={nu}, events={len(self.events)})"
+        )
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_evaluation(
@@ -338,7 +853,7 @@ class Solution:
         if gradient is not None:
             costate_times = np.array(gradient.costate_times)
             costates = np.array(gradient.costates)
-        return cls(
+        sol = cls(
             method=method,
             scene=scene_name,
             controls=np.array(ev.controls),
@@ -356,6 +871,8 @@ class Solution:
             info=dict(info or {}),
             arrays=dict(arrays or {}),
         )
+        sol.__dict__["_bound_problem"] = ev.ocp
+        return sol
 
     # ------------------------------------------------------------------ comparison
     def equals(self, other: object) -> bool:

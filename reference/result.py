@@ -13,7 +13,7 @@ from hybridoc.ocp import HybridOCP
 from hybridoc.reference.shooting import NewtonResult, ShootingSystem
 from hybridoc.reference.sources import PhaseCostates
 
-__all__ = ["GRAZE_FLAG", "ReferenceResult", "make_result", "reference_control"]
+__all__ = ["GRAZE_FLAG", "ReferenceResult", "hmp_control", "make_result", "reference_control"]
 
 #: approach speeds ``|d psi/dt|`` below this flag the event as grazing
 GRAZE_FLAG = 1e-6
@@ -416,6 +416,10 @@ class ReferenceResult:
             status=Status.EXTREMAL,
         )
         sol.reference = self  # type: ignore[attr-defined]  # u(t) for generic problems
+        # the cost is the judge's, of the control the Solution carries (rebuilt from its
+        # arrays, as after a save and a load): the shooting's own stays in info
+        sol.info["shooting_cost"] = float(self.cost)
+        sol.bind(self.ocp).judge()
         return sol
 
 
@@ -453,22 +457,7 @@ def reference_control(
             raise ValueError(
                 "rebuilding this reference's u(t) needs its problem: reference_control(sol, ocp)"
             )
-        from hybridoc.problem import as_ocp
-        from hybridoc.reference.shooting import shooting_system
-
-        ocp = as_ocp(problem)
-        if obj.info.get("horizon") is not None:
-            ocp = ocp.replace(horizon=float(obj.info["horizon"]))
-        seq = list(obj.info["sequence"])
-        starts_g = np.asarray(arrays["phase_starts"], dtype=float)
-        P, L0 = np.asarray(arrays["phase_states"]), np.asarray(arrays["phase_costates"])
-        # a file from before the steps were stored: a fine fixed number (u(t) is then
-        # accurate, though not bit for bit the saved solve's)
-        levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
-        S = shooting_system(ocp, seq, levels, free=False)
-        nodes = S.nodes(starts_g, P, L0)
-        u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
-        return u, [float(t) for t in starts_g[1:]]
+        return hmp_control(obj, problem)
     C = np.asarray(arrays["control_coefficients"], dtype=float)
     starts = np.asarray(arrays["phase_starts"], dtype=float)
 
@@ -477,6 +466,46 @@ def reference_control(
         return C[k, 0] + C[k, 1] * (t - starts[k])
 
     return u, [float(t) for t in starts[1:]]
+
+
+def hmp_control(solution: Any, problem: Any) -> tuple[Callable[[float], np.ndarray], list[float]]:
+    """The HMP control law of a reference Solution on a generic problem, from its arrays.
+
+    ``u(t) = argmin_u H(s, lambda, u)`` along the state and costate integrated from each
+    phase's start (``phase_starts``, ``phase_states``, ``phase_costates``) with the phase's
+    DOP853 steps (``substeps``): the same nodes whether the Solution was just solved or
+    loaded from a file, so the judge's cost of it is the same bit for bit
+    (:meth:`~hybridoc.solution.Solution.control_function` calls this, ``CONTROL_LAWS``).
+
+    Parameters
+    ----------
+    solution
+        A Solution of method ``"reference"`` on a problem that is not a disc scene.
+    problem
+        Its problem (anything :func:`~hybridoc.problem.as_ocp` takes).
+
+    Returns
+    -------
+    u, breakpoints
+        ``u(t) -> (nu,)`` and the phase starts after the first (the event times).
+    """
+    from hybridoc.problem import as_ocp
+    from hybridoc.reference.shooting import shooting_system
+
+    arrays, info = solution.arrays, solution.info
+    ocp = as_ocp(problem)
+    if info.get("horizon") is not None and float(info["horizon"]) != ocp.horizon:
+        ocp = ocp.replace(horizon=float(info["horizon"]))
+    seq = list(info["sequence"])
+    starts_g = np.asarray(arrays["phase_starts"], dtype=float)
+    P, L0 = np.asarray(arrays["phase_states"]), np.asarray(arrays["phase_costates"])
+    # a file from before the steps were stored: a fine fixed number (u(t) is then
+    # accurate, though not bit for bit the saved solve's)
+    levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
+    S = shooting_system(ocp, seq, levels, free=False)
+    nodes = S.nodes(starts_g, P, L0)
+    u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
+    return u, [float(t) for t in starts_g[1:]]
 
 
 # ---------------------------------------------------------------------- one sequence

@@ -55,7 +55,7 @@ from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
-from hybridoc.solution import Solution, Status
+from hybridoc.solution import Solution, Status, lagrange_pieces
 
 __all__ = [
     "MAX_DEGREE",
@@ -633,18 +633,15 @@ class DTResult:
 
     def control_at(self, t: np.ndarray) -> np.ndarray:
         """The control at the times ``t`` (vectorised), shape ``(len(t), nu)``."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
         nlp = self._nlp
-        d = nlp.d
-        eb = self.element_bounds
-        idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
-        s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
-        basis = nlp.rad.control_basis(s)  # (n, d)
         U_all = np.concatenate(self.controls, axis=1)  # (nu, total elements * d)
-        vals = U_all.reshape(nlp.ocp.nu, -1, d)  # (nu, elements, d)
-        u = np.einsum("nj,unj->nu", basis, vals[:, idx, :])
-        # the interpolating polynomial may overshoot a bound between Radau points
-        return np.clip(u, nlp.ocp.u_min, nlp.ocp.u_max)
+        vals = U_all.reshape(nlp.ocp.nu, -1, nlp.d)  # (nu, elements, d)
+        # the Solution's own u(t) is this function of the arrays it saves, so the judged
+        # cost of a saved dt Solution is this one bit for bit; the clip: the interpolating
+        # polynomial may overshoot a bound between Radau points
+        return lagrange_pieces(
+            t, self.element_bounds, nlp.rad.tau[1:], vals, nlp.ocp.u_min, nlp.ocp.u_max
+        )
 
     def cell_averages(self, grid: np.ndarray) -> np.ndarray:
         """Averages of the control over the cells of ``grid`` (exact for polynomial pieces)."""
@@ -1527,11 +1524,12 @@ def _assemble(
         "lambda0": np.array(best.lambda0),
         "element_bounds": best.element_bounds,
         "radau_controls": np.concatenate(best.controls, axis=1),
+        "control_nodes": np.array(best._nlp.rad.tau[1:]),  # u(t) rebuilt without casadi
     }
     if ocp.has_bounds:  # u(t) is clipped into them (also after saving and loading)
         arrays["u_min"] = np.array(ocp.u_min, dtype=float)
         arrays["u_max"] = np.array(ocp.u_max, dtype=float)
-    return Solution(
+    sol = Solution(
         method="dt",
         scene=scene_name,
         controls=controls,
@@ -1553,6 +1551,7 @@ def _assemble(
         info=info,
         arrays=arrays,
     )
+    return sol.bind(ocp)
 
 
 class _PiecewisePolynomial:
@@ -1574,12 +1573,7 @@ class _PiecewisePolynomial:
         self.hi = np.asarray(solution.arrays.get("u_max", np.full(nu, np.inf)), dtype=float)
 
     def at(self, t: np.ndarray) -> np.ndarray:
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        eb = self.eb
-        idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
-        s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
-        u = np.einsum("nj,unj->nu", self.rad.control_basis(s), self.vals[:, idx, :])
-        return np.clip(u, self.lo, self.hi)
+        return lagrange_pieces(t, self.eb, self.rad.tau[1:], self.vals, self.lo, self.hi)
 
 
 def _cell_averages(
