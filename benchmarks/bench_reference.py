@@ -140,7 +140,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     rows, notes, failed = [], [], False
     for name in names:
-        r = in_process(name, args.runs)
+        try:
+            r = in_process(name, args.runs)
+        except Exception as exc:  # one problem's failure is a row, not the end of the table
+            failed = True
+            notes.append(f"{name}: FAILED: {type(exc).__name__}: {exc}")
+            rows.append([name, "-", "-", "failed", *["-"] * 8, "-", "FAIL"])
+            print(f"  failed {name}", file=sys.stderr, flush=True)
+            continue
         cli: dict = {}
         if name in PAPER and not args.no_cli:
             cli = cli_search(name, args.repeats)

@@ -119,6 +119,8 @@ def _control_function(
             raise ControlsError(f"u({t:.6g}) must be {ocp.nu} finite numbers, got {arr}")
         return arr
 
+    # a control of time alone ignores the state: _controls_at then skips the dense output
+    u_at.time_only = state_feedback is None  # type: ignore[attr-defined]
     return u_at
 
 
@@ -254,8 +256,9 @@ class _Simulation:
         bound = ocp.bound_violation(controls)
         path = 0.0
         if num.path is not None:
+            starts = np.array([p[0] for p in self.pieces])
             for tt, ss in zip(self.times, self.states, strict=True):
-                uu = _control_at(tt, self.pieces, self.u_at, nx, ss)
+                uu = _control_at(tt, self.pieces, self.u_at, nx, ss, starts)
                 path = max(path, float(np.max(-num.path(ss, uu)[0], initial=0.0)))
         return Evaluation(
             cost=terminal + float(z[nx]),
@@ -349,19 +352,30 @@ def _check_events(events: list[Event], max_events: int, T: float) -> None:
 
 
 def _control_at(
-    t: float, pieces: list[tuple[float, float, Any, float, float]], u_at: Any, nx: int, s: Any
+    t: float,
+    pieces: list[tuple[float, float, Any, float, float]],
+    u_at: Any,
+    nx: int,
+    s: Any,
+    starts: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``u(t)`` on the simulated trajectory (``s``: the state there, when known)."""
+    """``u(t)`` on the simulated trajectory (``s``: the state there, when known; ``starts``:
+    the pieces' start times, when the caller has them)."""
     if not pieces:
         return u_at(t, s if s is not None else np.zeros(nx))
-    starts = np.array([p[0] for p in pieces])
+    if starts is None:
+        starts = np.array([p[0] for p in pieces])
     i = min(max(int(np.searchsorted(starts, t, side="right")) - 1, 0), len(pieces) - 1)
     _, _, dense, lo, hi = pieces[i]
-    ss = np.asarray(dense(t), dtype=float)[:nx] if s is None else s
-    return u_at(min(max(t, lo), hi), ss)
+    if s is None:
+        # a control of time alone does not read the state: no dense output to evaluate
+        s = np.zeros(nx) if getattr(u_at, "time_only", False) else dense(t)
+        s = np.asarray(s, dtype=float)[:nx]
+    return u_at(min(max(t, lo), hi), s)
 
 
 def _controls_at(
     mids: np.ndarray, pieces: list[tuple[float, float, Any, float, float]], u_at: Any, nx: int
 ) -> np.ndarray:
-    return np.array([_control_at(float(tm), pieces, u_at, nx, None) for tm in mids])
+    starts = np.array([p[0] for p in pieces])
+    return np.array([_control_at(float(tm), pieces, u_at, nx, None, starts) for tm in mids])

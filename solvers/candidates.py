@@ -48,6 +48,7 @@ __all__ = [
     "GD_BUDGET_SHARE",
     "GD_FACTOR",
     "MULTISTART_ITERS",
+    "MULTISTART_REPEATS",
     "MULTISTART_STEPS",
     "MultiStartSource",
     "TranscriptionSource",
@@ -70,6 +71,14 @@ MULTISTART_JUDGED = 4
 # measured on the scenes of tests/scenes (issue #21, 2 cores): 16 diverse starts, 60 steps
 # and 40 iterations reached the optimum's sequence on all four (channel, two strikers, bank
 # shot, corner pocket) in 0.2-0.5 s each; 24 starts leave a margin
+MULTISTART_REPEATS = 1
+"""The multi-start (not the diverse one) stops judging after this many results in a row,
+in the order of their coarse loss, repeated an event sequence it had judged
+(:func:`~hybridoc.solvers.multistart.explore`'s ``repeats``): measured on pendulum-wall,
+the hopper, bouncing-ball-2 and the juggling paddle, the four results judged before were
+one sequence each time (within 0.4% of each other), and one evaluation of pendulum-wall
+costs about 90 ms."""
+
 DIVERSE_FACTOR = 3
 """On a :func:`rich_scene`, the multi-start runs this many times ``context.multistart``
 diverse starts."""
@@ -353,17 +362,20 @@ class MultiStartSource:
         why = rich_scene(ocp)
         starts = None
         steps, iters, judge = MULTISTART_STEPS, MULTISTART_ITERS, MULTISTART_JUDGED
+        repeats: int | None = MULTISTART_REPEATS
         what = f"{count} starts"
         if why:
+            # rich scenes: every one of the best distinct results is judged, as before
             count *= DIVERSE_FACTOR
             steps, iters, judge = DIVERSE_STEPS, DIVERSE_ITERS, DIVERSE_JUDGED
+            repeats = None
             starts = diverse_starts(ocp, count, evaluation=context.evaluation)
             what = f"{count} diverse starts: {why}"
         context.progress.stage(f"multi-start of the simulator ({what})")
         try:
             found = explore(
                 ocp, count, steps=min(ocp.steps, steps), iters=iters, judge=judge,
-                starts=starts, deadline=deadline,
+                starts=starts, deadline=deadline, repeats=repeats,
                 # gd's cached loss (the default's function): built once per problem
                 # structure, not once per call (datasets call the reference per draw)
                 loss_for=exploration_loss,

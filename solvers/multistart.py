@@ -495,6 +495,7 @@ def explore(
     loss_for: Callable[[HybridOCP], Any] | None = None,
     starts: np.ndarray | None = None,
     deadline: float | None = None,
+    repeats: int | None = None,
 ) -> list[dict[str, Any]]:
     """Batched descent from ``count`` diverse starts on a coarse grid, the best judged.
 
@@ -526,6 +527,13 @@ def explore(
     deadline
         A :func:`time.perf_counter` time after which the descent stops where it is and no
         further result is judged (the best one always is): a partial result.
+    repeats
+        Stop judging after this many results in a row (in the order of their coarse loss)
+        brought no event sequence the judge had not seen yet; default: judge ``judge``
+        results. One evaluation of a problem whose flow is integrated (CVODES) costs about
+        90 ms, and the distinct losses of such problems are mostly the same sequence at
+        almost the same cost (pendulum-wall, the hopper, the bouncing balls: four judged,
+        one sequence).
 
     Returns
     -------
@@ -565,7 +573,7 @@ def explore(
         make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper, deadline=deadline
     )
     picked = _distinct(f, judge)
-    out, rows = _judged(ocp, X, f, picked, coarse.dt, deadline)
+    out, rows = _judged(ocp, X, f, picked, coarse.dt, deadline, repeats)
     if report is not None:
         report.extend(rows)
     out.sort(key=lambda r: r["cost"])
@@ -597,9 +605,11 @@ def _judged(
     picked: list[int],
     dt: float,
     deadline: float | None = None,
+    repeats: int | None = None,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """The picked results resampled to the problem's grid and judged, and one report row
-    per start (:func:`explore`)."""
+    per start (:func:`explore`); with ``repeats``, no more once that many in a row brought
+    no new event sequence."""
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
 
@@ -609,9 +619,14 @@ def _judged(
         {"start": b, "loss": float(f[b]) * dt if np.isfinite(f[b]) else None}
         for b in range(len(f))
     ]
+    sequences: set[tuple[str, ...]] = set()
+    stale = 0  # judged results in a row that brought no new sequence
     for i, b in enumerate(picked):
         if i and deadline is not None and time.perf_counter() > deadline:
             rows[b]["not_judged"] = "the time budget was spent"
+            continue
+        if repeats is not None and stale >= repeats:
+            rows[b]["not_judged"] = f"{stale} results in a row repeated a judged event sequence"
             continue
         u = resample(X[b], ocp.steps)
         try:
@@ -619,6 +634,9 @@ def _judged(
         except HybridocError as exc:
             rows[b]["error"] = str(exc)
             continue
+        key = tuple(ev.sequence)
+        stale = stale + 1 if key in sequences else 0
+        sequences.add(key)
         rows[b].update(cost=ev.cost, sequence=ev.sequence)
         out.append({"controls": u, "cost": ev.cost, "sequence": ev.sequence, "evaluation": ev})
     for b, row in enumerate(rows):
