@@ -8,7 +8,13 @@ Five tables, each measured in this one run:
    integrators, on the compiled path (:class:`~hybridoc.solvers.compiled.CompiledLoss`, in
    CasADi's virtual machine and as the C code of :mod:`hybridoc.solvers.codegen`) and on
    the torch path (:class:`~hybridoc.solvers.simulator.Simulator` + autograd), beside the
-   paper's own PyTorch implementation (float32), timed in the same run: its script is copied
+   paper's own PyTorch implementation (float32), timed in the same run. The C code is timed
+   through three call paths, interleaved call by call (round robin, so that load moves them
+   alike): ``C native`` (:meth:`~hybridoc.solvers.compiled.CompiledLoss.value_and_grad`, what
+   gd calls: the generated C through :class:`~hybridoc.solvers.codegen.NativeFunction`, raw
+   pointers), ``C casadi call`` (the same library through ``casadi.Function``'s call on numpy
+   arrays, the call path before) and ``C torch autograd`` (:meth:`CompiledLoss.loss` and
+   ``backward``, what this table timed until then). The paper's script is copied
    to a scratch folder with ``train_iters`` set and run twice (1 and 1 + ``--paper-iters``
    iterations); the difference of the two times, divided by ``--paper-iters``, is its time
    per iteration. Stretch target: 1000x the paper's speed on single-collision.
@@ -137,9 +143,9 @@ def paper_per_iteration(peer: Path, scene: str, iters: int, repeats: int) -> dic
 
 # ---------------------------------------------------------------------------- per iteration
 def _wait_for_c(loss: Any, limit: float) -> str:
-    """Wait until the C versions of a CompiledLoss's functions are loaded; a status word."""
-    fns = [getattr(loss, a, None) for a in ("_value_grad", "_value")]
-    fns = [f for f in fns if f is not None]
+    """Wait until the C version of a CompiledLoss's loss and gradient is loaded; a status
+    word."""
+    fns = [f for f in (getattr(loss, "_value_grad", None),) if f is not None]
     if not fns:
         return "unknown"  # the private attributes changed: cannot tell
     t0 = time.perf_counter()
@@ -156,6 +162,7 @@ def per_iteration(
     scene: str, repeats: int, torch_repeats: int, codegen_wait: float
 ) -> list[dict[str, Any]]:
     """One row per (contact model, integrator, path) that exists; n/a rows say why not."""
+    import numpy as np
     import torch
 
     from hybridoc.errors import HybridocError
@@ -174,6 +181,51 @@ def per_iteration(
         loss = model.loss(u)
         loss.backward()
         return float(loss.detach())
+
+    def interleaved(calls: dict[str, Any], runs: int) -> dict[str, dict[str, Any]]:
+        """Each callable once per round, ``runs`` rounds: medians of each."""
+        for call in calls.values():
+            call()  # warm-up
+        walls: dict[str, list[float]] = {k: [] for k in calls}
+        cpus: dict[str, list[float]] = {k: [] for k in calls}
+        for _ in range(runs):
+            for key, call in calls.items():
+                t0, c0 = time.perf_counter(), time.process_time()
+                call()
+                walls[key].append(time.perf_counter() - t0)
+                cpus[key].append(time.process_time() - c0)
+        return {
+            k: {
+                "wall": statistics.median(walls[k]),
+                "min": min(walls[k]),
+                "cpu": statistics.median(cpus[k]),
+            }
+            for k in calls
+        }
+
+    def c_paths(loss: Any) -> list[dict[str, Any]]:
+        """The C library of ``loss`` through its three call paths (module docstring)."""
+        u_np = problem.initial_controls()
+        vg = loss._value_grad  # the Accelerated loss-and-gradient function
+
+        def casadi_call() -> float:
+            J, gx, gU = vg.fn(loss._x0, u_np.T)  # CasADi's call of the same library
+            np.asarray(gU).T.copy(), np.asarray(gx).ravel()
+            return float(J)
+
+        def native() -> float:
+            return loss.value_and_grad(u_np)[0]
+
+        calls = {"C native": native, "C casadi call": casadi_call}
+        calls["C torch autograd"] = lambda: iteration(loss)
+        values = {k: float(f()) for k, f in calls.items()}
+        if vg.native is None:
+            calls.pop("C native")  # value_and_grad is CasADi's call then: not a third path
+        times = interleaved(calls, repeats)
+        out = [{"path": k, "loss": values[k]} | times[k] for k in calls]
+        if vg.native is None:
+            out.insert(0, {"path": "C native", "na": "library not bound through ctypes"})
+        return out
 
     def timed(model: Any, runs: int) -> dict[str, Any]:
         value = iteration(model)  # warm-up
@@ -206,9 +258,14 @@ def per_iteration(
                 for integ in INTEGRATORS:
                     if integ != "exact" or exact_ok(name):
                         try:
-                            c_losses[name, integ] = CompiledLoss(problem, name, integ, toi="both")
+                            loss = CompiledLoss(problem, name, integ, toi="both")
                         except HybridocError as exc:
                             c_errors[name, integ] = str(exc)
+                            continue
+                        c_losses[name, integ] = loss
+                        u_np = problem.initial_controls()
+                        for _ in range(codegen.HOT_CALLS):  # hot: its compilation starts
+                            loss.value_and_grad(u_np)
         # one compilation at a time, in the background: wait for all before timing anything
         t0 = time.perf_counter()
         c_state = {
@@ -223,12 +280,12 @@ def per_iteration(
             return [base | {"path": "compiled", "na": c_errors[key][:80]}]
         out = []
         if key in c_losses and c_state[key] in ("ready", "unknown"):
-            out.append(base | {"path": "compiled C"} | timed(c_losses[key], repeats))
+            out += [base | row for row in c_paths(c_losses[key])]
         elif key in c_losses:
-            out.append(base | {"path": "compiled C", "na": f"C code {c_state[key]}"})
+            out.append(base | {"path": "C native", "na": f"C code {c_state[key]}"})
         else:
             off = "codegen off (HYBRIDOC_CODEGEN=0 or no C compiler)"
-            out.append(base | {"path": "compiled C", "na": off})
+            out.append(base | {"path": "C native", "na": off})
         try:
             with codegen_env("0"):
                 loss = CompiledLoss(problem, name, integ, toi="both")
@@ -298,13 +355,14 @@ def print_per_iteration(scene: str, rows: list[dict[str, Any]], paper: dict[str,
     if "error" in paper:
         print(f"paper: not measured: {paper['error']}")
     elif best is not None and scene == "single-collision":
-        default = [
-            r
-            for r in rows
-            if (r["contact"], r["integrator"], r["path"]) == ("direct", "exact", "compiled C")
-            and "na" not in r
-        ]
-        lines = [("gd's default (direct, exact, compiled C)", default[0])] if default else []
+        lines = []
+        for integ in ("exact", "symplectic-euler"):
+            lines += [
+                (f"direct, {integ}, C native" + (" (gd's default)" if integ == "exact" else ""), r)
+                for r in rows
+                if (r["contact"], r["integrator"], r["path"]) == ("direct", integ, "C native")
+                and "na" not in r
+            ]
         lines.append(("fastest", best[1]))
         for what, r in lines:
             speed = paper_ms / (1e3 * r["wall"])

@@ -18,6 +18,12 @@ anything else is not loaded. The least recently used libraries are deleted when 
 outgrows its bound. :func:`cache_info` and :func:`clear_cache` (``hybridoc cache info`` and
 ``hybridoc cache clear``) show and empty it.
 
+Once loaded, a library is also bound through :mod:`ctypes` (:class:`NativeFunction`):
+:meth:`Accelerated.call_numpy` then calls the generated C function on numpy buffers with
+raw pointers and preallocated work arrays, without CasADi's ``Function`` call machinery
+(which converts every input and output to a ``DM`` and costs more than the C code itself on
+a loss of a few hundred steps).
+
 Settings (environment): ``HYBRIDOC_CODEGEN=0`` turns it off; ``HYBRIDOC_CACHE`` sets the
 cache folder (default ``~/.cache/hybridoc``); ``HYBRIDOC_CACHE_MAX_MB`` bounds its size
 (default 500; ``0`` keeps no library on disk).
@@ -38,6 +44,7 @@ cache folder (default ``~/.cache/hybridoc``); ``HYBRIDOC_CACHE_MAX_MB`` bounds i
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import hmac
 import os
@@ -55,12 +62,14 @@ from pathlib import Path
 from typing import Any
 
 import casadi as ca
+import numpy as np
 
 __all__ = [
     "DEFAULT_MAX_MB",
     "HOT_CALLS",
     "Accelerated",
     "CacheWarning",
+    "NativeFunction",
     "cache_dir",
     "cache_info",
     "cache_limit",
@@ -463,6 +472,131 @@ def clear_cache() -> dict[str, Any]:
     return out
 
 
+class NativeFunction:
+    """A CasADi-generated C function called through :mod:`ctypes` on numpy arrays.
+
+    The generated ``<name>(arg, res, iw, w, mem)`` is called with the data pointers of the
+    numpy inputs and of freshly allocated outputs, and work arrays allocated once: no
+    ``DM`` conversion, no per-call allocation inside CasADi. The numbers are the library's,
+    bit for bit (it is the same machine code :func:`casadi.external` runs).
+
+    Parameters
+    ----------
+    lib
+        The loaded library.
+    fn
+        The CasADi function it was generated from (its name, input and output sparsity).
+
+    Raises
+    ------
+    ValueError
+        The library does not export the function as expected, uses another integer or
+        float size, or an input is not dense (then the caller keeps CasADi's own call).
+    """
+
+    def __init__(self, lib: ctypes.CDLL, fn: ca.Function) -> None:
+        name = fn.name()
+        try:
+            self._f = getattr(lib, name)
+            work = getattr(lib, f"{name}_work")
+            int_size = getattr(lib, "f_casadi_int_size", None)
+            real_size = getattr(lib, "f_casadi_real_size", None)
+        except AttributeError as exc:
+            raise ValueError(f"the library does not export {name}: {exc}") from None
+        # the generated code's casadi_int is long long unless redefined: check, never assume
+        sizes = (8, 8)
+        if int_size is not None and real_size is not None:
+            int_size.restype = real_size.restype = ctypes.c_int
+            sizes = (int(int_size()), int(real_size()))
+        if sizes != (ctypes.sizeof(ctypes.c_longlong), 8):
+            raise ValueError(f"casadi_int/real sizes {sizes} differ from long long/double")
+        sz = [ctypes.c_longlong() for _ in range(4)]
+        work.restype = ctypes.c_int
+        if work(*[ctypes.byref(v) for v in sz]):
+            raise ValueError(f"{name}_work failed")
+        n_arg, n_res, n_iw, n_w = (int(v.value) for v in sz)
+        self.n_in, self.n_out = fn.n_in(), fn.n_out()
+        if n_arg < self.n_in or n_res < self.n_out:
+            raise ValueError(f"{name}: work sizes smaller than its inputs and outputs")
+        self._in_shapes: list[tuple[int, int]] = []
+        for i in range(self.n_in):
+            sp = fn.sparsity_in(i)
+            if not sp.is_dense():
+                raise ValueError(f"{name}: input {i} is not dense")
+            self._in_shapes.append((sp.size1(), sp.size2()))
+        # outputs: (shape, None) when dense, else the column-major positions of the nonzeros
+        self._outs: list[tuple[tuple[int, int], np.ndarray | None]] = []
+        for i in range(self.n_out):
+            sp = fn.sparsity_out(i)
+            where = None if sp.is_dense() else np.array(sp.find(), dtype=np.intp)
+            self._outs.append(((sp.size1(), sp.size2()), where))
+        self._sizes = (n_arg, n_res, n_iw, n_w)
+        self._f.restype = ctypes.c_int
+        self._f.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int]
+        self._lock = threading.Lock()
+        self._work = self._new_work()
+
+    def _new_work(self) -> tuple[Any, Any, np.ndarray, np.ndarray]:
+        n_arg, n_res, n_iw, n_w = self._sizes
+        return (
+            (ctypes.c_void_p * n_arg)(),
+            (ctypes.c_void_p * n_res)(),
+            np.zeros(max(n_iw, 1), dtype=np.longlong),
+            np.zeros(max(n_w, 1)),
+        )
+
+    def __call__(self, *inputs: np.ndarray) -> list[np.ndarray]:
+        """The outputs, as column-major float64 arrays of the function's output shapes.
+
+        Each input is anything that reshapes, in column-major order, to the function's
+        input of the same place (a scalar, a vector, or an ``(n, m)`` array that is
+        ``(m, n)`` C-ordered and transposed: no copy then).
+        """
+        if len(inputs) != self.n_in:
+            raise TypeError(f"expected {self.n_in} inputs, got {len(inputs)}")
+        ins = []
+        for x, shape in zip(inputs, self._in_shapes, strict=True):
+            a = np.asarray(x, dtype=np.float64)
+            if a.size != shape[0] * shape[1]:
+                raise ValueError(f"an input of {a.size} values where {shape} was expected")
+            ins.append(np.asfortranarray(a.reshape(shape, order="F")))
+        outs = []
+        bufs = []
+        for shape, where in self._outs:
+            if where is None:
+                out = np.empty(shape, order="F")
+                outs.append(out)
+                bufs.append(out)
+            else:
+                outs.append(np.zeros(shape, order="F"))
+                bufs.append(np.empty(max(len(where), 1)))
+        # one set of work arrays, reused; a concurrent caller (threads) takes its own
+        mine = self._lock.acquire(blocking=False)
+        try:
+            arg, res, iw, w = self._work if mine else self._new_work()
+            for i, a in enumerate(ins):
+                arg[i] = a.ctypes.data
+            for i, b in enumerate(bufs):
+                res[i] = b.ctypes.data
+            rc = self._f(
+                ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data, 0
+            )
+        finally:
+            if mine:
+                self._lock.release()
+        if rc:
+            raise RuntimeError(f"the compiled function returned the error code {rc}")
+        for out, b, (_, where) in zip(outs, bufs, self._outs, strict=True):
+            if where is not None and len(where):
+                out.reshape(-1, order="F")[where] = b[: len(where)]
+        return outs
+
+
+def _as_tuple(out: Any) -> tuple[Any, ...]:
+    """A CasADi call's outputs as a tuple (one output comes back bare)."""
+    return out if isinstance(out, tuple) else (out,)
+
+
 class Accelerated:
     """A CasADi Function that switches to compiled C code once it is available.
 
@@ -494,6 +628,7 @@ class Accelerated:
         self.fn = fn if vm is None else vm
         self.compiled = False
         self.error: str | None = None
+        self.native: NativeFunction | None = None
         self._calls_left = -1  # counting down to the background compilation; -1: never
         if not enabled():
             return
@@ -522,6 +657,15 @@ class Accelerated:
                 self._start()
         return self.fn(*args)
 
+    def call_numpy(self, *args: Any) -> list[np.ndarray]:
+        """The outputs as numpy arrays (column-major, the function's shapes): through
+        :class:`NativeFunction` once the C version is loaded and bound, else
+        ``self(*args)`` (CasADi's call, counted towards the compilation)."""
+        native = self.native
+        if native is not None:
+            return native(*args)
+        return [np.asarray(out) for out in _as_tuple(self(*args))]
+
     def _start(self) -> None:
         self._calls_left = -1
         threading.Thread(target=self._build, daemon=True).start()
@@ -531,11 +675,17 @@ class Accelerated:
         name = self._lib.name
         if not _verified(dfd, name):
             return False
+        path = _load_path(dfd, name)
         try:
-            self.fn = ca.external(self.vm.name(), _load_path(dfd, name))
+            self.fn = ca.external(self.vm.name(), path)
         except RuntimeError as exc:  # verified yet not loadable (another compiler's ABI)
             self.error = str(exc)
             return False
+        try:
+            # the file casadi.external just loaded (dlopen hands back the same object)
+            self.native = NativeFunction(ctypes.CDLL(path), self.vm)
+        except (OSError, ValueError):
+            self.native = None  # CasADi's own call of the library still serves
         self.compiled, self.error = True, None
         return True
 

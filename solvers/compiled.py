@@ -162,14 +162,15 @@ class CompiledLoss:
         """The discrete objective of ``(N, nu)`` controls."""
         u = self._check(controls)
         x = self._x0 if x0 is None else np.asarray(x0, dtype=float)
-        return float(self._value(x, u.T))
+        (J,) = self._value.call_numpy(x, u.T)
+        return float(J[0, 0])
 
     def value_and_grad(self, controls: Any, x0: Any = None) -> tuple[float, np.ndarray, np.ndarray]:
         """Objective, gradient ``(N, nu)`` w.r.t. the controls and ``(nx,)`` w.r.t. ``x0``."""
         u = self._check(controls)
         x = self._x0 if x0 is None else np.asarray(x0, dtype=float)
-        J, gx, gU = self._value_grad(x, u.T)
-        return float(J), np.asarray(gU).T.copy(), np.asarray(gx).ravel()
+        J, gx, gU = self._value_grad.call_numpy(x, u.T)
+        return float(J[0, 0]), gU.T.copy(), gx.ravel()
 
     def value_and_grad_batch(
         self, controls: np.ndarray, x0: np.ndarray | None = None
@@ -193,10 +194,10 @@ class CompiledLoss:
             self._maps[B] = fn
         # map concatenates horizontally: x0 (nx, B), U (nu, N B)
         U = u.transpose(2, 0, 1).reshape(self.nu, B * self.steps)
-        J, gx, gU = fn(x.T, U)
-        J = np.asarray(J).ravel()
-        gx = np.asarray(gx).T.copy()
-        gU = np.asarray(gU).reshape(self.nu, B, self.steps).transpose(1, 2, 0).copy()
+        J, gx, gU = fn.call_numpy(x.T, U)
+        J = J.ravel()
+        gx = gx.T.copy()
+        gU = gU.reshape(self.nu, B, self.steps).transpose(1, 2, 0).copy()
         return J, gU, gx
 
     def rollout_numpy(self, controls: Any, x0: Any = None) -> np.ndarray:
@@ -416,9 +417,9 @@ class TerminalLoss:
             )
         nu = np.zeros(self.n_eq) if nu is None else np.asarray(nu, dtype=float)
         mu = np.zeros(self.n_in) if mu is None else np.asarray(mu, dtype=float)
-        J, A, sN, gU, gT = self._fn(self._x0, u.T, float(horizon), nu, mu, float(rho))
+        J, A, sN, gU, gT = self._fn.call_numpy(self._x0, u.T, float(horizon), nu, mu, float(rho))
         return (
-            float(J), float(A), np.asarray(sN).ravel(), np.asarray(gU).T.copy(), float(gT)
+            float(J[0, 0]), float(A[0, 0]), sN.ravel(), gU.T.copy(), float(gT[0, 0])
         )  # fmt: skip
 
     def constraints(self, s_end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

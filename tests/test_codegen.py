@@ -320,3 +320,107 @@ def test_cache_info_and_clear_without_directory_descriptors(
     assert info["exists"] and info["libraries"] == 0
     assert codegen.clear_cache()["removed"] == 0
     assert len(list(private.glob("*.so"))) == 1
+
+
+# ---------------------------------------------------------------- the native (ctypes) call
+
+
+def _wait_compiled(acc: codegen.Accelerated) -> None:
+    deadline = time.time() + 120
+    while not acc.compiled and acc.error is None:
+        assert time.time() < deadline, "compilation did not finish"
+        time.sleep(0.05)
+    assert acc.compiled, acc.error
+
+
+def test_native_loss_gradient_equal_casadi_call_and_central_differences(compiling: None) -> None:
+    from hybridoc.problems import load_problem
+    from hybridoc.solvers.compiled import CompiledLoss
+
+    # 24 steps: the collision happens inside the horizon, and the C code compiles in ~1 s
+    scene = load_problem("single-collision").with_steps(24)
+    loss = CompiledLoss(scene, "direct", "exact")
+    vg = loss._value_grad
+    u = scene.initial_controls() * 1.1
+    x0 = loss._x0
+    vm = [np.asarray(v) for v in vg.vm(x0, u.T)]
+    for _ in range(codegen.HOT_CALLS):
+        loss.value_and_grad(u)
+    _wait_compiled(vg)
+    assert vg.native is not None
+    J, gU, gx = loss.value_and_grad(u)
+    # the same numbers, bit for bit, as CasADi's call of the library and its virtual machine
+    lib = [np.asarray(v) for v in vg.fn(x0, u.T)]
+    for ref in (vm, lib):
+        assert J == ref[0].item()
+        np.testing.assert_array_equal(gx, ref[1].ravel())
+        np.testing.assert_array_equal(gU, ref[2].T)
+    assert loss.value(u) == J
+    # against central differences, along random directions of the controls and of x0
+    rng = np.random.default_rng(0)
+    h = 1e-6
+    for _ in range(3):
+        du = rng.standard_normal(u.shape)
+        fd = (loss.value(u + h * du) - loss.value(u - h * du)) / (2 * h)
+        assert abs(fd - float(np.sum(gU * du))) <= 1e-6 * max(1.0, abs(fd))
+        dx = rng.standard_normal(x0.shape)
+        fd = (loss.value(u, x0 + h * dx) - loss.value(u, x0 - h * dx)) / (2 * h)
+        assert abs(fd - float(gx @ dx)) <= 1e-6 * max(1.0, abs(fd))
+    # a batch through the mapped function: each start as alone
+    U = np.stack([u, 0.9 * u, u + 0.05])
+    Jb, gUb, gxb = loss.value_and_grad_batch(U)
+    for b in range(3):
+        Jo, gUo, gxo = loss.value_and_grad(U[b])
+        assert abs(Jb[b] - Jo) <= 1e-12 * abs(Jo)
+        np.testing.assert_allclose(gUb[b], gUo, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(gxb[b], gxo, rtol=1e-12, atol=1e-14)
+
+
+def test_native_function_shapes_sparse_outputs_and_threads(compiling: None) -> None:
+    import threading
+
+    x, A, s = ca.SX.sym("x", 3), ca.SX.sym("A", 2, 3), ca.SX.sym("s")
+    y = ca.vertcat(ca.SX(1, 1), s * x[1], ca.SX(1, 1))  # structural zeros: scattered back
+    fn = ca.Function("native_probe", [x, A, s], [ca.mtimes(A, x) * s, y, ca.sumsqr(A)])
+    assert not fn.sparsity_out(1).is_dense()
+    acc = codegen.Accelerated(fn, wait=True)
+    assert acc.compiled and acc.native is not None, acc.error
+
+    def expected(xv: np.ndarray, Av: np.ndarray, sv: float) -> list[np.ndarray]:
+        return [np.asarray(o) for o in fn(xv, Av, sv)]
+
+    rng = np.random.default_rng(1)
+    xv, Av = rng.standard_normal(3), rng.standard_normal((2, 3))
+    got = acc.call_numpy(xv, Av, 0.7)
+    for g, e in zip(got, expected(xv, Av, 0.7), strict=True):
+        assert g.shape == e.shape
+        np.testing.assert_array_equal(g, e)
+    with pytest.raises(ValueError, match="values"):
+        acc.call_numpy(xv[:2], Av, 0.7)
+    # concurrent callers: each gets its own work arrays, no mixed-up results
+    inputs = [(rng.standard_normal(3), rng.standard_normal((2, 3)), float(k)) for k in range(8)]
+    results: dict[int, list[np.ndarray]] = {}
+
+    def worker(k: int) -> None:
+        for _ in range(200):
+            results[k] = acc.call_numpy(*inputs[k])
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k, args in enumerate(inputs):
+        for g, e in zip(results[k], expected(*args), strict=True):
+            np.testing.assert_array_equal(g, e)
+
+
+def test_call_numpy_without_a_compiler_is_casadi_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HYBRIDOC_CODEGEN", "0")
+    x = ca.SX.sym("x", 2)
+    fn = ca.Function("vm_probe", [x], [ca.sin(x), ca.sumsqr(x)])
+    acc = codegen.Accelerated(fn)
+    assert acc.native is None and not acc.compiled
+    out = acc.call_numpy(np.array([0.3, -1.2]))
+    np.testing.assert_array_equal(out[0], np.sin([[0.3], [-1.2]]))
+    assert out[1].shape == (1, 1) and out[1][0, 0] == 0.3**2 + 1.2**2
