@@ -12,11 +12,39 @@ from hybridoc.errors import HybridocError
 from hybridoc.events import Event
 from hybridoc.ocp import HybridOCP
 
-__all__ = ["TERMINAL_TOL", "Evaluation", "Gradient", "Segment"]
+__all__ = ["TERMINAL_TOL", "Evaluation", "Gradient", "Segment", "checked_times"]
 
 TERMINAL_TOL = 1e-8
 """The terminal-constraint violation up to which a result meets its terminal constraints
 (unless a method is given another tolerance)."""
+
+
+def checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray:
+    """``times`` as a 1-D float array in ``[0, T]``, or an error naming the argument.
+
+    Times within rounding of the ends (``64 eps max(1, T)``: a sum of phase durations that
+    lands an ulp past ``T``) are clamped onto them; anything further out raises, as nothing
+    is extrapolated.
+
+    Raises
+    ------
+    hybridoc.errors.HybridocError
+        For a time outside ``[0, T]``, not a number, or not 0-D/1-D.
+    """
+    try:
+        t = np.atleast_1d(np.asarray(times, dtype=float))
+    except (TypeError, ValueError):
+        raise HybridocError(f"{name} must be numbers, got {times!r}") from None
+    if t.ndim != 1:
+        raise HybridocError(f"{name} must be a number or a 1-D array, got shape {t.shape}")
+    slack = 64 * np.finfo(float).eps * max(1.0, abs(horizon))
+    bad = ~np.isfinite(t) | (t < -slack) | (t > horizon + slack)
+    if bad.any():
+        raise HybridocError(
+            f"{name}: {float(t[bad][0])!r} lies outside [0, T] = [0, {horizon!r}] "
+            "(no extrapolation)"
+        )
+    return np.clip(t, 0.0, horizon)
 
 
 class Segment(NamedTuple):
@@ -58,6 +86,10 @@ class Evaluation:
     terminal_eq_values, terminal_ineq_values
         The terminal constraints at ``s(T)``, one value per constraint (``h_eq`` must be 0,
         ``h_ineq`` at least 0); empty arrays when the problem has none.
+    segments, dense_pieces
+        What :meth:`sample` reads: the constant-control segments of a grid or ZOH
+        evaluation, or the integrator's dense output per step ``(t0, t1, dense)`` of a
+        continuous-time one (:func:`hybridoc.evaluate_callable`).
     """
 
     cost: float
@@ -138,18 +170,7 @@ class Evaluation:
         """
         from hybridoc.kernels import kernels
 
-        T = self.horizon
-        try:
-            t = np.atleast_1d(np.asarray(times, dtype=float))
-        except (TypeError, ValueError):
-            raise HybridocError(f"times must be numbers, got {times!r}") from None
-        if t.ndim != 1:
-            raise HybridocError(f"times must be a number or a 1-D array, got shape {t.shape}")
-        bad = ~np.isfinite(t) | (t < 0.0) | (t > T)
-        if bad.any():
-            raise HybridocError(
-                f"times: {t[bad][0]!r} lies outside [0, T] = [0, {T!r}] (no extrapolation)"
-            )
+        t = checked_times(times, self.horizon)
         if not self.segments:
             return self._sample_dense(t)
         starts = np.array([seg.t0 for seg in self.segments])

@@ -383,19 +383,9 @@ def _cell_averages(
 
 
 def _checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray:
-    """``times`` as a 1-D float array inside ``[0, T]``, or a :class:`HybridocError`."""
-    try:
-        t = np.atleast_1d(np.asarray(times, dtype=float))
-    except (TypeError, ValueError):
-        raise HybridocError(f"{name} must be numbers, got {times!r}") from None
-    if t.ndim != 1:
-        raise HybridocError(f"{name} must be a number or a 1-D array, got shape {t.shape}")
-    bad = ~np.isfinite(t) | (t < 0.0) | (t > horizon)
-    if bad.any():
-        raise HybridocError(
-            f"{name}: {t[bad][0]!r} lies outside [0, T] = [0, {horizon!r}] (no extrapolation)"
-        )
-    return t
+    from hybridoc.evaluation import checked_times
+
+    return checked_times(times, horizon, name)
 
 
 @dataclass(eq=False, repr=False)
@@ -725,6 +715,11 @@ class Solution:
     def to_grid(self, N: int | None = None, problem: Any = None) -> Solution:
         """The control projected onto the N-step grid: cell averages, held constant.
 
+        On the Solution's own grid these are :attr:`x` (what every method stores); on
+        another grid they are computed by Gauss-Legendre quadrature (6 points) on each piece
+        between the grid times and the control's breakpoints (exact for the polynomial
+        controls of gd, dt and the reference on disc scenes).
+
         Parameters
         ----------
         N
@@ -748,7 +743,8 @@ class Solution:
         if ocp.free_horizon:
             grid_ocp = grid_ocp.replace(horizon=self.horizon)
         grid = grid_ocp.time_grid()
-        if self.control_kind == "piecewise-constant" and np.array_equal(grid, self.time_grid):
+        if np.array_equal(grid, self.time_grid):
+            # every method stores its control's cell averages on its own grid: x itself
             averages = np.array(self.controls, dtype=float)
         else:
             fn = self.control_function(ocp)

@@ -143,7 +143,8 @@ def validate_controls(
         Any problem.
     controls
         ``(N, nu)`` array or a Solution (validated: shape, finiteness); ``(N * K, nu)``
-        with ``substeps=K``.
+        with ``substeps=K``. A Solution is judged by its own control
+        (:meth:`~hybridoc.Solution.control`), so ``cost`` is its ``cost`` bit for bit.
     reference
         The reference Solution of ``problem`` (on its own grid); solved when not given.
     substeps
@@ -168,7 +169,9 @@ def validate_controls(
     u = fine.check_controls(getattr(controls, "controls", controls))
     if reference is None:
         reference = solve(ocp, "reference")
-    ev = evaluate(fine, u)
+    # a Solution is judged by its own control (so its cost comes back bit for bit)
+    own = substeps == 1 and hasattr(controls, "control_kind")
+    ev = evaluate(fine, controls if own else u)
     events = ev.event_dicts()
     cmp = event_comparison(events, reference.events)
     return {
@@ -336,7 +339,7 @@ def _grid_projection(ocp: HybridOCP, ref: Solution | None) -> dict[str, Any]:
     if ref is None or ocp.free_horizon:
         return {"grid_cost": None, "grid_gap_relative": None}
     try:
-        cost = float(evaluate(ocp, ref.controls).cost)
+        cost = float(ref.to_grid(problem=ocp).cost)
     except HybridocError as exc:
         return {"grid_cost": None, "grid_gap_relative": None, "grid_error": str(exc)}
     return {"grid_cost": cost, "grid_gap_relative": _relative(cost, ref.cost)}
@@ -442,7 +445,7 @@ def representable(
         if ocp.free_horizon:
             return _no_representable(what, "a free final time has no fixed grid to project on")
         try:
-            cost = float(evaluate(ocp, ref.controls).cost)
+            cost = float(ref.to_grid(problem=ocp).cost)
         except HybridocError as exc:
             return _no_representable(what, str(exc))
     return {
