@@ -25,8 +25,10 @@ from hybridoc.reference.shooting import (
     DEFAULT_RTOL,
     NewtonResult,
     ShootingSystem,
+    free_mode,
     newton,
     refine,
+    saturate,
     shooting_system,
 )
 from hybridoc.reference.sources import PhaseCostates, SequenceStarter
@@ -229,10 +231,33 @@ def solve_sequence(
     reasons: list[str] = []
     found: list[ReferenceResult] = []
 
-    def run(system: ShootingSystem, z0: np.ndarray) -> NewtonResult:
+    def solve(system: ShootingSystem, z0: np.ndarray) -> NewtonResult:
         if screen:
             return newton(system, z0, tol=tol, verbose=verbose, max_iter=20, min_step=1e-3)
         return newton(system, z0, tol=tol, verbose=verbose)
+
+    def run(system: ShootingSystem, z0: np.ndarray) -> tuple[ShootingSystem, NewtonResult]:
+        nr = solve(system, z0)
+        if not ocp.has_bounds:
+            return system, nr
+        # control bounds: the saturated arcs (shooting.saturate), from the extremal of the
+        # clipped control (a disc scene: of its closed-form phases), else from the
+        # unconstrained one (from a poor start the clip's flat branches stall Newton)
+        tries = [(system, nr)]
+        if not system.disc:
+            tries.append((system.with_arcs(((free_mode(ocp.nu),),) * (system.K + 1)), None))
+        last = (system, nr)
+        for base, first in tries:
+            nr_b = first if first is not None else solve(base, z0)
+            if not nr_b.converged:
+                last = (base, nr_b) if first is not None else last
+                continue
+            sat, nr_sat, why = saturate(base, nr_b, tol=tol, verbose=verbose)
+            if not why:
+                return sat, nr_sat
+            reasons.append(f"saturation: {why}")
+            last = (sat, NewtonResult(nr_sat.z, nr_sat.residual, nr_sat.iterations, False))
+        return last
 
     def keep(system: ShootingSystem, nr: NewtonResult, path: str) -> None:
         ref = refine(system, nr, rtol=rtol, tol=tol, verbose=verbose)
@@ -252,17 +277,17 @@ def solve_sequence(
             reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
 
     def attempt(z0: np.ndarray, path: str) -> None:
-        nr = run(S, z0)
+        Sr, nr = run(S, z0)
         if not S.core.free:
             if nr.converged:
-                keep(S, nr, path)
+                keep(Sr, nr, path)
             else:
-                failed(S, nr, path)
+                failed(Sr, nr, path)
             return
         lo, hi = ocp.horizon_bounds  # type: ignore[misc]
-        T = S.horizon_of(nr.z)
+        T = Sr.horizon_of(nr.z)
         if nr.converged and lo <= T <= hi:
-            keep(S, nr, path)
+            keep(Sr, nr, path)
             return
         if nr.converged:
             reasons.append(
@@ -270,7 +295,7 @@ def solve_sequence(
                 "solved at the bounds"
             )
         else:
-            failed(S, nr, path)
+            failed(Sr, nr, path)
         _at_bounds(z0[:-1], path, T if nr.converged else S.T)
 
     def _at_bounds(z0: np.ndarray, path: str, near: float) -> None:
@@ -280,7 +305,7 @@ def solve_sequence(
         for bound in sorted({lo, hi}, key=lambda b: abs(b - near)):
             Sb = shooting_system(ocp.replace(horizon=bound), list(sequence), free=False)
             where = f"{path} at T = {bound:g}"
-            nr = run(Sb, z0)
+            Sb, nr = run(Sb, z0)
             if not nr.converged:
                 failed(Sb, nr, where)
                 continue

@@ -30,6 +30,14 @@ Terminal constraints and a free final time (DESIGN.md section 6)
     one of its bounds is solved with ``T`` fixed there
     (:func:`~hybridoc.reference.sequence.solve_sequence` checks the sign of ``H(T)``).
 
+Control bounds (DESIGN.md section 6)
+    ``u* = clip(argmin H, u_min, u_max)`` (a diagonal control weight). Each phase is split
+    into arcs (:data:`Arcs`) on which every component is free or saturated, each saturation
+    switch is an unknown time (after the terminal multipliers, before a free ``T``) with
+    ``argmin H_i = bound`` as its equation, and every arc has its own law and DOP853 steps,
+    so the kinks of the clip never fall inside a step. :func:`saturate` finds the arcs (an
+    active-set loop from an extremal of the clipped law).
+
 Compiled once per problem structure
     The initial state and the horizon are parameters of the compiled functions, so problems
     that differ only in their data (:meth:`hybridoc.HybridOCP.replace`, a sweep over initial
@@ -73,6 +81,7 @@ import math
 import sys
 import threading
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -85,6 +94,17 @@ from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
     "ACCURACY_SAFETY",
+    "SATURATION_ROUNDS",
+    "SATURATION_SAMPLES",
+    "SATURATION_TOL",
+    "Arcs",
+    "Mode",
+    "clip_mode",
+    "detect_arcs",
+    "free_mode",
+    "saturate",
+    "saturation_check",
+    "saturation_mismatch",
     "DEFAULT_RTOL",
     "MAX_SUBSTEPS",
     "SUBSTEPS",
@@ -236,33 +256,60 @@ def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
     return ca.Function("dop853_step", [x, h], [x + h * inc])
 
 
-class _Flow:
-    """What every sequence of one (non-disc) structure shares: ``u* = argmin H``, the
-    state-costate right-hand side, its DOP853 step, the guards, ``phi`` and the phase maps
-    of each number of steps."""
+Mode = tuple[tuple[float, float], ...]
+"""An arc's control law: per component the interval ``(lo, hi)`` that ``argmin H`` is clipped
+to: ``(-inf, inf)`` free, ``(c, c)`` saturated at ``c``, ``(u_min, u_max)`` clipped."""
+Arcs = tuple[tuple[Mode, ...], ...]
+"""Per phase (between events), its arcs' laws in time order; consecutive arcs of one phase
+differ in one component, at a saturation switch."""
 
-    def __init__(self, ocp: HybridOCP) -> None:
-        nx, nu = ocp.nx, ocp.nu
-        self.nx, self.nu = nx, nu
-        s = ca.SX.sym("s", nx)
-        lam = ca.SX.sym("lam", nx)
-        u = ca.SX.sym("u", nu)
-        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
-        Hu = ca.gradient(H, u)
-        Huu = ca.hessian(H, u)[0]
-        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+
+def free_mode(nu: int) -> Mode:
+    """The unconstrained law ``u* = argmin H`` of ``nu`` components."""
+    return ((-math.inf, math.inf),) * nu
+
+
+def clip_mode(ocp: HybridOCP) -> Mode:
+    """The problem's bounds as one law, ``u* = clip(argmin H, u_min, u_max)``."""
+    assert ocp.u_min is not None and ocp.u_max is not None
+    return tuple((float(a), float(b)) for a, b in zip(ocp.u_min, ocp.u_max, strict=True))
+
+
+class _Law:
+    """One control law of a structure (:data:`Mode`): ``u*``, ``H`` at ``u*``, the
+    state-costate right-hand side, its DOP853 step and the phase maps of each number of
+    steps."""
+
+    def __init__(self, fl: _Flow, mode: Mode) -> None:
+        s, lam, u, H = fl.s_sym, fl.lam_sym, fl.u_sym, fl.H_expr
+        nx = fl.nx
+        self.mode = mode
+        self.nx = nx
+        if all(lo == -math.inf and hi == math.inf for lo, hi in mode):
+            u_star = fl.u_unc_expr
+        else:
+            comps = []
+            for i, (lo, hi) in enumerate(mode):
+                ui = fl.u_unc_expr[i]
+                if lo == hi:
+                    ui = ca.SX(lo)
+                else:
+                    if lo > -math.inf:
+                        ui = ca.fmax(ui, lo)
+                    if hi < math.inf:
+                        ui = ca.fmin(ui, hi)
+                comps.append(ui)
+            u_star = ca.vertcat(*comps)
         self.u_star = ca.Function("u_star", [s, lam], [u_star])
-        self.H = ca.Function("H", [s, lam, u], [H])
         self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
-        self.f = ocp.f
         # costate flow -dH/ds at the minimising u (envelope theorem: partial at fixed u)
         dlam = -ca.substitute(ca.gradient(H, s), u, u_star)
         x = ca.vertcat(s, lam)
         # the running cost rides along as a last component that nothing depends on
         xj = ca.vertcat(x, ca.SX.sym("j"))
-        rhs = ca.vertcat(ocp.f(s, u_star), dlam, ocp.L(s, u_star))
+        rhs = ca.vertcat(fl.f(s, u_star), dlam, fl.L(s, u_star))
         self.rhs = ca.Function("hmp_rhs", [xj], [rhs])
-        self.polynomial = _nilpotent_linear(ca.vertcat(ocp.f(s, u_star), dlam), x)
+        self.polynomial = _nilpotent_linear(ca.vertcat(fl.f(s, u_star), dlam), x)
         self.start_steps = SUBSTEPS_POLYNOMIAL if self.polynomial else SUBSTEPS
         self.width = 2 * nx + 1  # s, lambda and the running cost
         self.step = dop853_step(self.rhs, self.width)
@@ -272,16 +319,6 @@ class _Flow:
         se, le = xe[:nx], xe[nx : 2 * nx]
         self.dense = ca.Function("hmp_dense", [xn, tau], [se, le, self.u_star(se, le)])
         self.dense_u = ca.Function("hmp_dense_u", [xn, tau], [self.u_star(se, le)])
-        self.guards = []
-        for j, g in enumerate(ocp.guards):
-            psi = g.psi(s)
-            gs = g.reset(s)
-            self.guards.append(
-                ca.Function(f"ev{j}", [s], [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
-            )
-        phi = ocp.phi(s)
-        self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
-        self.terminal = _terminal_fn(ocp, s)
         self._maps: dict[int, tuple[ca.Function, ca.Function]] = {}
 
     def _steps(self, n: int) -> tuple[ca.Function, ca.Function]:
@@ -312,6 +349,58 @@ class _Flow:
     def nodes(self, n: int) -> ca.Function:
         """``(s0, lambda0, h) -> (2 nx + 1, n + 1)``: the ``n`` steps' nodes (dense output)."""
         return self._steps(n)[1]
+
+
+class _Flow:
+    """What every sequence of one (non-disc) structure shares: ``argmin H``, the guards,
+    ``phi`` and a :class:`_Law` per control law met (the unconstrained one's attributes are
+    the flow's own: ``u_star``, ``H_star``, ``rhs``, ``step``, ``dense``, ``phase(n)``, ...)."""
+
+    def __init__(self, ocp: HybridOCP) -> None:
+        nx, nu = ocp.nx, ocp.nu
+        self.nx, self.nu = nx, nu
+        s = ca.SX.sym("s", nx)
+        lam = ca.SX.sym("lam", nx)
+        u = ca.SX.sym("u", nu)
+        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
+        Hu = ca.gradient(H, u)
+        Huu = ca.hessian(H, u)[0]
+        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+        self.s_sym, self.lam_sym, self.u_sym, self.H_expr = s, lam, u, H
+        self.u_unc_expr = u_star
+        self.u_unc = ca.Function("u_unc", [s, lam], [u_star])
+        self.H = ca.Function("H", [s, lam, u], [H])
+        self.f = ocp.f
+        self.L = ocp.L
+        self._laws: dict[Mode, _Law] = {}
+        free = self.law(free_mode(nu))
+        self.u_star, self.H_star = free.u_star, free.H_star
+        self.rhs, self.polynomial, self.start_steps = free.rhs, free.polynomial, free.start_steps
+        self.width, self.step, self.dense, self.dense_u = (
+            free.width, free.step, free.dense, free.dense_u
+        )  # fmt: skip
+        self.phase, self.nodes = free.phase, free.nodes
+        self.guards = []
+        for j, g in enumerate(ocp.guards):
+            psi = g.psi(s)
+            gs = g.reset(s)
+            self.guards.append(
+                ca.Function(f"ev{j}", [s], [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
+            )
+        phi = ocp.phi(s)
+        self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
+        self.terminal = _terminal_fn(ocp, s)
+
+    def law(self, mode: Mode) -> _Law:
+        """The :class:`_Law` of ``mode``, built once."""
+        mode = tuple((float(lo), float(hi)) for lo, hi in mode)
+        law = self._laws.get(mode)
+        if law is None:
+            with _LOCK:
+                law = self._laws.get(mode)
+                if law is None:
+                    law = self._laws[mode] = _Law(self, mode)
+        return law
 
 
 def _terminal_fn(ocp: HybridOCP, s: Any) -> ca.Function | None:
@@ -351,7 +440,9 @@ def _flow(ocp: HybridOCP) -> _Flow:
 class _CoreBase:
     """The unknowns of one (structure, sequence) and their layout."""
 
-    def __init__(self, ocp: HybridOCP, sequence: list[str], free: bool = False) -> None:
+    def __init__(
+        self, ocp: HybridOCP, sequence: list[str], free: bool = False, arcs: Arcs | None = None
+    ) -> None:
         names = [g.name for g in ocp.guards]
         unknown = [s for s in sequence if s not in names]
         if unknown:
@@ -367,6 +458,15 @@ class _CoreBase:
         self.levels: tuple[int, ...] | None = None
         self.m_eq, self.m_in = terminal_sizes(ocp)
         self.free = bool(free)
+        if arcs is None:
+            arcs = (((free_mode(ocp.nu)),),) * (self.K + 1)
+        self.arcs: Arcs = arcs
+        # per phase, (arc, component, value) of each saturation switch, in time order
+        self.switches: list[list[tuple[int, int, float]]] = [
+            [_switch_of(a, b, k, j) for j, (a, b) in enumerate(zip(p[:-1], p[1:], strict=True))]
+            for k, p in enumerate(arcs)
+        ]
+        self.n_switch = sum(len(w) for w in self.switches)
         self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
 
@@ -397,7 +497,35 @@ class _CoreBase:
     @property
     def nz(self) -> int:
         """Number of unknowns."""
-        return self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + int(self.free)
+        return (
+            self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + self.n_switch
+            + int(self.free)
+        )  # fmt: skip
+
+    def unpack_switches(self, z: Any) -> list[list[Any]]:
+        """Per phase, its saturation switch times (absolute), in time order."""
+        o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
+        out = []
+        for w in self.switches:
+            out.append([z[o + i] for i in range(len(w))])
+            o += len(w)
+        return out
+
+    def with_switches(self, z_base: np.ndarray, times: Sequence[Sequence[float]]) -> np.ndarray:
+        """``z`` of this core from a point of the same sequence without saturation switches
+        (``z_base``: multipliers, costates, terminal multipliers and a free ``T``) and the
+        switch times per phase."""
+        z_base = np.asarray(z_base, dtype=float)
+        o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
+        flat = [float(t) for w in times for t in w]
+        if len(flat) != self.n_switch:
+            raise ValueError(f"{self.n_switch} switch times expected, got {len(flat)}")
+        return np.concatenate([z_base[:o], flat, z_base[o:]])
+
+    def strip_switches(self, z: np.ndarray) -> np.ndarray:
+        """The point without its switch times (:meth:`with_switches`'s ``z_base``)."""
+        o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
+        return np.concatenate([z[:o], z[o + self.n_switch :]])
 
     def horizon(self, z: Any, T: Any) -> Any:
         """The final time at ``z``: its last entry when free, else the parameter ``T``."""
@@ -437,6 +565,8 @@ class _CoreBase:
             parts += [[float(gam[k]), float(pis[k])], np.asarray(lps[k], float).ravel()]
         parts.append(np.zeros(self.m_eq) if nu is None else np.asarray(nu, float).ravel())
         parts.append(np.zeros(self.m_in) if mu is None else np.asarray(mu, float).ravel())
+        if self.n_switch:
+            raise ValueError("a point with saturation switches is made by with_switches()")
         if self.free:
             if T is None:
                 raise ValueError("a free final time needs its value in pack(T=...)")
@@ -456,25 +586,41 @@ class _CoreBase:
         t: Any = 0.0
         res = []
         starts, s_starts, l_starts, costs, s_minus, l_minus, rates = [], [], [], [], [], [], []
+        sig = self.unpack_switches(z)
+        switch_res: list[Any] = []
+
+        def arcs_of(k: int, s: Any, lam: Any, t0: Any, t1: Any) -> tuple[Any, Any, Any]:
+            # the phase's arcs, with the switching condition u_unc_i = value at each switch
+            ends = [t0, *sig[k], t1]
+            J: Any = 0
+            for j in range(len(self.arcs[k])):
+                if j:
+                    _, i, value = self.switches[k][j - 1]
+                    switch_res.append(self.u_unc(s, lam)[i] - value)
+                s, lam, Jj = phase(k, j, s, lam, ends[j + 1] - ends[j])
+                J = Jj if j == 0 else J + Jj
+            return s, lam, J
+
         for k in range(self.K):
             starts.append(t)
             s_starts.append(s)
             l_starts.append(lam)
-            sm, lm, J = phase(k, s, lam, gam[k] - t)
+            sm, lm, J = arcs_of(k, s, lam, t, gam[k])
             costs.append(J)
             psi, gpsi, sp, Dg = self.guard_fns[k](sm)
             lp = lps[k]
+            before, after = self.law_at(k, -1), self.law_at(k + 1, 0)
             res.append(psi)
             res.append(lm - ca.mtimes(Dg.T, lp) - pis[k] * gpsi)
-            res.append(self.H_star(sm, lm) - self.H_star(sp, lp))
+            res.append(before.H_star(sm, lm) - after.H_star(sp, lp))
             s_minus.append(sm)
             l_minus.append(lm)
-            rates.append(ca.dot(gpsi, ocp.f(sm, self.u_star(sm, lm))))
+            rates.append(ca.dot(gpsi, ocp.f(sm, before.u_star(sm, lm))))
             s, lam, t = sp, lp, gam[k]
         starts.append(t)
         s_starts.append(s)
         l_starts.append(lam)
-        sT, lT, J = phase(self.K, s, lam, T - t)
+        sT, lT, J = arcs_of(self.K, s, lam, t, T)
         costs.append(J)
         phiT, gphi = self.phi(sT)
         if self.terminal is None:
@@ -486,7 +632,8 @@ class _CoreBase:
             res.insert(0, lT - gphi + ca.mtimes(D_eq.T, nu) + ca.mtimes(D_in.T, mu))
             res.append(h_eq)
             res.append(fischer_burmeister(mu, h_in))
-        H_T = self.H_star(sT, lT)
+        H_T = self.law_at(self.K, -1).H_star(sT, lT)
+        res += switch_res
         if self.free:
             res.append(H_T)
         R = ca.vertcat(*res)
@@ -513,6 +660,10 @@ class _CoreBase:
             ],
         )
         return F, traj
+
+    def law_at(self, k: int, j: int) -> Any:
+        """The law (``u_star``, ``H_star``) of arc ``j`` of phase ``k``."""
+        return self  # disc scenes: one law
 
 
 class _DiscPieces:
@@ -587,55 +738,149 @@ class _DiscCore(_CoreBase):
         return s1, lam1, J
 
     def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
-        return self._assemble(ocp, lambda k, s, lam, h: self.phase(s, lam, h), ca.SX)
+        return self._assemble(ocp, lambda k, j, s, lam, h: self.phase(s, lam, h), ca.SX)
 
 
 class _FlowCore(_CoreBase):
-    """Other problems: one (structure, sequence, steps per phase); the phases are the
-    structure's DOP853 maps (:class:`_Flow`), composed in MX."""
+    """Other problems: one (structure, sequence, arcs, steps per arc); the arcs are the
+    structure's DOP853 maps of their laws (:class:`_Law`), composed in MX."""
 
     def __init__(
-        self, ocp: HybridOCP, sequence: list[str], levels: tuple[int, ...], free: bool = False
+        self,
+        ocp: HybridOCP,
+        sequence: list[str],
+        levels: tuple[int, ...],
+        free: bool = False,
+        arcs: Arcs | None = None,
     ) -> None:
-        super().__init__(ocp, sequence, free)
+        super().__init__(ocp, sequence, free, arcs)
+        self.disc = False  # a disc scene with active bounds takes the generic flow
         fl = _flow(ocp)
-        self.flow = fl
-        if len(levels) != self.K + 1 or any(int(n) < 1 for n in levels):
-            raise ValueError(f"steps per phase: {self.K + 1} positive integers, got {levels}")
-        self.levels = tuple(int(n) for n in levels)
+        self.fl = fl
+        self.n_arcs = sum(len(p) for p in self.arcs)
+        if len(levels) != self.n_arcs or any(int(n) < 1 for n in levels):
+            raise ValueError(f"steps per arc: {self.n_arcs} positive integers, got {levels}")
+        self.arc_levels = tuple(int(n) for n in levels)
+        # per phase: the steps of its arcs together (the uniform grid of its dense output)
+        self.levels = []
+        self._arc_index: list[list[int]] = []
+        i = 0
+        for p in self.arcs:
+            self._arc_index.append(list(range(i, i + len(p))))
+            self.levels.append(sum(self.arc_levels[i : i + len(p)]))
+            i += len(p)
+        self.levels = tuple(self.levels)
+        self.laws = [[fl.law(m) for m in p] for p in self.arcs]
+        # the dense output's law: the problem's clip, right on every arc of a consistent
+        # extremal (the unconstrained flow itself without bounds)
+        self.flow: Any = fl.law(clip_mode(ocp)) if ocp.has_bounds else fl
         self.u_star, self.H, self.H_star, self.f = fl.u_star, fl.H, fl.H_star, fl.f
+        self.u_unc = fl.u_unc
         self.rhs, self.polynomial, self.phi = fl.rhs, fl.polynomial, fl.phi
         self.terminal = fl.terminal
         self.guard_fns = [fl.guards[j] for j in self.guard_index]
 
+    def law_at(self, k: int, j: int) -> Any:
+        return self.laws[k][j]
+
     def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
-        fl = self.flow
-        return self._assemble(ocp, lambda k, s, lam, h: fl.phase(self.levels[k])(s, lam, h), ca.MX)
+        def phase(k: int, j: int, s: Any, lam: Any, h: Any) -> Any:
+            return self.laws[k][j].phase(self.arc_levels[self._arc_index[k][j]])(s, lam, h)
+
+        return self._assemble(ocp, phase, ca.MX)
+
+    def arc_lengths(self, starts: np.ndarray, T: float, switches: Any) -> list[list[float]]:
+        """Per phase, the lengths of its arcs."""
+        ends = np.append(np.asarray(starts, dtype=float).ravel(), float(T))
+        out = []
+        for k in range(self.K + 1):
+            cuts = [float(ends[k]), *[float(t) for t in switches[k]], float(ends[k + 1])]
+            out.append(list(np.diff(cuts)))
+        return out
+
+    def switch_values(self, z: np.ndarray) -> list[list[float]]:
+        """Per phase, the switch times of ``z`` as floats."""
+        return [[float(t) for t in w] for w in self.unpack_switches(np.asarray(z, dtype=float))]
 
     def phase_errors(
         self, z: np.ndarray, x0: np.ndarray, T: float
     ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-        """Per phase, the step-doubling estimate of the error it makes in the cost.
+        """Per arc, the step-doubling estimate of the error it makes in the cost.
 
         Returns
         -------
         errors, cost, starts, states, costates
-            ``|J_n - J_2n| + |lambda_end| . |s_n - s_2n|`` of each phase from its start,
-            the shooting cost, and the phase starts, states and costates.
+            ``|J_n - J_2n| + |lambda_end| . |s_n - s_2n|`` of each arc from its start (one
+            arc per phase without saturation switches), the shooting cost, and the phase
+            starts, states and costates.
         """
         out = [np.asarray(x) for x in self.traj(z, x0, T)]
         starts, s0, l0 = out[0].ravel(), out[1], out[2]
         cost = float(out[4].item()) + float(out[5].item())
-        lengths = np.diff(np.append(starts, float(out[11].item())))
-        errors = np.zeros(self.K + 1)
-        for k, n in enumerate(self.levels):
-            a = [np.asarray(v).ravel() for v in self.flow.phase(n)(s0[:, k], l0[:, k], lengths[k])]
-            b = [
-                np.asarray(v).ravel()
-                for v in self.flow.phase(2 * n)(s0[:, k], l0[:, k], lengths[k])
-            ]
-            errors[k] = abs(float(a[2][0] - b[2][0])) + float(np.abs(b[1]) @ np.abs(a[0] - b[0]))
+        lengths = self.arc_lengths(starts, float(out[11].item()), self.switch_values(z))
+        errors = np.zeros(self.n_arcs)
+        for k in range(self.K + 1):
+            s, lam = s0[:, k], l0[:, k]
+            for j, law in enumerate(self.laws[k]):
+                i = self._arc_index[k][j]
+                n, h = self.arc_levels[i], lengths[k][j]
+                a = [np.asarray(v).ravel() for v in law.phase(n)(s, lam, h)]
+                b = [np.asarray(v).ravel() for v in law.phase(2 * n)(s, lam, h)]
+                errors[i] = abs(float(a[2][0] - b[2][0])) + float(
+                    np.abs(b[1]) @ np.abs(a[0] - b[0])
+                )
+                s, lam = a[0], a[1]
         return errors, cost, starts, s0, l0
+
+    def phase_nodes(
+        self,
+        states: np.ndarray,
+        costates: np.ndarray,
+        lengths: list[list[float]],
+        counts: Sequence[int],
+    ) -> list[np.ndarray]:
+        """Per phase, ``counts[k] + 1`` equally spaced nodes ``(s, lambda, running cost)``
+        from its start state and costate through its arcs (``lengths``): the compiled map
+        on a phase of one arc, else DOP853 steps that stop at each switch."""
+        out = []
+        for k in range(self.K + 1):
+            n = int(counts[k])
+            laws = self.laws[k]
+            if len(laws) == 1:
+                out.append(
+                    np.asarray(laws[0].nodes(n)(states[k], costates[k], lengths[k][0])).T.copy()
+                )
+                continue
+            h = sum(lengths[k]) / n
+            cuts = np.cumsum(lengths[k])[:-1]
+            x = np.concatenate([states[k], costates[k], [0.0]])
+            rows = [x.copy()]
+            t, j = 0.0, 0
+            for i in range(1, n + 1):
+                target = i * h
+                while j < len(cuts) and cuts[j] < target:
+                    x = np.asarray(laws[j].step(x, cuts[j] - t)).ravel()
+                    t, j = float(cuts[j]), j + 1
+                x = np.asarray(laws[j].step(x, target - t)).ravel()
+                t = target
+                rows.append(x.copy())
+            out.append(np.array(rows))
+        return out
+
+
+def _switch_of(a: Mode, b: Mode, k: int, j: int) -> tuple[int, int, float]:
+    """``(arc, component, value)`` of the saturation switch from law ``a`` to law ``b``."""
+    diff = [i for i, (p, q) in enumerate(zip(a, b, strict=True)) if p != q]
+    if len(diff) != 1:
+        raise ValueError(f"arcs {j} and {j + 1} of phase {k} must differ in one control")
+    i = diff[0]
+    p, q = a[i], b[i]
+    ends = [m[0] for m in (p, q) if m[0] == m[1]]
+    if len(ends) != 1:
+        raise ValueError(
+            f"phase {k}, control {i}: a switch joins a saturated and a free arc, got {p} -> {q}"
+        )
+    return j, i, float(ends[0])
 
 
 class _DiscNLP:
@@ -830,14 +1075,31 @@ class ShootingSystem:
         if not self.core.free:
             return self, z
         ocp = self.ocp.replace(horizon=self.horizon_of(z))
-        levels = None if self.disc else self.core.levels
-        return ShootingSystem(ocp, self.sequence, _core(ocp, self.sequence, levels, False)), z[:-1]
+        levels, arcs = self._spec()
+        core = _core(ocp, self.sequence, levels, False, arcs)
+        return ShootingSystem(ocp, self.sequence, core), z[:-1]
 
     def with_free(self, T: float | None = None) -> ShootingSystem:
         """The free-final-time system of the same sequence and steps (problem at ``T``)."""
         ocp = self.ocp if T is None else self.ocp.replace(horizon=float(T))
-        levels = None if self.disc else self.core.levels
-        return ShootingSystem(ocp, self.sequence, _core(ocp, self.sequence, levels, True))
+        levels, arcs = self._spec()
+        return ShootingSystem(ocp, self.sequence, _core(ocp, self.sequence, levels, True, arcs))
+
+    def _spec(self) -> tuple[tuple[int, ...] | None, Arcs | None]:
+        """``(steps per arc, arcs)`` that rebuild this system's core (``None`` for disc)."""
+        if self.disc:
+            return None, None
+        return self.core.arc_levels, self.core.arcs
+
+    @property
+    def spec(self) -> tuple[tuple[int, ...] | None, Arcs | None]:
+        """What :func:`shooting_system` needs besides the problem and the sequence to
+        rebuild this system: ``(levels, arcs)`` (``(None, None)`` for a disc scene)."""
+        return self._spec()
+
+    def switch_times(self, z: np.ndarray) -> list[list[float]]:
+        """Per phase, the saturation switch times of ``z`` (empty lists without them)."""
+        return [[float(t) for t in w] for w in self.core.unpack_switches(np.asarray(z, float))]
 
     def __getattr__(self, name: str) -> Any:
         # the core's compiled pieces (sequence, K, nx, nu, disc, levels, A, eps, guard_fns,
@@ -855,8 +1117,11 @@ class ShootingSystem:
         return _residual_and_jacobian(_Bound(self), z)
 
     def traj(self, z: np.ndarray) -> list[np.ndarray]:
-        """Phase starts, states, costates, costs and the end state of a point ``z``."""
-        return [np.asarray(x) for x in self.core.traj(z, self.x0, self.T)]
+        """Phase starts, states, costates, costs and the end state of a point ``z``
+        (:meth:`nodes` then follows its saturation switches)."""
+        out = [np.asarray(x) for x in self.core.traj(z, self.x0, self.T)]
+        self._switches = self.switch_times(z)
+        return out
 
     def phase_errors(self, z: np.ndarray) -> tuple[np.ndarray, float]:
         """Per phase, the estimated error the integration makes in the cost (step doubling,
@@ -877,17 +1142,42 @@ class ShootingSystem:
         """Generic problems: the nodes ``(n_k + 1, 2 nx + 1)`` of each phase's steps, from the
         phase starts, states and costates (``(K + 1,)``, ``(K + 1, nx)`` twice), up to the
         final time ``T`` (default :attr:`T`)."""
+        return self.sample(starts, states, costates, self.core.levels, T)
+
+    def sample(
+        self,
+        starts: np.ndarray,
+        states: np.ndarray,
+        costates: np.ndarray,
+        counts: Sequence[int],
+        T: float | None = None,
+        switches: Sequence[Sequence[float]] | None = None,
+    ) -> list[np.ndarray]:
+        """Generic problems: ``counts[k] + 1`` equally spaced nodes of each phase (as
+        :meth:`nodes`), through the saturation switches ``switches`` (default: those of the
+        last :meth:`traj`)."""
         end = self.T if T is None else float(T)
-        lengths = np.diff(np.append(np.asarray(starts, dtype=float), end))
-        fl = self.core.flow
-        return [
-            np.asarray(fl.nodes(n)(states[k], costates[k], lengths[k])).T.copy()
-            for k, n in enumerate(self.core.levels)
-        ]
+        if switches is None:
+            switches = getattr(self, "_switches", None)
+            if switches is None or len(switches) != self.K + 1:
+                switches = [[]] * (self.K + 1)
+        lengths = self.core.arc_lengths(starts, end, switches)
+        return self.core.phase_nodes(states, costates, lengths, counts)
+
+    @property
+    def arc_levels(self) -> tuple[int, ...]:
+        """Generic problems: the DOP853 steps of each arc (phase-major)."""
+        return self.core.arc_levels
 
     def with_levels(self, levels: tuple[int, ...]) -> ShootingSystem:
-        """The same system with other numbers of steps per phase (generic problems)."""
-        core = _core(self.ocp, self.sequence, levels, self.core.free)
+        """The same system with other numbers of steps per arc (generic problems; one arc
+        per phase without saturation switches)."""
+        core = _core(self.ocp, self.sequence, levels, self.core.free, self.core.arcs)
+        return ShootingSystem(self.ocp, self.sequence, core)
+
+    def with_arcs(self, arcs: Arcs, levels: tuple[int, ...] | None = None) -> ShootingSystem:
+        """The same sequence and final-time mode with other arcs (generic flow)."""
+        core = _core(self.ocp, self.sequence, levels, self.core.free, arcs)
         return ShootingSystem(self.ocp, self.sequence, core)
 
     def solve_nlp(
@@ -953,16 +1243,33 @@ def _nilpotent_linear(rhs: Any, x: Any) -> bool:
     return bool(np.allclose(P, 0.0, atol=1e-12 * max(1.0, float(np.abs(Mn).max()) ** 4)))
 
 
-def _core(ocp: HybridOCP, sequence: list[str], levels: Any, free: bool | None = None) -> Any:
-    """The compiled core of ``(structure, sequence)`` (and steps per phase, and whether the
-    final time is an unknown: default, whether the problem's is free), shared."""
-    disc = is_disc_scene(ocp)
+def _core(
+    ocp: HybridOCP,
+    sequence: list[str],
+    levels: Any,
+    free: bool | None = None,
+    arcs: Arcs | None = None,
+) -> Any:
+    """The compiled core of ``(structure, sequence)`` (and steps per arc, whether the final
+    time is an unknown: default, whether the problem's is free, and the arcs: default one
+    per phase under the problem's bounds), shared."""
+    # levels name a generic flow: a disc scene's extremal with active bounds (the
+    # closed-form phases have no saturation)
+    disc = is_disc_scene(ocp) and arcs is None and (levels is None or not ocp.has_bounds)
     free = ocp.free_horizon if free is None else bool(free)
-    if not disc and levels is None:
-        levels = _LEVELS.get(ocp.structure, {}).get(tuple(sequence))
+    if not disc:
+        if arcs is None:
+            mode = clip_mode(ocp) if ocp.has_bounds else free_mode(ocp.nu)
+            arcs = ((mode,),) * (len(sequence) + 1)
+        arcs = tuple(tuple(tuple((float(a), float(b)) for a, b in m) for m in p) for p in arcs)
+        if len(arcs) != len(sequence) + 1:
+            raise ValueError(f"arcs: one tuple per phase ({len(sequence) + 1}), got {len(arcs)}")
         if levels is None:
-            levels = (_flow(ocp).start_steps,) * (len(sequence) + 1)
-    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free)
+            levels = _LEVELS.get(ocp.structure, {}).get((tuple(sequence), arcs))
+        if levels is None:
+            fl = _flow(ocp)
+            levels = tuple(fl.law(m).start_steps for p in arcs for m in p)
+    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free, arcs)
     cores = _CORES.setdefault(ocp.structure, {})
     core = cores.get(key)
     if core is None:
@@ -972,7 +1279,7 @@ def _core(ocp: HybridOCP, sequence: list[str], levels: Any, free: bool | None = 
                 core = (
                     _DiscCore(ocp, list(sequence))
                     if disc
-                    else _FlowCore(ocp, list(sequence), key[1], free)
+                    else _FlowCore(ocp, list(sequence), key[1], free, arcs)
                 )
                 cores[key] = core
     return core
@@ -984,6 +1291,7 @@ def shooting_system(
     levels: tuple[int, ...] | None = None,
     *,
     free: bool | None = None,
+    arcs: Arcs | None = None,
 ) -> ShootingSystem:
     """The system for ``(ocp, sequence)``; the compiled core is shared by every problem with
     the same structure.
@@ -1000,8 +1308,14 @@ def shooting_system(
         Whether the final time is an unknown (its guess ``ocp.horizon``); default: whether
         ``ocp`` has a free final time. ``False`` on such a problem solves it at
         ``ocp.horizon`` (a final time at its bound, or an extremal already found).
+    arcs
+        The control law of each arc of each phase (:data:`Arcs`, saturation switches
+        between arcs as unknowns); ``levels`` then counts steps per arc. Default: one arc
+        per phase, ``u* = clip(argmin H, u_min, u_max)`` (``argmin H`` without bounds), and
+        a disc scene's closed-form phases.
     """
-    return ShootingSystem(ocp, list(sequence), _core(ocp, list(sequence), levels, free))
+    core = _core(ocp, list(sequence), levels, free, arcs)
+    return ShootingSystem(ocp, list(sequence), core)
 
 
 @dataclass
@@ -1063,11 +1377,11 @@ def refine(
         scale = max(abs(cost), 1e-300)
         estimate = float(np.sum(errors)) / scale
         target = ACCURACY_SAFETY * rtol * scale
-        levels = tuple(S.levels)
+        levels = tuple(S.arc_levels)
         if not np.all(np.isfinite(errors)):
             return Refinement(S, nr, math.inf, "the integration error estimate is not finite")
         if float(np.sum(errors)) <= target:
-            _LEVELS.setdefault(S.ocp.structure, {})[tuple(S.sequence)] = levels
+            _LEVELS.setdefault(S.ocp.structure, {})[tuple(S.sequence), S.core.arcs] = levels
             return Refinement(S, nr, estimate)
         share = target / len(errors)
         new = list(levels)
@@ -1175,3 +1489,219 @@ def newton(
         and (not times.size or (times[0] > 0 and times[-1] < T))
     )
     return NewtonResult(z, norm, it, bool(norm <= tol and ordered), hist)
+
+
+# ------------------------------------------------------------------------- saturation
+SATURATION_SAMPLES = 128
+"""Equally spaced samples per phase on which :func:`detect_arcs` reads ``argmin H`` against
+the bounds (an arc shorter than their spacing is found by a later round, when the extremal
+of the arcs found shows it)."""
+SATURATION_ROUNDS = 6
+"""The most active-set rounds of :func:`saturate` (arcs found, extremal solved, checked)."""
+SATURATION_TOL = 1e-7
+"""How far, relative to ``1 + max |bound|``, ``argmin H`` may lie on the wrong side of a
+bound on an arc before the arcs are wrong (rounding at the switches is far below it)."""
+
+
+def saturation_check(ocp: HybridOCP) -> str | None:
+    """``None`` when the reference can take ``u* = clip(argmin H, u_min, u_max)`` (no
+    bounds, or a diagonal control weight ``d2H/du2``: then the clip is the box-constrained
+    minimum), else the reason."""
+    if not ocp.has_bounds or ocp.nu == 1:
+        return None
+    s, lam, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("lam", ocp.nx), ca.SX.sym("u", ocp.nu)
+    Huu = ca.hessian(ocp.L(s, u) + ca.dot(lam, ocp.f(s, u)), u)[0]
+    try:
+        W = np.asarray(ca.evalf(Huu), dtype=float)
+    except RuntimeError:
+        return "the control weight d2L/du2 is not a constant matrix"
+    if np.any(np.abs(W - np.diag(np.diag(W))) > 1e-14 * np.abs(W).max()):
+        return (
+            "the reference handles control bounds for a diagonal control weight d2L/du2 only "
+            "(then u* = clip(argmin H) is exact); use method 'dt'"
+        )
+    return None
+
+
+def _bound_scale(ocp: HybridOCP) -> float:
+    assert ocp.u_min is not None and ocp.u_max is not None
+    finite = np.concatenate([ocp.u_min[np.isfinite(ocp.u_min)], ocp.u_max[np.isfinite(ocp.u_max)]])
+    return 1.0 + float(np.abs(finite).max(initial=0.0))
+
+
+def _samples(
+    S: ShootingSystem, z: np.ndarray, samples: int
+) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, float]:
+    """Per phase, sample times and ``argmin H`` there ``(n + 1, nu)``; phase starts; ``T``."""
+    out = S.traj(z)
+    starts, s0, l0 = out[0].ravel(), out[1].T, out[2].T
+    T = float(out[11].item())
+    nodes = S.sample(starts, s0, l0, [samples] * (S.K + 1), T, S.switch_times(z))
+    fl = _flow(S.ocp)
+    nx = S.nx
+    ends = np.append(starts, T)
+    times, U = [], []
+    for k, X in enumerate(nodes):
+        n = X.shape[0] - 1
+        times.append(ends[k] + (ends[k + 1] - ends[k]) * np.arange(n + 1) / n)
+        U.append(np.asarray(fl.u_unc.map(n + 1)(X[:, :nx].T, X[:, nx : 2 * nx].T)).T)
+    return times, U, starts, T
+
+
+def saturation_mismatch(
+    S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAMPLES
+) -> float:
+    """The largest inconsistency of ``S``'s arcs at ``z``, relative to ``1 + max |bound|``:
+    on a free arc ``argmin H`` outside the bounds, on a saturated arc inside them."""
+    ocp = S.ocp
+    assert ocp.u_min is not None and ocp.u_max is not None
+    times, U, _, _ = _samples(S, z, samples)
+    sw = S.switch_times(z)
+    worst = 0.0
+    for k in range(S.K + 1):
+        arcs = S.core.arcs[k]
+        j = np.searchsorted(np.asarray(sw[k]), times[k], side="right")
+        for i in range(times[k].size):
+            mode = arcs[int(j[i])]
+            for c, (lo, hi) in enumerate(mode):
+                u = float(U[k][i, c])
+                if lo == hi:
+                    wrong = (ocp.u_max[c] - u) if lo == ocp.u_max[c] else (u - ocp.u_min[c])
+                else:
+                    wrong = max(ocp.u_min[c] - u, u - ocp.u_max[c])
+                worst = max(worst, wrong)
+    return worst / _bound_scale(ocp)
+
+
+def detect_arcs(
+    S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAMPLES
+) -> tuple[Arcs, list[list[float]]]:
+    """The arcs that ``u* = clip(argmin H)`` takes along the extremal ``(S, z)`` and their
+    switch times, interpolated linearly between ``samples + 1`` samples per phase."""
+    ocp = S.ocp
+    assert ocp.u_min is not None and ocp.u_max is not None
+    lo, hi = ocp.u_min, ocp.u_max
+    times, U, _, _ = _samples(S, z, samples)
+
+    def mode_of(cls: np.ndarray) -> Mode:
+        return tuple(
+            (-math.inf, math.inf) if c == 0 else (float(hi[i]), float(hi[i]))
+            if c > 0 else (float(lo[i]), float(lo[i]))
+            for i, c in enumerate(cls)
+        )  # fmt: skip
+
+    arcs: list[tuple[Mode, ...]] = []
+    switches: list[list[float]] = []
+    for t, Uk in zip(times, U, strict=True):
+        cls = np.where(Uk > hi, 1, np.where(Uk < lo, -1, 0))
+        cur = cls[0].copy()
+        modes, sw = [mode_of(cur)], []
+        for i in range(1, t.size):
+            if np.array_equal(cls[i], cur):
+                continue
+            events = []
+            for c in np.nonzero(cls[i] != cur)[0]:
+                a, b = int(cur[c]), int(cls[i][c])
+                path = [a, 0, b] if a * b == -1 else [a, b]
+                for p, q in zip(path[:-1], path[1:], strict=False):
+                    bound = hi[c] if 1 in (p, q) else lo[c]
+                    f0, f1 = Uk[i - 1, c] - bound, Uk[i, c] - bound
+                    frac = f0 / (f0 - f1) if f0 != f1 else 1.0
+                    events.append((t[i - 1] + (t[i] - t[i - 1]) * frac, int(c), q))
+            for tt, c, q in sorted(events):
+                cur[c] = q
+                modes.append(mode_of(cur))
+                sw.append(float(tt))
+        arcs.append(tuple(modes))
+        switches.append(sw)
+    return tuple(arcs), switches
+
+
+def saturate(
+    S: ShootingSystem, nr: NewtonResult, *, tol: float = 1e-10, verbose: bool = False
+) -> tuple[ShootingSystem, NewtonResult, str]:
+    """The extremal with control bounds from a converged point of a system without
+    saturation switches (``u* = clip(argmin H)`` on one arc per phase, or a disc scene's
+    unconstrained phases).
+
+    An active-set loop: the arcs where ``argmin H`` lies beyond a bound are read off the
+    extremal (:func:`detect_arcs`), each saturation switch becomes an unknown time with
+    ``argmin H_i = bound`` as its equation, Newton solves the system of those arcs, and
+    the arcs are checked against ``argmin H`` along the new extremal
+    (:func:`saturation_mismatch`); at most :data:`SATURATION_ROUNDS` rounds. Within each arc
+    the law is smooth, so the DOP853 steps keep their order.
+
+    Returns
+    -------
+    system, newton, reason
+        The system of the arcs found and Newton's point on it; ``reason`` is empty unless
+        no consistent arcs were found. Without bounds, or a disc scene's extremal inside
+        them, the input.
+    """
+    ocp = S.ocp
+    if not ocp.has_bounds:
+        return S, nr, ""
+    if S.disc:
+        if ocp.bound_violation(_disc_control_range(S, nr.z)) <= 0.0:
+            return S, nr, ""
+        clip = ((clip_mode(ocp),),) * (S.K + 1)
+        S = S.with_arcs(clip)
+        nr = newton(S, nr.z, tol=tol, verbose=verbose)
+        if not nr.converged:
+            return S, nr, f"Newton with the clipped control: residual {nr.residual:.2e}"
+    seen: set[Arcs] = set()
+    for _ in range(SATURATION_ROUNDS):
+        arcs, switches = detect_arcs(S, nr.z)
+        if arcs == S.core.arcs:
+            return S, nr, ""
+        if arcs in seen:
+            return S, nr, "the saturated arcs cycle between patterns"
+        seen.add(arcs)
+        new = S.with_arcs(arcs)
+        z0 = new.core.with_switches(S.core.strip_switches(nr.z), switches)
+        if verbose:
+            print(f"  saturation {S.sequence}: arcs {_arcs_text(arcs)}", file=sys.stderr)
+        nr_new = newton(new, z0, tol=tol, verbose=verbose)
+        if not nr_new.converged:
+            return (
+                new,
+                nr_new,
+                f"Newton on the saturated arcs {_arcs_text(arcs)}: residual {nr_new.residual:.2e}",
+            )
+        bad = _switch_order(new, nr_new.z)
+        if bad:
+            return new, nr_new, bad
+        S, nr = new, nr_new
+        if saturation_mismatch(S, nr.z) <= SATURATION_TOL:
+            return S, nr, ""
+    return S, nr, f"no consistent saturated arcs after {SATURATION_ROUNDS} rounds"
+
+
+def _switch_order(S: ShootingSystem, z: np.ndarray) -> str:
+    """Empty when every switch lies inside its phase, in order; else why not."""
+    starts = S.traj(z)[0].ravel()
+    ends = np.append(starts, S.horizon_of(z))
+    for k, w in enumerate(S.switch_times(z)):
+        cuts = np.array([ends[k], *w, ends[k + 1]])
+        if np.any(np.diff(cuts) < 0):
+            return f"saturation switches {w} not in order inside phase {k}"
+    return ""
+
+
+def _arcs_text(arcs: Arcs) -> str:
+    def one(m: Mode) -> str:
+        return "(" + ", ".join("free" if lo != hi else f"{lo:g}" for lo, hi in m) + ")"
+
+    return "; ".join(" ".join(one(m) for m in p) for p in arcs)
+
+
+def _disc_control_range(S: ShootingSystem, z: np.ndarray) -> np.ndarray:
+    """Disc scenes: ``u`` at both ends of every phase (linear in time: its extremes)."""
+    out = S.traj(z)
+    starts, l0 = out[0].ravel(), out[2]
+    ends = np.append(starts, S.horizon_of(z))
+    rows = []
+    for k in range(S.K + 1):
+        c0, c1 = (np.asarray(c).ravel() for c in S.core.control_coeffs(l0[:, k]))
+        rows += [c0, c0 + c1 * (ends[k + 1] - ends[k])]
+    return np.array(rows)

@@ -38,8 +38,9 @@ What it checks before it answers
     (of the same or other events) is cheaper; with ``search`` too, the discovery and search
     run without the sequence and their optimum confirms it (``success``) or beats it.
 
-    A problem with control bounds is answered only when the extremal respects them (the
-    bounds are then inactive); otherwise the status is ``infeasible``.
+    Control bounds enter the minimum condition as saturation, ``u* = clip(argmin H)``, with
+    a switch time per saturation switch (:func:`~hybridoc.reference.shooting.saturate`);
+    an answer whose control still violates them has status ``infeasible``.
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ from hybridoc.reference.shooting import (
     newton,
     prepare,
     refine,
+    saturation_check,
     shooting_system,
 )
 from hybridoc.reference.sources import (
@@ -156,8 +158,12 @@ def _events(k: int) -> str:
 def reference_supports(ocp: HybridOCP) -> str | None:
     """``None`` when the reference can solve ``ocp``, else the one-line reason."""
     if ocp.path is not None:
-        return "the HMP reference does not handle path (state) constraints; use method 'dt'"
-    return hamiltonian_check(ocp)
+        return (
+            "the HMP reference does not handle path constraints (c(s, u) >= 0 needs a "
+            "multiplier and boundary arcs that its shooting does not model); control bounds "
+            "are handled (saturated arcs); use method 'dt' for path constraints"
+        )
+    return hamiltonian_check(ocp) or saturation_check(ocp)
 
 
 def parse_search(text: str) -> int:
@@ -1130,8 +1136,8 @@ def _verdict(
     if bounds_violation > 1e-9:
         status = Status.INFEASIBLE
         message = (
-            f"the HMP extremal violates the control bounds by {bounds_violation:.3g}: the "
-            "reference handles inactive bounds only; use method 'dt' for active ones"
+            f"the HMP extremal violates the control bounds by {bounds_violation:.3g} (its "
+            "saturated arcs do not hold); use method 'dt'"
         )
     return status, message, cheapest, landscape
 
@@ -1409,8 +1415,8 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 _SEARCH_STATE: dict[str, Any] = {}
 
 
-# (sequence, point, steps per phase, reason, seconds, final time)
-_Outcome = tuple[list[str], np.ndarray | None, tuple[int, ...] | None, str, float, float]
+# (sequence, point, (steps per arc, arcs) of its system, reason, seconds, final time)
+_Outcome = tuple[list[str], np.ndarray | None, tuple[Any, Any] | None, str, float, float]
 
 
 def _search_one(seq: list[str]) -> _Outcome:
@@ -1431,7 +1437,7 @@ def _search_one(seq: list[str]) -> _Outcome:
         return seq, None, None, why, time.perf_counter() - t0, ocp.horizon
     # the steps per phase (and a free final time) travel with the point: a worker's cache is
     # not the parent's
-    return seq, res.z, res.levels, why, time.perf_counter() - t0, res.horizon
+    return seq, res.z, res.system.spec, why, time.perf_counter() - t0, res.horizon
 
 
 def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
@@ -1518,7 +1524,7 @@ def _record(
     book: _Book,
     seq: list[str],
     z: np.ndarray | None,
-    levels: tuple[int, ...] | None,
+    levels: tuple[Any, Any] | None,
     why: str,
     took: float,
     horizon: float,
@@ -1536,7 +1542,8 @@ def _record(
         return
     # a free final time comes back fixed at the value found (result.make_result)
     at = ocp.replace(horizon=horizon) if ocp.free_horizon else ocp
-    S = shooting_system(at, seq, levels, free=False)
+    steps, arcs = levels if levels is not None else (None, None)
+    S = shooting_system(at, seq, steps, free=False, arcs=arcs)
     nr = newton(S, z, tol=book.tol)
     if not nr.converged:
         book.reasons[key] = f"Newton from the enumeration's point: residual {nr.residual:.2e}"

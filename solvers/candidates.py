@@ -166,6 +166,9 @@ class TranscriptionSource:
     and a warm start of the shooting of a given sequence (module notes)."""
 
     name = "transcription"
+    # dt meets terminal constraints (its warm start then carries the terminal multipliers'
+    # costates); a free final time is not yet passed through its proposals
+    features = frozenset({"terminal"})
 
     def propose(self, ocp: HybridOCP, context: SourceContext) -> list[Proposal]:
         """The transcription's sequences and its two controls, from each guess."""

@@ -103,6 +103,7 @@ def test_library_api() -> None:
         "coulomb-block",
         "friction-patch",
         "friction-patch-free-time",
+        "bounded-shuttle",
     }
     assert all(lib.describe(name) for name in lib.LIBRARY)
     for fn in lib.LIBRARY.values():
