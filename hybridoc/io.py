@@ -377,6 +377,11 @@ def read_controls(path: str | os.PathLike[str], problem: Any) -> Any:
         If the file is missing, unreadable or of another type, naming it.
     """
     p = Path(path)
+    if p.suffix.lower() not in _SUFFIXES:
+        raise ControlsError(
+            f"controls {str(path)!r} is not a numeric array, nor a controls file (.npy, .csv, "
+            "or a saved Solution .npz/.json)"
+        )
     if p.suffix.lower() in (".npz", ".json"):
         from hybridoc.solution import Solution
 
