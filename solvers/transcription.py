@@ -91,6 +91,7 @@ _PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INF
 _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
 _GUESS_PERTURBATIONS = 3  # perturbed retries of a guess with simultaneous events
 _TERMINAL_REFINEMENTS = 4  # mesh doublings (default mesh 4 -> up to 64) for terminal constraints
+_NEAR_MISS_REFINEMENTS = 3  # mesh doublings (default mesh 4 -> up to 32) for a near miss
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
@@ -1353,8 +1354,10 @@ def _judge_or_refine(
 ) -> tuple[_Judged, bool, bool]:
     """The judged candidate, whether it reproduces its events, and whether it was refined:
     at the default mesh, a near miss (the same events at times off by a little) is solved
-    once more with twice the elements, since a finer mesh may fix it, and so is a candidate
-    that misses its terminal constraints (:func:`_refine_terminal`)."""
+    again with twice the elements, since a finer mesh may fix it, up to
+    :data:`_NEAR_MISS_REFINEMENTS` times while the event-time gap shrinks (a stance phase
+    of the hopper, an oscillation, needs mesh 16), and so is a candidate that misses its
+    terminal constraints (:func:`_refine_terminal`)."""
     j = _judge(ocp, r, terminal_tol)
     ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
     if ok and mesh is None and ocp.has_terminal_constraints:
@@ -1365,18 +1368,29 @@ def _judge_or_refine(
     gap = _event_time_gap(ocp, r, j.ev)
     if gap is None or not gap <= _NEAR_MISS * ocp.horizon:
         return j, ok, False
-    progress.stage(f"refining the {len(r.sequence)}-event candidate (twice the mesh)")
-    try:
-        rf = _refined(ocp, r, verbose)
-    except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
+    best: _Judged | None = None
+    for _ in range(_NEAR_MISS_REFINEMENTS):
+        progress.stage(f"refining the {len(r.sequence)}-event candidate (twice the mesh)")
+        try:
+            rf = _refined(ocp, r if best is None else best.result, verbose)
+        except (ConvergenceError, SceneError):  # SceneError: beyond MAX_NLP_SIZE
+            break
+        jf = _judge(ocp, rf, terminal_tol)
+        if jf.ev is None:
+            break
+        gap_f = _event_time_gap(ocp, jf.result, jf.ev)
+        if best is not None and (gap_f is None or not gap_f < gap):
+            break  # no progress: the previous refinement stands
+        best = jf
+        if gap_f is None or _sequence_matches(ocp, jf.result, jf.ev):
+            break
+        gap = gap_f
+    if best is None:
         return j, ok, False
-    jf = _judge(ocp, rf, terminal_tol)
-    if jf.ev is None:
-        return j, ok, False
-    ok_f = _sequence_matches(ocp, jf.result, jf.ev)
+    ok_f = _sequence_matches(ocp, best.result, best.ev)
     if ok_f and ocp.has_terminal_constraints:
-        jf = _refine_terminal(ocp, jf, verbose, progress)[0]
-    return jf, ok_f, True
+        best = _refine_terminal(ocp, best, verbose, progress)[0]
+    return best, ok_f, True
 
 
 def _record(

@@ -276,12 +276,9 @@ def test_hopper_every_method_with_no_option_and_crossval() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=False,
-    reason="dt refines a near miss once (mesh 8); the stance's oscillation needs mesh 16 for "
-    "the judge to reproduce the event times to 1e-6 T",
-)
 def test_hopper_dt_and_crossval_with_no_option() -> None:
+    """Issue #15's done-when: dt (its near-miss refinement doubles the mesh up to 16, the
+    stance's oscillation needs it) and crossval on the library hopper with no option."""
     p = hybridoc.as_ocp("hopper")
     dt = hybridoc.solve(p, "dt")
     assert dt.success, dt.message
