@@ -563,8 +563,12 @@ def print_solution(
     args: argparse.Namespace, sol: Any, ocp: Any, details: Sequence[tuple[str, str]] = ()
 ) -> None:
     """The one human-readable block of a solving command's answer."""
+    horizon = f"T = {fmt(ocp.horizon)}"
+    if ocp.free_horizon and sol.info.get("horizon") is not None:
+        lo, hi = ocp.horizon_bounds
+        horizon = f"T = {fmt(sol.info['horizon'])} found in [{fmt(lo)}, {fmt(hi)}]"
     rows = [
-        ("problem", f"{ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)})"),
+        ("problem", f"{ocp.name} (N = {ocp.steps}, {horizon})"),
         ("method", sol.method),
         ("status", sol.status.value + (f": {sol.message}" if sol.message else "")),
         ("cost", repr(float(sol.cost))),

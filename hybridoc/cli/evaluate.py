@@ -95,6 +95,16 @@ def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[HybridOCP,
         return ocp, load_policy(args.policy), None, f"policy {args.policy} (hold {args.hold})"
     if args.hold != "zoh":
         raise HybridocError("--hold applies to --policy only")
+    if (
+        args.controls is not None
+        and args.substeps is None
+        and Path(args.controls).suffix.lower() in (".npz", ".json")
+    ):
+        # a saved Solution is judged by its own control (a dt or reference solution's
+        # continuous u(t)), as hybridoc.evaluate(problem, path) does, not its grid averages
+        from hybridoc.io import read_controls
+
+        return ocp, None, read_controls(args.controls, ocp), str(args.controls)
     ocp, controls, source = load_substep_controls_arg(args.controls, ocp, args.substeps)
     return ocp, None, controls, source
 
