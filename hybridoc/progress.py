@@ -13,7 +13,10 @@ A run reports three kinds of things:
 ``detail(text)``
     The current stage's latest detail (IPOPT's iteration, the best cost so far).
 ``count(done, total, text)``
-    Countable work: iterations, samples, candidate sequences.
+    Countable work: iterations, samples, candidate sequences. ``total`` is the real total,
+    or ``None`` when the work stops at a test rather than a count (an optimiser's
+    iterations up to convergence): an iteration limit is no total, and a bar drawn to it
+    would run short of it or restart with every stage.
 
 :class:`ProgressMeter` is the one implementation. On a terminal it draws a bar that is
 redrawn in place (at most :data:`REDRAW_S` apart) and stage lines; when stderr is a log or a
@@ -70,8 +73,9 @@ class Progress(Protocol):
     def detail(self, text: str) -> None:
         """The current stage's latest detail."""
 
-    def count(self, done: int, total: int, text: str = "") -> None:
-        """``done`` of ``total`` units of countable work; ``text`` is a short status."""
+    def count(self, done: int, total: int | None, text: str = "") -> None:
+        """``done`` of ``total`` units of countable work (``total`` ``None``: not known in
+        advance); ``text`` is a short status."""
 
     def close(self) -> None:
         """The run is over (idempotent)."""
@@ -90,7 +94,7 @@ class NullProgress:
     def detail(self, text: str) -> None:
         pass
 
-    def count(self, done: int, total: int, text: str = "") -> None:
+    def count(self, done: int, total: int | None, text: str = "") -> None:
         pass
 
     def close(self) -> None:
@@ -132,7 +136,7 @@ class ProgressMeter:
         self._detail = ""
         self._shown = ""  # the stage of the last stage line
         self._last = -math.inf  # when any line was last written
-        self._count: tuple[int, int, str] | None = None
+        self._count: tuple[int, int | None, str] | None = None
         self._count_t0: tuple[float, int] | None = None  # (time, done) of the first count
         self._open_bar = False  # a bar is drawn and its line not yet ended
         self._lock = threading.Lock()
@@ -166,7 +170,7 @@ class ProgressMeter:
         with self._lock:
             self._detail = text
 
-    def count(self, done: int, total: int, text: str = "") -> None:
+    def count(self, done: int, total: int | None, text: str = "") -> None:
         now = self.elapsed()
         with self._lock:
             if self._count_t0 is None or (self._count is not None and done < self._count[0]):
@@ -174,7 +178,7 @@ class ProgressMeter:
             self._count = (done, total, text)
             if now < self.quiet:
                 return
-            final = done >= total
+            final = total is not None and done >= total
             wait = REDRAW_S if self.tty else self.every
             if not final and now - self._last < wait:
                 return
@@ -199,6 +203,15 @@ class ProgressMeter:
     def _bar_line(self, now: float) -> str:
         assert self._count is not None
         done, total, text = self._count
+        stage = f" {self._stage}" if self._stage else ""
+        tail = f" {text}" if text else ""
+        if total is None:  # no bar and no time left: the rate is all that is known
+            rate = ""
+            if self._count_t0 is not None and now > self._count_t0[0]:
+                per_s = (done - self._count_t0[1]) / (now - self._count_t0[0])
+                rate = f" ({per_s:.3g}/s)" if per_s > 0 else ""
+            where = f"{stage}:" if stage else ""
+            return f"{self.label}:{where} {done}{tail}{rate} [{now:.0f} s]"
         width = 24
         fill = int(width * min(done, total) / max(total, 1))
         bar = "#" * fill + "." * (width - fill)
@@ -207,8 +220,6 @@ class ProgressMeter:
             per_s = (done - self._count_t0[1]) / (now - self._count_t0[0])
             if per_s > 0 and done < total:
                 rate = f", {(total - done) / per_s:.0f} s left"
-        stage = f" {self._stage}" if self._stage else ""
-        tail = f" {text}" if text else ""
         return f"{self.label}:{stage} [{bar}] {done}/{total}{tail}{rate} [{now:.0f} s]"
 
     def _end_bar(self) -> None:

@@ -677,8 +677,9 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
         progress.stage(f"descent ({opts.optimizer})")
         return _descend(ocp, opts, loss_obj, u0, settings, progress, t_start=t_start)
     histories, its, stages = [], 0, []
-    for mu in smoothing:
-        progress.stage(f"smoothing mu {mu:g}")
+    n = len(smoothing) + 1
+    for i, mu in enumerate(smoothing):
+        progress.stage(f"stage {i + 1} of {n}, smoothing mu {mu:g}")
         stage = _descend(ocp, opts, loss_obj, u0, dict(settings), progress, penalty=mu)
         u0 = stage.controls
         histories.append(stage.arrays["loss_history"])
@@ -688,7 +689,7 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
         # loss ends the continuation
         if stage.info["nan_stop"] or stage.info["diverged"]:
             break
-    progress.stage(f"descent ({opts.optimizer}) after smoothing")
+    progress.stage(f"stage {n} of {n}, descent ({opts.optimizer}) after smoothing")
     sol = _descend(ocp, opts, loss_obj, u0, settings, progress)
     sol.settings["smoothing"] = list(smoothing)
     sol.info["iterations"] += its
@@ -1064,7 +1065,8 @@ class _Run:
 
     def report(self, k: int, loss: float, controls: Callable[[], np.ndarray]) -> bool:
         """Iteration ``k`` is done: count it, call the callback; whether the callback stops."""
-        self.progress.count(k, self.iters, f"loss {loss:.6g}")
+        # the iteration limit is no total (a stage stops at convergence): no bar to it
+        self.progress.count(k, None, f"iterations, loss {loss:.6g}")
         return self.callback is not None and bool(self.callback(k, loss, controls()))
 
     def optimise(self, u0: np.ndarray) -> _Result:
@@ -1342,7 +1344,7 @@ class _Augmented:
             u, _ = self.unpack(x)
             value = self.fun(x)[0] * self.dt0
             self.history.append(value)
-            self.progress.count(self.iterations - k0, opts.iters, f"loss {value:.6g}")
+            self.progress.count(self.iterations - k0, None, f"iterations, loss {value:.6g}")
             if opts.callback is not None and opts.callback(self.iterations, value, u.copy()):
                 raise StopIteration
 
@@ -1377,14 +1379,20 @@ def _solve_terminal(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Pro
     message, converged, nan_stop = "", False, False
     try:
         # the smoothing stages (module notes on kinks) run on the first outer iteration only
-        for mu_s in smoothing:
-            progress.stage(f"smoothing mu {mu_s:g} (terminal penalty {prob.rho:g})")
+        for i, mu_s in enumerate(smoothing):
+            progress.stage(
+                f"smoothing stage {i + 1} of {len(smoothing)}, mu {mu_s:g} "
+                f"(terminal penalty {prob.rho:g})"
+            )
             prob.penalty = mu_s
             x, _, _ = prob.minimise(x)
         prob.penalty = 0.0
         previous = math.inf
         for k in range(opts.terminal_iters):
-            progress.stage(f"augmented Lagrangian: outer iteration {k + 1}, rho {prob.rho:g}")
+            progress.stage(
+                f"augmented Lagrangian: outer iteration {k + 1} of at most "
+                f"{opts.terminal_iters}, rho {prob.rho:g}"
+            )
             x, message, converged = prob.minimise(x)
             u, T = prob.unpack(x)
             J, _, s_end, _, _ = loss.evaluate(u, T)

@@ -79,3 +79,35 @@ def test_as_progress_and_scope() -> None:
     assert rec.calls == [("stage", "a")]  # the caller's object is not closed for it
     with pytest.raises(TypeError, match="progress must be"):
         hp.as_progress("yes", "x")
+
+
+def test_an_unknown_total_draws_no_bar_and_no_time_left(clock: list[float]) -> None:
+    out = io.StringIO()
+    with hp.ProgressMeter("gd", stream=out, tty=True) as meter:
+        meter.stage("stage 1 of 2, smoothing")
+        meter.count(0, None, "iterations")
+        clock[0] = 2.0
+        meter.count(300, None, "iterations, loss 0.5")  # 150 per second
+    text = out.getvalue()
+    assert "gd: stage 1 of 2, smoothing: 300 iterations, loss 0.5 (150/s) [2 s]" in text
+    assert "[#" not in text and "/300" not in text and "left" not in text
+    assert text.endswith("\n")  # no final count: close still ends the line
+
+
+def test_gd_in_a_log_writes_plain_lines_with_its_stages(monkeypatch) -> None:
+    # `hybridoc solve single-collision --method gd 2>log`: stderr is no terminal
+    from hybridoc.solvers.gd import solve_gd
+
+    monkeypatch.setattr(hp, "QUIET_LOG_S", 0.0)
+    monkeypatch.setattr(hp, "EVERY_LOG_S", 0.0)
+    err = io.StringIO()
+    monkeypatch.setattr(hp.sys, "stderr", err)
+    sol = solve_gd("single-collision", iters=5, progress=True)
+    text = err.getvalue()
+    assert text and "\r" not in text
+    lines = text.splitlines()
+    assert lines[0].startswith("gd: stage 1 of 4, smoothing mu 0.0001 [")
+    assert "gd: stage 4 of 4, descent (lbfgs) after smoothing [" in text
+    # one line per iteration at this pace, none with a total it does not have
+    counted = [line for line in lines if " iterations, loss " in line]
+    assert len(counted) == sol.info["iterations"] and not any("/5" in x for x in counted)
