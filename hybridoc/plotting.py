@@ -21,6 +21,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems.scene import Scene
 
 __all__ = [
+    "mark_stages",
     "plot_controls",
     "plot_costates",
     "plot_landscape",
@@ -302,6 +303,31 @@ def _event_lines(
         for t in times:
             for a in axes:
                 a.axvline(float(t), color=color, ls="--", lw=0.9, alpha=0.8)
+
+
+def mark_stages(ax: Axes, stages: Sequence[Sequence[Any]] | None) -> None:
+    """Mark the stages of a learning curve: a vertical line where each stage starts and
+    its name.
+
+    Parameters
+    ----------
+    ax
+        The axes of a loss against the iteration index.
+    stages
+        ``[start, name]`` pairs, ``start`` the index in the loss history where the stage
+        begins (gd's ``sol.info["history_stages"]``); ``None`` or empty: nothing is drawn.
+        The first stage gets its name and no line (the curve starts there).
+    """
+    for start, name in stages or ():
+        x = float(start)
+        if x > 0:
+            ax.axvline(x, color="0.35", ls=":", lw=1.0)
+        # at the top of the axes whatever the y scale: the curve spans decades
+        ax.annotate(
+            str(name), xy=(x, 1.0), xycoords=ax.get_xaxis_transform(), xytext=(2, -3),
+            textcoords="offset points", rotation=90, ha="left", va="top", fontsize=7,
+            color="0.25", bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5},
+        )  # fmt: skip
 
 
 def plot_controls(

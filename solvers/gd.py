@@ -695,6 +695,10 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
     sol.info["iterations"] += its
     sol.info["stages"] = stages
     sol.arrays["loss_history"] = np.concatenate(histories + [sol.arrays["loss_history"]])
+    # where each stage starts in loss_history: the curve jumps there as the loss changes
+    starts = np.cumsum([0] + [len(h) for h in histories]).tolist()
+    names = [f"mu {st['mu']:g}" for st in stages] + ["no smoothing"]
+    sol.info["history_stages"] = [[int(k), name] for k, name in zip(starts, names, strict=True)]
     sol.timings["solve_time_s"] = time.perf_counter() - t_start
     return sol
 
@@ -1294,6 +1298,7 @@ class _Augmented:
         self.n_evals = 0
         self.iterations = 0
         self.history: list[float] = []
+        self.marks: list[list[Any]] = []  # [start in history, name] of each stage
 
     def pack(self, u: np.ndarray, T: float) -> np.ndarray:
         z = [(T - self.T0) / self.sz] if self.free else []
@@ -1380,6 +1385,7 @@ def _solve_terminal(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Pro
     try:
         # the smoothing stages (module notes on kinks) run on the first outer iteration only
         for i, mu_s in enumerate(smoothing):
+            prob.marks.append([len(prob.history), f"mu {mu_s:g}"])
             progress.stage(
                 f"smoothing stage {i + 1} of {len(smoothing)}, mu {mu_s:g} "
                 f"(terminal penalty {prob.rho:g})"
@@ -1389,6 +1395,8 @@ def _solve_terminal(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Pro
         prob.penalty = 0.0
         previous = math.inf
         for k in range(opts.terminal_iters):
+            if k == 0:  # one mark: a line per outer iteration would crowd the figure
+                prob.marks.append([len(prob.history), "augmented Lagrangian"])
             progress.stage(
                 f"augmented Lagrangian: outer iteration {k + 1} of at most "
                 f"{opts.terminal_iters}, rho {prob.rho:g}"
@@ -1451,6 +1459,7 @@ def _terminal_solution(
         "outer": outer,
         "terminal_violation": violation,
         "terminal_multipliers": {"eq": prob.nu.tolist(), "ineq": prob.mu.tolist()},
+        "history_stages": prob.marks if prob.history else [],
     }
     if ocp.free_horizon:
         info["horizon"] = float(T)

@@ -111,3 +111,29 @@ def test_gd_in_a_log_writes_plain_lines_with_its_stages(monkeypatch) -> None:
     # one line per iteration at this pace, none with a total it does not have
     counted = [line for line in lines if " iterations, loss " in line]
     assert len(counted) == sol.info["iterations"] and not any("/5" in x for x in counted)
+
+
+def test_learning_curve_marks_gd_stages() -> None:
+    from matplotlib.figure import Figure
+
+    from hybridoc.plotting import mark_stages
+    from hybridoc.solvers.gd import solve_gd
+
+    sol = solve_gd("single-collision", iters=5)
+    hist = sol.arrays["loss_history"]
+    marks = sol.info["history_stages"]
+    assert [m[1] for m in marks] == ["mu 0.0001", "mu 1e-05", "mu 1e-06", "no smoothing"]
+    starts = [m[0] for m in marks]
+    assert starts[0] == 0 and starts == sorted(set(starts)) and starts[-1] < len(hist)
+    # each stage starts from the last controls with a smaller smoothing penalty: the curve
+    # steps down exactly at a mark
+    for k in starts[1:]:
+        assert hist[k] < hist[k - 1]
+    fig = Figure()
+    ax = fig.subplots()
+    ax.plot(hist)
+    mark_stages(ax, marks)
+    assert [line.get_xdata()[0] for line in ax.lines[1:]] == starts[1:]  # no line at 0
+    assert [t.get_text() for t in ax.texts] == [m[1] for m in marks]
+    mark_stages(ax, None)
+    assert len(ax.texts) == len(marks)

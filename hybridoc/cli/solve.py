@@ -40,9 +40,13 @@ __all__ = ["register"]
 _RESERVED = ("problem", "method", "initial", "json", "out", "func", "command")
 
 
-def _learning_curve_figure(curves: dict[str, np.ndarray], optimum: float | None, title: str) -> Any:
+def _learning_curve_figure(
+    curves: dict[str, np.ndarray], optimum: float | None, title: str, stages: Any = None
+) -> Any:
     import numpy as np
     from matplotlib.figure import Figure
+
+    from hybridoc.plotting import mark_stages
 
     fig = Figure(figsize=(6.4, 4.2), layout="constrained")
     ax = fig.subplots()
@@ -57,6 +61,7 @@ def _learning_curve_figure(curves: dict[str, np.ndarray], optimum: float | None,
     lo, hi = min(finals), max(h[0] for h in curves.values())
     if hi > lo:
         ax.set_ylim(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo))
+    mark_stages(ax, stages)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     return fig
@@ -95,7 +100,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
         hist = sol.arrays.get("loss_history")
         if hist is not None and len(hist):
             fig = _learning_curve_figure(
-                {method.name: np.asarray(hist)}, None, f"{ocp.name}: learning curve"
+                {method.name: np.asarray(hist)},
+                None,
+                f"{ocp.name}: learning curve",
+                sol.info.get("history_stages"),
             )
             written.append(save(fig, f"{stem}_learning_curve.png"))
     if args.json:

@@ -562,7 +562,7 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
     """Figures of a cross-validation: ``controls``, ``trajectories``, ``learning_curve``."""
     from matplotlib.figure import Figure
 
-    from hybridoc.plotting import plot_controls, plot_trajectories
+    from hybridoc.plotting import mark_stages, plot_controls, plot_trajectories
 
     ocp = as_ocp(problem)
     figs: dict[str, Any] = {}
@@ -597,6 +597,8 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
         ax2.set_xlabel("iteration")
         ax2.set_ylabel("(loss - J*) / J*")
         ax2.grid(alpha=0.3, which="both")
+        mark_stages(ax, gd.info.get("history_stages"))
+        mark_stages(ax2, gd.info.get("history_stages"))
         figs["learning_curve"] = fig
     return figs
 
