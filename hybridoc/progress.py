@@ -139,6 +139,7 @@ class ProgressMeter:
         self._count: tuple[int, int | None, str] | None = None
         self._count_t0: tuple[float, int] | None = None  # (time, done) of the first count
         self._open_bar = False  # a bar is drawn and its line not yet ended
+        self._drawn = 0  # the length of the bar's last draw
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -184,7 +185,10 @@ class ProgressMeter:
                 return
             line = self._bar_line(now)
             if self.tty:
-                self._write("\r" + line + ("\n" if final else ""))
+                # pad over the end of a longer previous draw (a rate that got shorter)
+                pad = " " * (self._drawn - len(line)) if self._open_bar else ""
+                self._write("\r" + line + pad + ("\n" if final else ""))
+                self._drawn = len(line)
                 self._open_bar = not final
             else:
                 self._write(line + "\n")

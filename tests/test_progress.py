@@ -137,3 +137,14 @@ def test_learning_curve_marks_gd_stages() -> None:
     assert [t.get_text() for t in ax.texts] == [m[1] for m in marks]
     mark_stages(ax, None)
     assert len(ax.texts) == len(marks)
+
+
+def test_a_shorter_redraw_covers_the_longer_one(clock: list[float]) -> None:
+    out = io.StringIO()
+    with hp.ProgressMeter("gd", stream=out, tty=True) as meter:
+        meter.count(1, None, "iterations, loss 0.123456, and a long status")
+        clock[0] = 1.0
+        meter.count(2, None, "iterations, loss 0.5")
+    draws = out.getvalue().rstrip("\n").split("\r")[1:]
+    assert len(draws) == 2 and len(draws[1]) == len(draws[0])
+    assert draws[1].rstrip().endswith("loss 0.5 (1/s) [1 s]")
