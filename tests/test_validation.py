@@ -188,6 +188,7 @@ def test_crossval_reports_through_one_progress(monkeypatch):
     assert report["dt"]["tolerance"] == 1e-3
 
 
+@pytest.mark.slow  # 20-30 s on 2 busy cores; test_crossval_gaps.py covers the reporting fast
 def test_crossval_multiple_collision_local_and_global_gaps():
     """gd (exact flow, lbfgs) from the paper's guess alone lands in the two-event basin:
     within 0.25% of that sequence's HMP extremal, and about 4.9% above the three-event
