@@ -32,7 +32,7 @@ Terminal constraints and a free final time (DESIGN.md section 6)
 
 Control bounds (DESIGN.md section 6)
     ``u* = clip(argmin H, u_min, u_max)`` (a diagonal control weight). Each phase is split
-    into arcs (:data:`Arcs`) on which every component is free or saturated, each saturation
+    into arcs on which every component is free or saturated, each saturation
     switch is an unknown time (after the terminal multipliers, before a free ``T``) with
     ``argmin H_i = bound`` as its equation, and every arc has its own law and DOP853 steps,
     so the kinks of the clip never fall inside a step. :func:`saturate` finds the arcs (an
@@ -97,8 +97,6 @@ __all__ = [
     "SATURATION_ROUNDS",
     "SATURATION_SAMPLES",
     "SATURATION_TOL",
-    "Arcs",
-    "Mode",
     "clip_mode",
     "detect_arcs",
     "free_mode",
@@ -256,31 +254,31 @@ def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
     return ca.Function("dop853_step", [x, h], [x + h * inc])
 
 
-Mode = tuple[tuple[float, float], ...]
-"""An arc's control law: per component the interval ``(lo, hi)`` that ``argmin H`` is clipped
-to: ``(-inf, inf)`` free, ``(c, c)`` saturated at ``c``, ``(u_min, u_max)`` clipped."""
-Arcs = tuple[tuple[Mode, ...], ...]
-"""Per phase (between events), its arcs' laws in time order; consecutive arcs of one phase
-differ in one component, at a saturation switch."""
+# An arc's control law: per component the interval (lo, hi) that argmin H is clipped to:
+# (-inf, inf) free, (c, c) saturated at c, (u_min, u_max) clipped.
+ArcLaw = tuple[tuple[float, float], ...]
+# Per phase (between events), its arcs' laws in time order; consecutive arcs of one phase
+# differ in one component, at a saturation switch.
+Arcs = tuple[tuple[ArcLaw, ...], ...]
 
 
-def free_mode(nu: int) -> Mode:
+def free_mode(nu: int) -> ArcLaw:
     """The unconstrained law ``u* = argmin H`` of ``nu`` components."""
     return ((-math.inf, math.inf),) * nu
 
 
-def clip_mode(ocp: HybridOCP) -> Mode:
+def clip_mode(ocp: HybridOCP) -> ArcLaw:
     """The problem's bounds as one law, ``u* = clip(argmin H, u_min, u_max)``."""
     assert ocp.u_min is not None and ocp.u_max is not None
     return tuple((float(a), float(b)) for a, b in zip(ocp.u_min, ocp.u_max, strict=True))
 
 
 class _Law:
-    """One control law of a structure (:data:`Mode`): ``u*``, ``H`` at ``u*``, the
+    """One control law of a structure : ``u*``, ``H`` at ``u*``, the
     state-costate right-hand side, its DOP853 step and the phase maps of each number of
     steps."""
 
-    def __init__(self, fl: _Flow, mode: Mode) -> None:
+    def __init__(self, fl: _Flow, mode: ArcLaw) -> None:
         s, lam, u, H = fl.s_sym, fl.lam_sym, fl.u_sym, fl.H_expr
         nx = fl.nx
         self.mode = mode
@@ -372,7 +370,7 @@ class _Flow:
         self.H = ca.Function("H", [s, lam, u], [H])
         self.f = ocp.f
         self.L = ocp.L
-        self._laws: dict[Mode, _Law] = {}
+        self._laws: dict[ArcLaw, _Law] = {}
         free = self.law(free_mode(nu))
         self.u_star, self.H_star = free.u_star, free.H_star
         self.rhs, self.polynomial, self.start_steps = free.rhs, free.polynomial, free.start_steps
@@ -391,7 +389,7 @@ class _Flow:
         self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
         self.terminal = _terminal_fn(ocp, s)
 
-    def law(self, mode: Mode) -> _Law:
+    def law(self, mode: ArcLaw) -> _Law:
         """The :class:`_Law` of ``mode``, built once."""
         mode = tuple((float(lo), float(hi)) for lo, hi in mode)
         law = self._laws.get(mode)
@@ -868,7 +866,7 @@ class _FlowCore(_CoreBase):
         return out
 
 
-def _switch_of(a: Mode, b: Mode, k: int, j: int) -> tuple[int, int, float]:
+def _switch_of(a: ArcLaw, b: ArcLaw, k: int, j: int) -> tuple[int, int, float]:
     """``(arc, component, value)`` of the saturation switch from law ``a`` to law ``b``."""
     diff = [i for i, (p, q) in enumerate(zip(a, b, strict=True)) if p != q]
     if len(diff) != 1:
@@ -1309,7 +1307,7 @@ def shooting_system(
         ``ocp`` has a free final time. ``False`` on such a problem solves it at
         ``ocp.horizon`` (a final time at its bound, or an extremal already found).
     arcs
-        The control law of each arc of each phase (:data:`Arcs`, saturation switches
+        The control law of each arc of each phase (saturation switches
         between arcs as unknowns); ``levels`` then counts steps per arc. Default: one arc
         per phase, ``u* = clip(argmin H, u_min, u_max)`` (``argmin H`` without bounds), and
         a disc scene's closed-form phases.
@@ -1583,14 +1581,14 @@ def detect_arcs(
     lo, hi = ocp.u_min, ocp.u_max
     times, U, _, _ = _samples(S, z, samples)
 
-    def mode_of(cls: np.ndarray) -> Mode:
+    def mode_of(cls: np.ndarray) -> ArcLaw:
         return tuple(
             (-math.inf, math.inf) if c == 0 else (float(hi[i]), float(hi[i]))
             if c > 0 else (float(lo[i]), float(lo[i]))
             for i, c in enumerate(cls)
         )  # fmt: skip
 
-    arcs: list[tuple[Mode, ...]] = []
+    arcs: list[tuple[ArcLaw, ...]] = []
     switches: list[list[float]] = []
     for t, Uk in zip(times, U, strict=True):
         cls = np.where(Uk > hi, 1, np.where(Uk < lo, -1, 0))
@@ -1689,7 +1687,7 @@ def _switch_order(S: ShootingSystem, z: np.ndarray) -> str:
 
 
 def _arcs_text(arcs: Arcs) -> str:
-    def one(m: Mode) -> str:
+    def one(m: ArcLaw) -> str:
         return "(" + ", ".join("free" if lo != hi else f"{lo:g}" for lo, hi in m) + ")"
 
     return "; ".join(" ".join(one(m) for m in p) for p in arcs)

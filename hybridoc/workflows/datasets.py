@@ -283,7 +283,7 @@ def distribution_problem(problem: Any, distribution: Any = None) -> Scene | Hybr
 
 
 def draw_initial_states(ocp: HybridOCP, samples: int, seed: int) -> np.ndarray:
-    """The ``(samples, nx)`` initial states of draws ``0 .. samples - 1`` of a problem's
+    """The ``(samples, nx)`` initial states of the first ``samples`` draws of a problem's
     Python distribution: draw ``i`` is ``distribution(default_rng([seed, i]), 1)[0]``.
 
     Raises
