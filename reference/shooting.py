@@ -81,9 +81,9 @@ import math
 import sys
 import threading
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, MutableMapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import casadi as ca
 import numpy as np
@@ -144,6 +144,19 @@ _LEVELS: weakref.WeakKeyDictionary[Structure, dict[tuple[str, ...], tuple[int, .
     weakref.WeakKeyDictionary()
 )
 _LOCK = threading.RLock()
+_T = TypeVar("_T")
+
+
+def _built_once(cache: MutableMapping[Any, _T], key: Any, build: Callable[[], _T]) -> _T:
+    """``cache[key]``, built by ``build()`` once even when threads ask at the same time
+    (the cheap lookup first, the build under the lock)."""
+    value = cache.get(key)
+    if value is None:
+        with _LOCK:
+            value = cache.get(key)
+            if value is None:
+                value = cache[key] = build()
+    return value
 
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
@@ -392,13 +405,7 @@ class _Flow:
     def law(self, mode: ArcLaw) -> _Law:
         """The :class:`_Law` of ``mode``, built once."""
         mode = tuple((float(lo), float(hi)) for lo, hi in mode)
-        law = self._laws.get(mode)
-        if law is None:
-            with _LOCK:
-                law = self._laws.get(mode)
-                if law is None:
-                    law = self._laws[mode] = _Law(self, mode)
-        return law
+        return _built_once(self._laws, mode, lambda: _Law(self, mode))
 
 
 def _terminal_fn(ocp: HybridOCP, s: Any) -> ca.Function | None:
@@ -426,13 +433,7 @@ def fischer_burmeister(a: Any, b: Any) -> Any:
 
 
 def _flow(ocp: HybridOCP) -> _Flow:
-    fl = _FLOWS.get(ocp.structure)
-    if fl is None:
-        with _LOCK:
-            fl = _FLOWS.get(ocp.structure)
-            if fl is None:
-                fl = _FLOWS[ocp.structure] = _Flow(ocp)
-    return fl
+    return _built_once(_FLOWS, ocp.structure, lambda: _Flow(ocp))
 
 
 class _CoreBase:
@@ -692,13 +693,7 @@ _DISC_PIECES: weakref.WeakKeyDictionary[Structure, _DiscPieces] = weakref.WeakKe
 
 
 def _disc_pieces(ocp: HybridOCP) -> _DiscPieces:
-    pieces = _DISC_PIECES.get(ocp.structure)
-    if pieces is None:
-        with _LOCK:
-            pieces = _DISC_PIECES.get(ocp.structure)
-            if pieces is None:
-                pieces = _DISC_PIECES[ocp.structure] = _DiscPieces(ocp)
-    return pieces
+    return _built_once(_DISC_PIECES, ocp.structure, lambda: _DiscPieces(ocp))
 
 
 class _DiscCore(_CoreBase):
@@ -1023,13 +1018,7 @@ _NLPS: weakref.WeakKeyDictionary[Structure, dict[tuple[int, int], _DiscNLP]] = (
 
 def _disc_nlp(ocp: HybridOCP, K: int, max_iter: int = 100) -> _DiscNLP:
     nlps = _NLPS.setdefault(ocp.structure, {})
-    nlp = nlps.get((K, max_iter))
-    if nlp is None:
-        with _LOCK:
-            nlp = nlps.get((K, max_iter))
-            if nlp is None:
-                nlp = nlps[K, max_iter] = _DiscNLP(ocp, K, max_iter)
-    return nlp
+    return _built_once(nlps, (K, max_iter), lambda: _DiscNLP(ocp, K, max_iter))
 
 
 def _phase_u(A: np.ndarray, eps: float, s0: Any, c0: Any, c1: Any, h: Any) -> tuple[Any, Any]:
@@ -1269,18 +1258,15 @@ def _core(
             levels = tuple(fl.law(m).start_steps for p in arcs for m in p)
     key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free, arcs)
     cores = _CORES.setdefault(ocp.structure, {})
-    core = cores.get(key)
-    if core is None:
-        with _LOCK:
-            core = cores.get(key)
-            if core is None:
-                core = (
-                    _DiscCore(ocp, list(sequence))
-                    if disc
-                    else _FlowCore(ocp, list(sequence), key[1], free, arcs)
-                )
-                cores[key] = core
-    return core
+    return _built_once(
+        cores,
+        key,
+        lambda: (
+            _DiscCore(ocp, list(sequence))
+            if disc
+            else _FlowCore(ocp, list(sequence), key[1], free, arcs)
+        ),
+    )
 
 
 def shooting_system(
