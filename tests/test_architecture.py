@@ -37,6 +37,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hybridoc.solution",
             "hybridoc.progress",
             "hybridoc.cores",
+            "hybridoc.compiled",
             "hybridoc._pyfile",
         ),
     ),

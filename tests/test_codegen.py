@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import hybridoc
+from hybridoc import compiled
 from hybridoc.solvers import codegen
 
 
@@ -79,7 +80,7 @@ def private(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
     cache.mkdir(mode=0o700)
     monkeypatch.setenv("HYBRIDOC_CACHE", str(cache))
     monkeypatch.delenv("HYBRIDOC_CACHE_MAX_MB", raising=False)
-    monkeypatch.setattr(codegen, "_WARNED", set())
+    monkeypatch.setattr(compiled, "_WARNED", set())
     return cache
 
 
@@ -260,7 +261,7 @@ def test_eviction_keeps_the_cache_under_its_bound(private: Path) -> None:
 
 
 def test_the_bound_is_set_by_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(codegen, "_WARNED", set())
+    monkeypatch.setattr(compiled, "_WARNED", set())
     monkeypatch.delenv("HYBRIDOC_CACHE_MAX_MB", raising=False)
     assert codegen.cache_limit() == 500_000_000
     monkeypatch.setenv("HYBRIDOC_CACHE_MAX_MB", "2.5")
