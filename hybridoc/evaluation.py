@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -82,7 +83,8 @@ class Evaluation:
         none or when the problem has none).
     terminal_violation
         Largest violation of the problem's terminal constraints at ``s(T)``:
-        ``max(|h_eq|, max(-h_ineq, 0))`` (0 when it has none).
+        ``max(|h_eq|, max(-h_ineq, 0))`` (0 when it has none); ``inf`` when ``s(T)`` is
+        not in the problem's required ``final_mode``.
     terminal_eq_values, terminal_ineq_values
         The terminal constraints at ``s(T)``, one value per constraint (``h_eq`` must be 0,
         ``h_ineq`` at least 0); empty arrays when the problem has none.
@@ -124,6 +126,15 @@ class Evaluation:
             float(np.max(np.abs(self.terminal_eq_values), initial=0.0)),
             float(np.max(-self.terminal_ineq_values, initial=0.0)),
         )
+        if self.ocp.final_mode is not None and self.final_mode != self.ocp.final_mode:
+            self.terminal_violation = math.inf
+
+    @property
+    def final_mode(self) -> str | None:
+        """The mode of ``s(T)`` (a problem with modes), else ``None``."""
+        if self.ocp.modes is None:
+            return None
+        return self.ocp.mode_of(self.final_state)
 
     @property
     def horizon(self) -> float:

@@ -82,7 +82,7 @@ words :func:`solve` uses when it refuses a problem."""
 def problem_features(ocp: HybridOCP) -> list[str]:
     """The :data:`FEATURES` a problem has."""
     out = []
-    if ocp.terminal_eq is not None or ocp.terminal_ineq is not None:
+    if ocp.has_terminal_constraints or ocp.final_mode is not None:
         out.append("terminal")
     if ocp.horizon_bounds is not None:
         out.append("free_horizon")

@@ -40,9 +40,15 @@ Time-dependent flows and costs
     on ``ca.vertcat(s, t)``). With a free final time the cost and constraints see the
     time ``t`` of the stretched grid, since the time coordinate integrates ``t' = 1``.
 
+A required final mode
+    ``final_mode`` (problems with modes) ties the terminal constraints to a mode: ``s(T)``
+    must lie in that mode. The judge reports a control that ends in another mode as an
+    infinite terminal violation (:attr:`HybridOCP.terminal_violation`), and the reference
+    searches only mode sequences that end there (:meth:`HybridOCP.sequence_admissible`).
+
 What the model cannot express yet
-    Static parameters, resets that depend on the control, and terminal constraints tied to
-    a final mode (a constraint is an expression in ``s``, whatever the mode).
+    Static parameters (decisions constant in time): fix such a parameter and solve for
+    each value; resets that depend on the control.
 
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
@@ -312,6 +318,9 @@ class HybridOCP:
         array, ``rng`` a ``numpy.random.Generator``. The workflows call it with ``M = 1``
         and the generator ``default_rng([seed, i])`` for draw ``i``, so that a draw does
         not depend on how many are made. Data, not structure.
+    final_mode
+        For a problem with modes: the mode ``s(T)`` must be in (module notes, "A required
+        final mode"); ``None`` (default): any. Part of the structure.
     """
 
     f: ca.Function
@@ -335,6 +344,7 @@ class HybridOCP:
     terminal_ineq: ca.Function | None = None
     horizon_bounds: tuple[float, float] | None = None
     distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None
+    final_mode: str | None = None
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
@@ -396,6 +406,11 @@ class HybridOCP:
         """The mode names, the guards' source and target modes and the mode index of x0."""
         with_modes = [g.name for g in self.guards if g.source is not None or g.target is not None]
         if self.modes is None:
+            if self.final_mode is not None:
+                raise SceneError(
+                    f"final_mode {self.final_mode!r} needs a problem with modes (build it with "
+                    "HybridOCP.from_modes)"
+                )
             if with_modes:
                 raise SceneError(
                     f"guard(s) {with_modes} have a source or target mode but the problem has "
@@ -417,6 +432,10 @@ class HybridOCP:
                         f"{list(self.modes)}"
                     )
         self.mode_index(self.x0, what="x0")
+        if self.final_mode is not None and self.final_mode not in self.modes:
+            raise SceneError(
+                f"final_mode {self.final_mode!r} is not one of the modes {list(self.modes)}"
+            )
 
     def mode_index(self, state: Any, *, what: str = "state") -> int:
         """The mode index of a state of a problem with modes (its last coordinate).
@@ -490,6 +509,41 @@ class HybridOCP:
             return False
         return True
 
+    def ends_in_final_mode(self, sequence: Any) -> bool:
+        """Whether a mode-feasible event sequence leaves the system in :attr:`final_mode`
+        (always ``True`` when there is none). A sequence that is not mode-feasible raises
+        :class:`~hybridoc.errors.SceneError`."""
+        if self.final_mode is None:
+            return True
+        return self.modes_along(sequence)[-1] == self.final_mode
+
+    def sequence_admissible(self, sequence: Any) -> bool:
+        """Whether a whole event sequence can be the answer: mode-feasible
+        (:meth:`sequence_feasible`) and ending in :attr:`final_mode` when there is one. (A
+        prefix being extended needs only :meth:`sequence_feasible`.)"""
+        return self.sequence_feasible(sequence) and self.ends_in_final_mode(sequence)
+
+    def admissible_sequence(self, sequence: Any, *, what: str = "sequence") -> list[str]:
+        """A whole event sequence as a list of guard names (:meth:`check_sequence`), checked
+        to be :meth:`sequence_admissible`.
+
+        Raises
+        ------
+        hybridoc.errors.SceneError
+            As :meth:`check_sequence`, and for a sequence that leaves a mode by another
+            mode's transition or ends outside :attr:`final_mode`, naming the modes visited.
+        """
+        names = self.check_sequence(sequence, what=what)
+        if self.modes is None:
+            return names
+        visited = self.modes_along(names)
+        if self.final_mode is not None and visited[-1] != self.final_mode:
+            raise SceneError(
+                f"{what} {names} ends in mode {visited[-1]!r} ({' -> '.join(visited)}), but "
+                f"the problem requires the final mode {self.final_mode!r}"
+            )
+        return names
+
     def _check_terminal(self) -> None:
         """Validate the terminal constraints and the final-time bounds."""
         for attr in ("terminal_eq", "terminal_ineq"):
@@ -533,13 +587,17 @@ class HybridOCP:
 
     @property
     def has_terminal_constraints(self) -> bool:
-        """Whether the problem has terminal equality or inequality constraints."""
+        """Whether the problem has terminal equality or inequality constraints (a
+        required :attr:`final_mode` is apart: a constraint on the mode sequence)."""
         return self.terminal_eq is not None or self.terminal_ineq is not None
 
     def terminal_violation(self, s_end: Any) -> float:
         """Largest violation of the terminal constraints at the final state ``s_end``:
-        ``max(|h_eq|, max(-h_ineq, 0))``, 0 when there are none."""
+        ``max(|h_eq|, max(-h_ineq, 0))``, 0 when there are none; ``inf`` when ``s_end`` is
+        not in the required :attr:`final_mode`."""
         s_end = np.asarray(s_end, dtype=float).ravel()
+        if self.final_mode is not None and self.mode_of(s_end) != self.final_mode:
+            return math.inf
         viol = 0.0
         if self.terminal_eq is not None:
             h = np.asarray(self.terminal_eq(s_end).full()).ravel()

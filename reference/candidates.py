@@ -101,7 +101,7 @@ def guess_candidates(ocp: HybridOCP, ev: Evaluation) -> list[list[tuple[str, flo
     out, seen = [], set()
     for c in cands:
         key = tuple(n for n, _ in c)
-        if key not in seen and ocp.sequence_feasible(list(key)):
+        if key not in seen and ocp.sequence_admissible(list(key)):
             seen.add(key)
             out.append(c)
     return out
@@ -303,13 +303,15 @@ def enumerate_sequences(ocp: HybridOCP, max_events: int) -> Iterator[list[str]]:
     names = [g.name for g in ocp.guards]
     layout = _disc_layout(ocp)
     level: list[list[str]] = [[]]
-    yield []
+    if ocp.ends_in_final_mode([]):
+        yield []
     for _ in range(max_events):
         nxt = []
         for seq in level:
             for name in names:
                 cand = seq + [name]
                 if _feasible(cand, ocp, layout):
-                    nxt.append(cand)
-                    yield cand
+                    nxt.append(cand)  # a prefix may still reach the final mode
+                    if ocp.ends_in_final_mode(cand):
+                        yield cand
         level = nxt

@@ -774,7 +774,7 @@ def _check_arguments(
     reason = reference_supports(ocp)
     if reason:
         raise SceneError(f"{ocp.name!r}: {reason}")
-    seq = None if sequence is None else ocp.check_sequence(sequence)
+    seq = None if sequence is None else ocp.admissible_sequence(sequence)
     if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
         raise SceneError(f"tol must be a positive finite number, got {tol!r}")
     if search is not None and (
@@ -1024,10 +1024,16 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
         book.known.append(_Known(label, cost, seq, controls, p.evaluation, feasible))
     if not p.solve or seq is None:
         return
-    if not ocp.sequence_feasible(seq):
-        # a source's sequence that leaves a mode by a transition of another mode (its
-        # control is still a known control above; its sequence has no extremal)
-        book.say(f"{p.source}: the sequence {seq} is not mode-feasible: not solved")
+    if not ocp.sequence_admissible(seq):
+        # a source's sequence that leaves a mode by a transition of another mode, or ends
+        # outside the required final mode (its control is still a known control above; its
+        # sequence has no admissible extremal)
+        why = (
+            "is not mode-feasible"
+            if not ocp.sequence_feasible(seq)
+            else f"does not end in the final mode {ocp.final_mode!r}"
+        )
+        book.say(f"{p.source}: the sequence {seq} {why}: not solved")
         return
     key = tuple(seq)
     own = p.controls is not None  # the proposal's own control starts Newton

@@ -1172,7 +1172,7 @@ def solve_dt(
     ocp = as_ocp(problem)
     t_start = time.perf_counter()
     if sequence is not None:
-        sequence = ocp.check_sequence(sequence)
+        sequence = ocp.admissible_sequence(sequence)
     degree = _checked_degree(degree)  # before any work
     _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
     _checked_time_limit(time_limit)

@@ -173,6 +173,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         say(args, f"cost      {ev.cost!r}")
         say(args, f"terminal  {ev.terminal_cost!r}")
         say(args, f"running   {ev.running_cost!r}")
+        if ocp.final_mode is not None:
+            verdict = "as required" if ev.final_mode == ocp.final_mode else "required"
+            say(args, f"final mode {ev.final_mode} ({ocp.final_mode} {verdict})")
         if ocp.has_terminal_constraints:
             say(args, f"terminal constraints violated by {ev.terminal_violation:.3g}")
             rows = [[f"h_eq[{i}] = 0", fmt(x)] for i, x in enumerate(ev.terminal_eq_values)]
