@@ -60,7 +60,7 @@ import tempfile
 import threading
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -549,6 +549,51 @@ class NativeFunction:
             np.zeros(max(n_w, 1)),
         )
 
+    def bind(self, inputs: list[np.ndarray], outputs: list[np.ndarray]) -> Callable[[], int]:
+        """A call of the C function on fixed buffers: what :class:`hybridoc.kernels.Num`
+        does through CasADi's buffer API, without the per-call conversions of
+        :meth:`__call__` (which cost 20 us, ten times a small kernel's arithmetic).
+
+        Parameters
+        ----------
+        inputs, outputs
+            One contiguous float64 array per input and per output, of its number of values
+            (column-major); every output must be dense. They are kept alive by the returned
+            callable, which reads and writes them in place, with work arrays of its own (one
+            caller at a time: one per thread).
+
+        Returns
+        -------
+        callable
+            ``call() -> int``: evaluates, and returns the function's status (0: success).
+
+        Raises
+        ------
+        ValueError
+            A buffer of the wrong size, type or layout, or a sparse output.
+        """
+        if len(inputs) != self.n_in or len(outputs) != self.n_out:
+            raise ValueError(f"expected {self.n_in} inputs and {self.n_out} outputs")
+        sizes = [r * c for r, c in self._in_shapes] + [r * c for (r, c), _ in self._outs]
+        for buf, size in zip([*inputs, *outputs], sizes, strict=True):
+            if buf.dtype != np.float64 or buf.size != size or not buf.flags.c_contiguous:
+                raise ValueError(f"a buffer of {buf.size} {buf.dtype} where {size} float64")
+        if any(where is not None for _, where in self._outs):
+            raise ValueError("a sparse output cannot be bound")
+        n_arg, n_res, n_iw, n_w = self._sizes
+        arg = (ctypes.c_void_p * n_arg)(*[b.ctypes.data for b in inputs])
+        res = (ctypes.c_void_p * n_res)(*[b.ctypes.data for b in outputs])
+        iw = np.zeros(max(n_iw, 1), dtype=np.longlong)
+        w = np.zeros(max(n_w, 1))
+        pointers = (ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data)
+        keep = (arg, res, iw, w, list(inputs), list(outputs))
+        f = self._f
+
+        def call(_keep: tuple[Any, ...] = keep) -> int:  # _keep: the buffers outlive the call
+            return int(f(*pointers, 0))
+
+        return call
+
     def __call__(self, *inputs: np.ndarray) -> list[np.ndarray]:
         """The outputs, as column-major float64 arrays of the function's output shapes.
 
@@ -655,11 +700,16 @@ class Accelerated:
             self._calls_left = int(hot)
 
     def __call__(self, *args: Any) -> Any:
+        self.count()
+        return self.fn(*args)
+
+    def count(self) -> None:
+        """Count one call made elsewhere (e.g. through CasADi's buffer API on ``vm``)
+        towards the compilation: the :data:`HOT_CALLS`-th starts it in the background."""
         if self._calls_left > 0:
             self._calls_left -= 1
             if self._calls_left == 0:
                 self._start()
-        return self.fn(*args)
 
     def call_numpy(self, *args: Any) -> list[np.ndarray]:
         """The outputs as numpy arrays (column-major, the function's shapes): through

@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import threading
 import weakref
+from collections.abc import Callable
 from functools import cached_property
 from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
 
+from hybridoc import compiled
 from hybridoc.errors import EvaluationError
 from hybridoc.ocp import HybridOCP, Structure, integrator_flow_samples
 from hybridoc.rootfind import Chebyshev
@@ -59,9 +61,12 @@ class Num:
 
     The inputs and outputs are numpy buffers bound once; a call copies the arguments in,
     evaluates, and returns flat copies of the (dense) outputs in CasADi's column-major order.
+    With ``acc`` (the same function as :class:`~hybridoc.compiled.Accelerated`), calls count
+    towards its compilation and go to its generated C once that is loaded: the same
+    arithmetic, bit for bit (``-ffp-contract=off``), without the virtual machine.
     """
 
-    def __init__(self, fn: ca.Function) -> None:
+    def __init__(self, fn: ca.Function, acc: compiled.Accelerated | None = None) -> None:
         for i in range(fn.n_in()):
             if not fn.sparsity_in(i).is_dense():
                 raise ValueError(f"{fn.name()}: input {i} is not dense")
@@ -69,6 +74,8 @@ class Num:
             if not fn.sparsity_out(i).is_dense():
                 raise ValueError(f"{fn.name()}: output {i} is not dense")
         self.name = fn.name()
+        self._acc = acc
+        self._call: Callable[[], int] | None = None
         self._args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
         self._res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
         self._buf, self._eval = fn.buffer()
@@ -80,10 +87,28 @@ class Num:
     def __call__(self, *args: Any) -> list[np.ndarray]:
         for a, x in zip(self._args, args, strict=True):
             a[...] = x
+        if self._acc is not None:
+            call = self._native()
+            if call is not None:
+                if call() != 0:
+                    raise EvaluationError(f"numerical evaluation of {self.name!r} failed")
+                return [r.copy() for r in self._res]
         self._eval()
         if self._buf.ret() != 0:
             raise EvaluationError(f"numerical evaluation of {self.name!r} failed")
         return [r.copy() for r in self._res]
+
+    def _native(self) -> Callable[[], int] | None:
+        """The generated C bound to this object's buffers once it is loaded; until then
+        ``None``, and the call counts towards its compilation."""
+        if self._call is None:
+            acc = self._acc
+            assert acc is not None
+            if acc.native is None:
+                acc.count()
+                return None
+            self._call = acc.native.bind(self._args, self._res)
+        return self._call
 
 
 def dense_fn(name: str, args: list[Any], outs: list[Any]) -> ca.Function:
@@ -289,6 +314,19 @@ class Kernels:
         self._build_state_fns(ocp, dets, sp, u, fs)
         self._build_adjoint_fns(ocp, sym, flow, [s, u, h], sp, fs)
         self._local = threading.local()
+        self._acc: dict[str, compiled.Accelerated | None] = {}
+
+    def accelerated(self, fn: ca.Function) -> compiled.Accelerated | None:
+        """``fn`` (one of these kernels) as an :class:`~hybridoc.compiled.Accelerated`
+        shared by every thread, or ``None`` where compiling is off or not worth it (an MX
+        kernel wraps CVODES, which generated C cannot call)."""
+        if not self.sx or not compiled.enabled():
+            return None
+        name = fn.name()
+        with _LOCK:
+            if name not in self._acc:
+                self._acc[name] = compiled.Accelerated(fn)
+            return self._acc[name]
 
     def _build_interval_fns(
         self, ocp: HybridOCP, dets: _Detectors, flow: _FlowNodes, suh: list[Any], ab: list[Any]
@@ -391,6 +429,7 @@ class Kernels:
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         del state["_local"]
+        state["_acc"] = {}  # loaded libraries stay in their process
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -416,7 +455,7 @@ class Numeric:
 
     @cached_property
     def batch(self) -> Num:
-        return Num(self.k.batch_fn)
+        return Num(self.k.batch_fn, self.k.accelerated(self.k.batch_fn))
 
     @cached_property
     def flow(self) -> Num:
@@ -424,7 +463,7 @@ class Numeric:
 
     @cached_property
     def point(self) -> Num:
-        return Num(self.k.point_fn)
+        return Num(self.k.point_fn, self.k.accelerated(self.k.point_fn))
 
     @cached_property
     def det(self) -> Num:
@@ -440,7 +479,7 @@ class Numeric:
 
     @cached_property
     def contact(self) -> Num:
-        return Num(self.k.contact_fn)
+        return Num(self.k.contact_fn, self.k.accelerated(self.k.contact_fn))
 
     @cached_property
     def psi(self) -> Num:
@@ -448,7 +487,7 @@ class Numeric:
 
     @cached_property
     def seg_jac(self) -> Num:
-        return Num(self.k.seg_jac_fn)
+        return Num(self.k.seg_jac_fn, self.k.accelerated(self.k.seg_jac_fn))
 
     @cached_property
     def fL(self) -> Num:
@@ -456,7 +495,7 @@ class Numeric:
 
     @cached_property
     def fL_batch(self) -> Num:
-        return Num(self.k.fL_batch_fn)
+        return Num(self.k.fL_batch_fn, self.k.accelerated(self.k.fL_batch_fn))
 
     @cached_property
     def phi_grad(self) -> Num:
