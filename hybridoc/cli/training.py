@@ -1,6 +1,6 @@
-"""``hybridoc train-policy``: a feedback policy trained through the differentiable simulator
-on draws of a scene's distribution, saved as an MLP policy file (library:
-:mod:`hybridoc.workflows.training`, :mod:`hybridoc.workflows.policy_format`)."""
+"""``hybridoc train-policy``: a feedback policy trained on draws of a problem's distribution
+of initial states, saved as an MLP policy file (library: :mod:`hybridoc.workflows.training`,
+:mod:`hybridoc.workflows.policy_format`)."""
 
 from __future__ import annotations
 
@@ -23,42 +23,46 @@ from hybridoc.cli._util import (
     problem_slug,
     say,
     to_jsonable,
+    warn,
 )
-from hybridoc.errors import HybridocError
+from hybridoc.errors import HybridocError, SceneError
 
 __all__ = ["register"]
 
 
 def cmd_train_policy(args: argparse.Namespace) -> int:
-    """Train an MLP feedback policy u = pi(t, s) through the differentiable simulator
-    (full-batch Adam on the mean closed-loop loss of M initial states drawn from the
-    problem's distribution) and save it as an MLP policy file: DIR/<problem>_train-policy.json
-    (the architecture, read without running code) with its weights in
-    DIR/<problem>_train-policy.npz. 'hybridoc validate-policy PROBLEM --policy
-    DIR/<problem>_train-policy.json' judges it against the exact references.
+    """Train an MLP feedback policy u = pi(t, s) by full-batch Adam on the mean closed-loop
+    cost of M initial states drawn from the problem's distribution (a scene's
+    [distribution] table, or the distribution of a HybridOCP from path/to/file.py:function),
+    and save it as an MLP policy file: DIR/<problem>_train-policy.json (the architecture,
+    read without running code) with its weights in DIR/<problem>_train-policy.npz.
+    'hybridoc validate-policy PROBLEM --policy DIR/<problem>_train-policy.json' judges it
+    against the exact references.
 
-    The training draws use the seed --seed (default: the distribution's seed + 1), so that
-    they are not the draws that validate-policy judges by default. Needs a disc scene (the
-    differentiable simulator's model).
+    A disc scene trains through the differentiable simulator, with its time-of-impact
+    corrections (--toi, the paper's method) or without them (--no-toi). Any other problem
+    trains through the judge's event-exact closed loop and its exact adjoint: the loss is
+    the judged cost, and the event times' sensitivity is always in the gradient (--no-toi is
+    refused there). The training draws use the seed --seed (default: the distribution's
+    seed + 1), so that they are not the draws that validate-policy judges by default.
     """
     import numpy as np
 
     from hybridoc.problems import Scene
-    from hybridoc.workflows.datasets import distribution_problem
     from hybridoc.workflows.policy_format import save_mlp_policy
-    from hybridoc.workflows.training import mlp_policy, train_policy
+    from hybridoc.workflows.training import mlp_policy, train_policy, training_draws
 
-    source = distribution_problem(args.problem)
-    if not isinstance(source, Scene):
+    source = _source(args.problem)
+    disc = isinstance(source, Scene)
+    if not disc and not args.toi:
         raise HybridocError(
-            f"train-policy needs a disc scene (the differentiable simulator's model); "
-            f"{source.name!r} is a generic HybridOCP"
+            f"--no-toi needs a disc scene (it turns off the differentiable simulator's "
+            f"time-of-impact corrections); {source.name!r} trains through the judge's "
+            "event-exact closed loop, whose exact adjoint always has the event times' "
+            "sensitivity: leave --toi on"
         )
     out = ensure_dir(args.out)
-    seed = source.distribution.seed + 1 if args.seed is None else args.seed
-    x0 = np.stack(
-        [source.distribution.draw(source, i, seed).initial_state() for i in range(args.samples)]
-    )
+    x0, seed = training_draws(source, args.samples, seed=args.seed)
     policy = mlp_policy(source, hidden=args.hidden, layers=args.layers, seed=seed)
     res = train_policy(
         source, policy, x0, toi="both" if args.toi else "none", iters=args.epochs, lr=args.lr,
@@ -73,6 +77,7 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         "samples": args.samples,
         "seed": seed,
         "epochs": args.epochs,
+        "engine": res.engine,
         "toi": res.toi,
         "hidden": args.hidden,
         "layers": args.layers,
@@ -81,39 +86,68 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         "final_loss": res.final_loss,
         "losses": res.losses,
         "seconds": res.seconds,
+        "message": res.message,
     }
     report = Path(f"{stem}_report.json")
     try:
         report.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
     except OSError as exc:
         raise HybridocError(f"cannot write {str(report)!r}: {exc.strerror or exc}") from None
+    what = (
+        "the simulator's mean closed-loop loss"
+        if res.engine == "simulator"
+        else "the judge's mean closed-loop cost"
+    )
     if args.json:
         emit_json(payload)
     else:
         say(args, f"problem     {source.name} ({args.samples} draws, seed {seed})")
-        say(args, f"training    {args.epochs} epochs of Adam, lr {args.lr}, toi {res.toi}")
+        say(args, f"training    {args.epochs} epochs of Adam, lr {args.lr}, through the "
+                  f"{res.engine} (toi {res.toi})")  # fmt: skip
         say(args, f"loss        {fmt(payload['initial_loss'], 8)} -> {fmt(res.final_loss, 8)} "
-                  f"(the simulator's mean closed-loop loss)")  # fmt: skip
+                  f"({what})")  # fmt: skip
         say(args, f"time        {res.seconds:.3g} s")
         for p in (path, path.with_suffix(".npz"), report):
             say(args, f"wrote {p}")
         say(args, f"judge it: hybridoc validate-policy {args.problem} --policy {path} --samples M")
+    if res.message:
+        warn(res.message)
     if not np.isfinite(res.final_loss):
         raise HybridocError("the training diverged: the final loss is not finite (a smaller --lr?)")
     return 0
+
+
+def _source(text: str) -> Any:
+    """The scene with a ``[distribution]`` or the problem with a Python distribution that
+    ``text`` names; a problem without one is a user error that says how to give one."""
+    from hybridoc.workflows.datasets import distribution_problem
+
+    try:
+        return distribution_problem(text)
+    except SceneError as exc:
+        if "has no distribution" not in str(exc):
+            raise
+        raise HybridocError(
+            f"train-policy draws its initial states from a distribution, and {text!r} has "
+            "none: give a scene a [distribution] table, or give path/to/file.py:function "
+            "returning the problem with one, e.g. hybridoc.as_ocp(NAME).replace("
+            "distribution=lambda rng, M: x0 + rng.uniform(-0.1, 0.1, (M, nx))) "
+            "(see docs: datasets)"
+        ) from None
 
 
 def register(sub: Any) -> None:
     """Add ``train-policy``."""
     p = sub.add_parser(
         "train-policy",
-        help="train an MLP feedback policy on draws of a scene's distribution",
+        help="train an MLP feedback policy on draws of a problem's distribution",
         description=cmd_train_policy.__doc__,
     )
     problem_arg(p)
     p.add_argument(
         "--samples", type=positive_int, required=True, metavar="M",
-        help="initial states drawn from the scene's [distribution] to train on",
+        help="initial states drawn from the problem's distribution to train on (a scene's "
+        "[distribution] table or a HybridOCP's distribution)",
     )  # fmt: skip
     p.add_argument(
         "--epochs", type=positive_int, default=100, metavar="E",
@@ -121,7 +155,9 @@ def register(sub: Any) -> None:
     )  # fmt: skip
     p.add_argument(
         "--toi", action=argparse.BooleanOptionalAction, default=True,
-        help="the simulator's time-of-impact corrections (the paper's method; default on)",
+        help="disc scenes: the simulator's time-of-impact corrections (the paper's method; "
+        "default on); other problems train through the judge, whose gradient always has "
+        "the event times' sensitivity (--no-toi is refused)",
     )  # fmt: skip
     p.add_argument("--lr", type=positive_float, default=1e-2, help="learning rate (default 1e-2)")
     p.add_argument(

@@ -1,18 +1,31 @@
-"""Feedback policies: training through the differentiable simulator, and their exact gradient.
+"""Feedback policies: training through the closed loop, and its exact gradient.
 
 A feedback policy ``u = pi(t, s)`` is judged by :func:`hybridoc.evaluate` with
 ``policy=pi`` (zero-order hold: sampled at the grid times from the exact state and held over
 the interval). This module trains such policies and differentiates that judgement.
 
 :func:`mlp_policy`
-    A small multilayer perceptron ``(t, s) -> u`` with an input normalisation from the scene
-    and an output offset equal to the scene's initial control, so an untrained policy acts
-    like the initial guess.
+    A small multilayer perceptron ``(t, s) -> u`` whose input normalisation and output
+    offset and scale come from the problem, so that an untrained policy acts like the
+    initial guess: a disc scene's positions, targets and initial control, or, for any other
+    :class:`~hybridoc.HybridOCP`, the spread of its initial-state distribution, the states
+    its initial guess visits and its control bounds.
 :func:`train_policy`
-    Trains a policy on a batch of initial states by gradient descent (Adam or L-BFGS)
-    through the closed-loop rollout of the differentiable disc simulator
+    Trains a policy on a batch of initial states by gradient descent (Adam or L-BFGS) on
+    the mean closed-loop cost. On a disc scene, through the closed-loop rollout of the
+    differentiable disc simulator
     (:meth:`hybridoc.solvers.simulator.Simulator.rollout_policy`), with the paper's
-    time-of-impact corrections (``toi="both"``) or without them (``toi="none"``).
+    time-of-impact corrections (``toi="both"``) or without them (``toi="none"``). On any
+    other problem, through the judge's event-exact closed loop and its exact discrete
+    adjoint (:func:`closed_loop_cost`): the loss is the judged cost itself, and the event
+    times' sensitivity (the saltation matrix) is part of the gradient, which is what
+    ``toi="both"`` means there; the judge has no rollout without it, so other ``toi``
+    values are refused on such problems.
+:func:`training_draws`
+    The initial states to train on: draws of the problem's distribution (a scene's
+    ``[distribution]`` table or :attr:`HybridOCP.distribution <hybridoc.HybridOCP>`) with
+    a seed other than the one :func:`~hybridoc.workflows.policies.validate_policy` judges
+    on by default.
 :func:`closed_loop_cost`
     The judge's event-exact closed-loop cost as a differentiable torch scalar: its backward
     pass is the exact gradient with respect to the policy's parameters (and the initial
@@ -53,7 +66,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hybridoc.errors import ControlsError, SceneError
+from hybridoc.errors import ControlsError, EvaluationError, SceneError
 from hybridoc.evaluator import adjoint, evaluate
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp, disc_scene
@@ -62,13 +75,16 @@ from hybridoc.solvers.simulator import Simulator
 from hybridoc.solvers.threads import torch_threads
 
 __all__ = [
+    "ENGINES",
     "ClosedLoopGradient",
     "MLPPolicy",
     "TrainResult",
     "closed_loop_cost",
     "closed_loop_gradient",
+    "judged_loss",
     "mlp_policy",
     "train_policy",
+    "training_draws",
 ]
 
 OPTIMIZERS = ("adam", "lbfgs")
@@ -156,35 +172,87 @@ class MLPPolicy(torch.nn.Module):
 
 
 def mlp_policy(
-    scene: ProblemLike, *, hidden: int = 32, layers: int = 2, seed: int = 0
+    scene: ProblemLike,
+    *,
+    hidden: int = 32,
+    layers: int = 2,
+    seed: int = 0,
+    distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None,
 ) -> MLPPolicy:
-    """A small MLP feedback policy for a disc scene that starts near its initial guess.
+    """A small MLP feedback policy that starts near the problem's initial guess.
 
-    The inputs are normalised with the scene's scales: the time to ``[-1, 1]``, positions
-    relative to the initial state by the scene's length scale (the spread of the initial
-    positions and targets, at least 1), velocities by the velocity the initial control
-    reaches over the horizon (at least 1). The output is the scene's initial control (its
-    mean over the grid) plus ``u_scale`` times the network, whose last layer starts small.
+    The time input is normalised to ``[-1, 1]`` and the output is ``u_offset + u_scale``
+    times the network, whose last layer starts small. The other scales depend on the
+    problem:
+
+    A disc scene
+        Positions relative to the initial state by the scene's length scale (the spread of
+        the initial positions and targets, at least 1), velocities by the velocity the
+        initial control reaches over the horizon (at least 1); ``u_offset`` is the scene's
+        initial control (its mean over the grid), ``u_scale`` its largest magnitude (at
+        least 1).
+    Any other :class:`~hybridoc.HybridOCP`
+        ``s_mean`` is the mean of 64 draws of its distribution (``distribution``, else the
+        problem's; none: ``x0``) and ``s_scale`` per state the larger of their standard
+        deviation and half the range the state covers under the initial guess ``u_guess``
+        from ``s_mean`` (1 for a state that moves in neither). ``u_offset`` is the mean of
+        ``u_guess``; ``u_scale`` per control is half the bound interval where both bounds
+        are finite, else the control that moves the state it drives fastest by its scale
+        over the horizon, ``min_i s_scale_i / (T |df_i/du_j|)`` at ``(s_mean, u_offset)``
+        (1 for a control that drives no state there).
 
     Parameters
     ----------
     scene
-        A disc scene (a :class:`~hybridoc.problems.Scene`, built-in name or TOML path).
+        A problem: a disc scene (a :class:`~hybridoc.problems.Scene`, built-in name or TOML
+        path) or anything :func:`~hybridoc.problem.as_ocp` accepts.
     hidden
         Width of each hidden layer.
     layers
         Number of hidden layers.
     seed
         Seed of the initial weights (the result is deterministic).
+    distribution
+        A callable ``(rng, M) -> (M, nx)`` of initial states for a problem that is not a
+        disc scene (:attr:`HybridOCP.distribution <hybridoc.HybridOCP>`); default the
+        problem's own. Not used on a disc scene.
 
     Returns
     -------
     MLPPolicy
         A float64 ``torch.nn.Module``.
+
+    Raises
+    ------
+    SceneError
+        Bad ``hidden`` or ``layers``, a distribution that cannot be drawn.
     """
-    sc = disc_scene(scene)
     if hidden < 1 or layers < 0:
         raise SceneError(f"hidden must be >= 1 and layers >= 0, got {hidden}, {layers}")
+    gen = torch.Generator().manual_seed(int(seed))
+    if _is_disc(scene):
+        return _disc_mlp(disc_scene(scene), int(hidden), int(layers), gen)
+    ocp = as_ocp(scene)
+    s_mean, s_scale, u_offset, u_scale = _generic_scales(ocp, distribution)
+    return MLPPolicy(
+        ocp.nx, ocp.nu, hidden=int(hidden), layers=int(layers), horizon=ocp.horizon,
+        s_mean=s_mean, s_scale=s_scale, u_offset=u_offset, u_scale=u_scale, generator=gen,
+    )  # fmt: skip
+
+
+def _is_disc(problem: ProblemLike) -> bool:
+    """Whether ``problem`` is a disc scene (the differentiable simulator's model)."""
+    from hybridoc.problems import DiscOCP, Scene
+
+    if isinstance(problem, Scene | DiscOCP):
+        return True
+    if isinstance(problem, HybridOCP):
+        return False
+    return isinstance(as_ocp(problem), DiscOCP)
+
+
+def _disc_mlp(sc: Any, hidden: int, layers: int, gen: torch.Generator) -> MLPPolicy:
+    """:func:`mlp_policy` of a disc scene (its docstring: "A disc scene")."""
     x0 = sc.initial_state()
     n = sc.n_discs
     pts = [d.position for d in sc.discs] + [d.target for d in sc.discs if d.target is not None]
@@ -195,12 +263,11 @@ def mlp_policy(
     m_min = min(d.mass for d in sc.discs)
     speed = max(1.0, u_mag * sc.horizon / m_min)
     s_scale = np.r_[np.full(2 * n, length), np.full(2 * n, speed)]
-    gen = torch.Generator().manual_seed(int(seed))
     return MLPPolicy(
         4 * n,
         sc.n_controls,
-        hidden=int(hidden),
-        layers=int(layers),
+        hidden=hidden,
+        layers=layers,
         horizon=sc.horizon,
         s_mean=x0,
         s_scale=s_scale,
@@ -210,7 +277,74 @@ def mlp_policy(
     )
 
 
+SCALE_DRAWS = 64
+"""Draws of the distribution that :func:`mlp_policy` averages on a problem that is not a
+disc scene."""
+
+
+def _generic_scales(
+    problem: ProblemLike,
+    distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The normalisations of :func:`mlp_policy` for a problem that is not a disc scene.
+
+    Parameters
+    ----------
+    problem
+        Anything :func:`~hybridoc.problem.as_ocp` accepts.
+    distribution
+        Overrides the problem's distribution; with neither, the states are ``x0``.
+
+    Returns
+    -------
+    s_mean, s_scale, u_offset, u_scale
+        ``(nx,)``, ``(nx,)``, ``(nu,)``, ``(nu,)`` (:func:`mlp_policy`, "Any other
+        HybridOCP"); every scale positive.
+    """
+    import casadi as ca
+
+    from hybridoc.workflows.datasets import draw_initial_states
+
+    ocp = as_ocp(problem)
+    dist = distribution if distribution is not None else ocp.distribution
+    if dist is None:
+        draws = ocp.x0[None, :]
+    else:
+        draws = draw_initial_states(ocp.replace(distribution=dist), SCALE_DRAWS, 0)
+    s_mean = draws.mean(0)
+    spread = draws.std(0)
+    u_offset = np.asarray(ocp.u_guess, dtype=float).mean(0)
+    reach = np.zeros(ocp.nx)
+    try:
+        ev = evaluate(ocp.replace(x0=s_mean, distribution=None), ocp.u_guess)
+        visited = np.array([seg.s0 for seg in ev.segments] + [ev.final_state])
+        reach = 0.5 * (visited.max(0) - visited.min(0))
+    except (EvaluationError, ControlsError):
+        pass  # the initial guess cannot be judged from s_mean: the draws' spread alone
+    s_scale = np.maximum(spread, reach)
+    s_scale = np.where(s_scale > 1e-12 * (1.0 + np.abs(s_mean)), s_scale, 1.0)
+    s, u = ca.MX.sym("s", ocp.nx), ca.MX.sym("u", ocp.nu)
+    B = np.array(ca.Function("B", [s, u], [ca.jacobian(ocp.f(s, u), u)])(s_mean, u_offset))
+    B = B.reshape(ocp.nx, ocp.nu)
+    u_scale = np.ones(ocp.nu)
+    for j in range(ocp.nu):
+        lo, hi = float(ocp.u_min[j]), float(ocp.u_max[j])
+        if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
+            u_scale[j] = 0.5 * (hi - lo)
+            continue
+        drive = np.abs(B[:, j])
+        driven = drive > 1e-12 * max(1.0, float(drive.max(initial=0.0)))
+        if driven.any():
+            u_scale[j] = float(np.min(s_scale[driven] / (ocp.horizon * drive[driven])))
+    return s_mean, s_scale, u_offset, u_scale
+
+
 # ---------------------------------------------------------------------------- training
+ENGINES = ("simulator", "judge")
+"""What :func:`train_policy` trains through: the differentiable disc simulator (disc scenes)
+or the judge's event-exact closed loop with its exact adjoint (every other problem)."""
+
+
 @dataclass
 class TrainResult:
     """What :func:`train_policy` returns.
@@ -220,13 +354,21 @@ class TrainResult:
     policy
         The trained policy (the same object that was passed in, trained in place).
     losses
-        The simulator's mean closed-loop loss at each iteration (before its update).
+        The mean closed-loop loss at each iteration (before its update): the simulator's
+        discrete objective (``engine`` ``"simulator"``) or the judge's cost (``"judge"``).
     final_loss
-        The loss after the last update.
+        The loss of the parameters the policy ends with.
     seconds
         Wall time of the training.
     toi, contact, integrator
-        The simulator's settings.
+        The simulator's settings; with the judge, ``"both"`` (the event times'
+        sensitivity is in the gradient), ``"exact"`` and ``"judge"``.
+    engine
+        One of :data:`ENGINES`.
+    message
+        Empty, or why the training stopped before its last iteration (the judge could not
+        simulate the closed loop of some initial state: the parameters are then the best
+        ones judged).
     """
 
     policy: torch.nn.Module
@@ -236,6 +378,60 @@ class TrainResult:
     toi: str = "both"
     contact: str = "direct"
     integrator: str = "symplectic-euler"
+    engine: str = "simulator"
+    message: str = ""
+
+
+def training_draws(
+    problem: ProblemLike,
+    samples: int,
+    *,
+    seed: int | None = None,
+    distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None,
+) -> tuple[np.ndarray, int]:
+    """Initial states to train on: the first ``samples`` draws of the problem's distribution.
+
+    Parameters
+    ----------
+    problem
+        A disc scene with a ``[distribution]`` table, or any problem with a Python
+        distribution (:func:`~hybridoc.workflows.datasets.distribution_problem`).
+    samples
+        ``M >= 1``.
+    seed
+        Seed of the draws; default the distribution's seed plus one (a scene's, else 0),
+        so that they are not the draws that
+        :func:`~hybridoc.workflows.policies.validate_policy` judges by default.
+    distribution
+        A callable ``(rng, M) -> (M, nx)`` overriding the problem's distribution.
+
+    Returns
+    -------
+    x0, seed
+        ``(samples, nx)`` initial states and the seed they were drawn with.
+
+    Raises
+    ------
+    SceneError
+        No distribution, or one that cannot be drawn.
+    """
+    from hybridoc.problems import Scene
+    from hybridoc.workflows.datasets import (
+        check_count,
+        distribution_problem,
+        draw_initial_states,
+        source_seed,
+    )
+
+    samples = check_count(samples, "samples", 1)
+    source = distribution_problem(problem, distribution)
+    seed = source_seed(source, None) + 1 if seed is None else check_count(seed, "seed", 0)
+    if isinstance(source, Scene):
+        dist = source.distribution
+        x0 = np.stack([dist.draw(source, i, seed).initial_state() for i in range(samples)])
+    else:
+        x0 = draw_initial_states(source, samples, seed)
+    return x0, seed
 
 
 def train_policy(
@@ -254,25 +450,32 @@ def train_policy(
     keep_best: bool = True,
     callback: Callable[[int, float], None] | None = None,
     progress: ProgressLike = None,
+    distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None,
 ) -> TrainResult:
-    """Train a feedback policy through the closed-loop differentiable simulator.
+    """Train a feedback policy on the mean closed-loop cost over initial states.
 
-    Minimises the mean over ``x0_batch`` of the simulator's discrete objective (terminal
-    cost plus running cost, :meth:`~hybridoc.solvers.simulator.Simulator.policy_loss`) of
-    the closed-loop rollout with zero-order hold, with full-batch Adam or L-BFGS.
+    Full-batch Adam or L-BFGS on the mean over ``x0_batch`` of the closed-loop cost with
+    zero-order hold. On a disc scene the cost is the differentiable simulator's discrete
+    objective (terminal cost plus running cost,
+    :meth:`~hybridoc.solvers.simulator.Simulator.policy_loss`); on any other problem it is
+    the judge's event-exact cost, differentiated by its exact discrete adjoint
+    (:func:`judged_loss`).
 
     Parameters
     ----------
     scene
-        A disc scene (its grid, costs and contact parameters; its initial state is not used).
+        The problem: a disc scene (its grid, costs and contact parameters; its initial
+        state is not used) or anything :func:`~hybridoc.problem.as_ocp` accepts.
     policy
         A batched ``torch.nn.Module`` ``(t (B,), s (B, nx)) -> u (B, nu)`` in float64, e.g.
-        :func:`mlp_policy`. Trained in place.
+        :func:`mlp_policy` (the judge also calls it with one state). Trained in place.
     x0_batch
-        ``(B, nx)`` initial states.
+        ``(B, nx)`` initial states, or a count ``M``: the first ``M``
+        :func:`training_draws` of the problem's distribution (default seed).
     toi
         Time-of-impact correction of the simulator: ``"both"`` (the paper's method),
-        ``"none"``, ``"position"`` or ``"velocity"``.
+        ``"none"``, ``"position"`` or ``"velocity"``. The judge's gradient always has the
+        event times' sensitivity: on a problem that is not a disc scene only ``"both"``.
     iters
         Optimiser iterations (L-BFGS: outer steps of at most 20 evaluations each).
     lr
@@ -280,7 +483,8 @@ def train_policy(
     optimizer
         ``"adam"`` or ``"lbfgs"``.
     contact, integrator
-        Contact model and integrator of the :class:`~hybridoc.solvers.simulator.Simulator`.
+        Contact model and integrator of the :class:`~hybridoc.solvers.simulator.Simulator`
+        (disc scenes only).
     seed
         Seeds torch's global generator before training (for policies with randomness).
     schedule
@@ -295,6 +499,8 @@ def train_policy(
         ``None``/``False`` (silent, the default), ``True`` (a progress bar on stderr) or a
         :class:`~hybridoc.progress.Progress`: the training stage and its iterations, with
         the loss.
+    distribution
+        For ``x0_batch`` a count: overrides the problem's distribution.
 
     Returns
     -------
@@ -305,25 +511,60 @@ def train_policy(
     ControlsError
         Bad ``x0_batch`` or a policy that returns a wrong shape or non-finite value.
     SceneError
-        An unknown optimiser or simulator setting.
+        An unknown optimiser or simulator setting, a simulator setting on a problem that is
+        not a disc scene, no distribution to draw a count of initial states from.
     """
     params = _trainable(policy, optimizer, schedule, iters)
-    sim = Simulator(scene, contact=contact, toi=toi, integrator=integrator)
-    x0 = _x0_tensor(x0_batch, sim.nx, batch_only=True)
+    if isinstance(x0_batch, int | np.integer) and not isinstance(x0_batch, bool):
+        x0_batch = training_draws(scene, int(x0_batch), distribution=distribution)[0]
+    if _is_disc(scene):
+        sim = Simulator(scene, contact=contact, toi=toi, integrator=integrator)
+        x0 = _x0_tensor(x0_batch, sim.nx, batch_only=True)
+        result = TrainResult(policy, toi=toi, contact=sim.contact, integrator=integrator)
+
+        def loss() -> torch.Tensor:
+            return sim.policy_loss(policy, x0)
+
+    else:
+        ocp = as_ocp(scene)
+        _judge_settings(ocp, toi, contact, integrator)
+        x0 = _x0_tensor(x0_batch, ocp.nx, batch_only=True)
+        result = TrainResult(
+            policy, toi="both", contact="exact", integrator="judge", engine="judge"
+        )
+
+        def loss() -> torch.Tensor:
+            return judged_loss(ocp, policy, x0, params=params)
+
     torch.manual_seed(int(seed))
-    result = TrainResult(policy, toi=toi, contact=sim.contact, integrator=integrator)
     t_start = time.perf_counter()
     with progress_scope(progress, "training") as p:
         p.stage(f"{optimizer} on {x0.shape[0]} initial states")
         step = _Steps(result, int(iters), callback, p)
         if optimizer == "adam":
-            _train_adam(sim, policy, x0, params, lr, schedule, keep_best, step)
+            _train_adam(loss, policy, params, lr, schedule, keep_best, step)
         else:
-            _train_lbfgs(sim, policy, x0, params, lr, step)
-    with torch.no_grad():
-        result.final_loss = float(sim.policy_loss(policy, x0))
+            _train_lbfgs(loss, policy, params, lr, step)
+    if not math.isfinite(result.final_loss):
+        with torch.no_grad():
+            result.final_loss = float(loss())
     result.seconds = time.perf_counter() - t_start
     return result
+
+
+def _judge_settings(ocp: HybridOCP, toi: str, contact: str, integrator: str) -> None:
+    """Refuse the simulator's settings on a problem that the judge trains."""
+    if toi != "both":
+        raise SceneError(
+            f"toi={toi!r} needs a disc scene (the differentiable simulator's model); "
+            f"{ocp.name!r} is trained through the judge's event-exact closed loop, whose "
+            "exact adjoint always has the event times' sensitivity (toi='both')"
+        )
+    if contact != "direct" or integrator != "symplectic-euler":
+        raise SceneError(
+            f"contact and integrator are the disc simulator's settings; {ocp.name!r} is "
+            "trained through the judge's event-exact closed loop"
+        )
 
 
 def _trainable(
@@ -360,11 +601,22 @@ class _Steps:
             self.callback(it, value)
         self.progress.count(it + 1, self.iters, f"loss {value:.6g}")
 
+    def stop(self, it: int, exc: EvaluationError) -> None:
+        """Record why the training ends at iteration ``it``."""
+        self.result.message = (
+            f"stopped at iteration {it + 1} of {self.iters}: the judge could not simulate a "
+            f"closed loop ({exc}); the policy has the best parameters judged"
+        )
+        self.progress.detail(self.result.message)
+
+
+def _snapshot(policy: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in policy.state_dict().items()}
+
 
 def _train_adam(
-    sim: Simulator,
+    loss_fn: Callable[[], torch.Tensor],
     policy: torch.nn.Module,
-    x0: torch.Tensor,
     params: list[torch.Tensor],
     lr: float,
     schedule: str,
@@ -372,7 +624,7 @@ def _train_adam(
     step: _Steps,
 ) -> None:
     """Full-batch Adam (:func:`train_policy`), ending with the best parameters seen when
-    ``keep_best``."""
+    ``keep_best`` (or when the judge fails on an update: then training stops)."""
     opt = torch.optim.Adam(params, lr=lr)
     sched = (
         torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(step.iters, 1), eta_min=lr / 100)
@@ -382,43 +634,139 @@ def _train_adam(
     best, best_state = math.inf, None
     for it in range(step.iters):
         opt.zero_grad()
-        loss = sim.policy_loss(policy, x0)
+        try:
+            loss = loss_fn()
+        except EvaluationError as exc:
+            step.stop(it, exc)
+            break
         loss.backward()
         value = float(loss.detach())
-        if keep_best and value < best:
+        if (keep_best or step.result.engine == "judge") and value < best:
             best = value
-            best_state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+            best_state = _snapshot(policy)
         opt.step()
         if sched is not None:
             sched.step()
         step(it, value)
-    if best_state is not None:
-        with torch.no_grad():
-            last = float(sim.policy_loss(policy, x0))
-        if best < last:
-            policy.load_state_dict(best_state)
+    if best_state is None:
+        return
+    last = math.inf
+    if not step.result.message:
+        try:
+            with torch.no_grad():
+                last = float(loss_fn())
+        except EvaluationError:
+            pass  # the last update cannot be judged: the best parameters seen
+    if keep_best and best < last or not math.isfinite(last):
+        policy.load_state_dict(best_state)
+        step.result.final_loss = best
+    else:
+        step.result.final_loss = last
 
 
 def _train_lbfgs(
-    sim: Simulator,
+    loss_fn: Callable[[], torch.Tensor],
     policy: torch.nn.Module,
-    x0: torch.Tensor,
     params: list[torch.Tensor],
     lr: float,
     step: _Steps,
 ) -> None:
-    """Full-batch L-BFGS with a strong Wolfe line search (:func:`train_policy`)."""
+    """Full-batch L-BFGS with a strong Wolfe line search (:func:`train_policy`); a step the
+    judge cannot simulate ends the training with the parameters before it."""
     opt = torch.optim.LBFGS(params, lr=lr, max_iter=20, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
-        loss = sim.policy_loss(policy, x0)
+        loss = loss_fn()
         loss.backward()
         return loss
 
     for it in range(step.iters):
-        loss = opt.step(closure)
+        before = _snapshot(policy)
+        try:
+            loss = opt.step(closure)
+        except EvaluationError as exc:
+            policy.load_state_dict(before)
+            step.stop(it, exc)
+            break
         step(it, float(loss.detach()))
+
+
+def judged_loss(
+    problem: ProblemLike,
+    policy: torch.nn.Module,
+    x0: Any,
+    *,
+    params: Sequence[torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """What :func:`train_policy` minimises on a problem that is not a disc scene.
+
+    The mean over ``x0`` of the judge's closed-loop cost (zero-order hold) as a
+    differentiable torch scalar, as :func:`closed_loop_cost`, except that the judge rolls
+    out a numpy copy of an :class:`MLPPolicy` (the function its saved policy file computes,
+    the same to rounding, ten times faster to call per grid step than the module); the
+    backward pass differentiates the module along that closed loop by the exact discrete
+    adjoint, event times included (module notes).
+
+    Parameters
+    ----------
+    problem
+        Anything :func:`hybridoc.evaluate` accepts.
+    policy
+        A batched torch policy (:func:`closed_loop_cost`), e.g. :func:`mlp_policy`.
+    x0
+        ``(nx,)`` or ``(B, nx)`` initial states.
+    params
+        The tensors to differentiate with respect to; default the policy's parameters that
+        require grad.
+
+    Returns
+    -------
+    torch.Tensor
+        A float64 scalar; ``.backward()`` fills the parameters' ``.grad``.
+
+    Raises
+    ------
+    ControlsError, EvaluationError
+        As :func:`closed_loop_cost`.
+    """
+    torch_threads()
+    ocp = as_ocp(problem)
+    x = _x0_tensor(x0, ocp.nx)
+    if params is None:
+        params = [p for p in policy.parameters() if p.requires_grad]
+    runner = _Runner(ocp, policy, {}, judge_policy=_numpy_twin(policy))
+    return _ClosedLoopCost.apply(runner, x, *params)
+
+
+def _numpy_twin(policy: torch.nn.Module) -> Callable[..., Any]:
+    """What the judge rolls out for ``policy``: for an :class:`MLPPolicy`, the same function
+    in numpy (as the saved policy file computes it; a torch call per grid step costs ten
+    times more than the judge's step), otherwise the policy itself."""
+    if not isinstance(policy, MLPPolicy):
+        return policy
+    layers = [m for m in policy.net if isinstance(m, torch.nn.Linear)]
+    if len(layers) + sum(isinstance(m, torch.nn.Tanh) for m in policy.net) != len(policy.net):
+        return policy
+
+    def arr(x: torch.Tensor) -> np.ndarray:
+        return x.detach().cpu().numpy().astype(float).copy()
+
+    Ws = [arr(m.weight) for m in layers]
+    bs = [arr(m.bias) for m in layers]
+    mean, scale = arr(policy.s_mean), arr(policy.s_scale)
+    off, gain = arr(policy.u_offset), arr(policy.u_scale)
+    horizon = policy.horizon
+
+    def numpy_policy(t: float, state: np.ndarray) -> np.ndarray:
+        z = np.concatenate([[2.0 * float(t) / horizon - 1.0], (state - mean) / scale])
+        for k, (W, b) in enumerate(zip(Ws, bs, strict=True)):
+            z = W @ z + b
+            if k < len(Ws) - 1:
+                z = np.tanh(z)
+        return off + gain * z
+
+    return numpy_policy
 
 
 def _x0_tensor(x0: Any, nx: int, *, batch_only: bool = False) -> torch.Tensor:
@@ -510,10 +858,21 @@ def closed_loop_gradient(
     -------
     ClosedLoopGradient
     """
-    ocp = as_ocp(problem)
+    return _closed_loop(as_ocp(problem), policy, policy, x0, kwargs)
+
+
+def _closed_loop(
+    ocp: HybridOCP,
+    policy: Callable[..., Any],
+    judge_policy: Callable[..., Any],
+    x0: Any,
+    kwargs: dict[str, Any],
+) -> ClosedLoopGradient:
+    """:func:`closed_loop_gradient` with ``judge_policy`` rolled out (the same function as
+    ``policy``, which is differentiated)."""
     if x0 is not None:
         ocp = ocp.replace(x0=_x0_tensor(x0, ocp.nx)[0].detach().numpy().copy())
-    ev = evaluate(ocp, policy=policy, hold="zoh", **kwargs)
+    ev = evaluate(ocp, policy=judge_policy, hold="zoh", **kwargs)
     idx = np.array([seg.interval for seg in ev.segments], dtype=int)
     first = np.flatnonzero(np.r_[True, idx[1:] != idx[:-1]])
     S = np.array([ev.segments[i].s0 for i in first])
@@ -585,11 +944,21 @@ class _ClosedLoopCost(torch.autograd.Function):
 
 
 class _Runner:
-    def __init__(self, ocp: HybridOCP, policy: Callable[..., Any], kwargs: dict[str, Any]) -> None:
+    """The closed loops of :class:`_ClosedLoopCost`: ``judge_policy`` (default ``policy``)
+    is rolled out by the judge, ``policy`` differentiated."""
+
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        policy: Callable[..., Any],
+        kwargs: dict[str, Any],
+        judge_policy: Callable[..., Any] | None = None,
+    ) -> None:
         self.ocp, self.policy, self.kwargs = ocp, policy, kwargs
+        self.judge_policy = policy if judge_policy is None else judge_policy
 
     def one(self, x0: torch.Tensor) -> ClosedLoopGradient:
-        return closed_loop_gradient(self.ocp, self.policy, x0, **self.kwargs)
+        return _closed_loop(self.ocp, self.policy, self.judge_policy, x0, self.kwargs)
 
 
 def closed_loop_cost(
