@@ -125,6 +125,12 @@ class ReferenceResult:
     judged_terminal_violation
         The terminal constraints' violation at the judge's re-simulated final state, set by
         :func:`~hybridoc.reference.sequence.judged_reference` (``None`` before).
+    arc_starts, arc_states, arc_costates, arc_levels, arc_nodes
+        A generic problem with path constraints whose phases have junctions: every arc's
+        start time (phase starts and junctions, in time order), ``s`` and ``lambda`` there,
+        its DOP853 steps and its nodes under the constrained minimum of ``H``; ``u(t)`` is
+        rebuilt per arc, so that no step of the dense output crosses a kink of ``u``
+        (``None`` otherwise: per phase).
     coverage
         What the search that chose this extremal covered (the sources, the sequences
         proposed, solved and pruned, the exhaustive length, whether the budget stopped it,
@@ -163,6 +169,11 @@ class ReferenceResult:
     final_hamiltonian: float = 0.0
     judged_terminal_violation: float | None = None
     coverage: dict[str, Any] | None = field(default=None, repr=False)
+    arc_starts: np.ndarray | None = None
+    arc_states: np.ndarray | None = None
+    arc_costates: np.ndarray | None = None
+    arc_levels: tuple[int, ...] | None = None
+    arc_nodes: list[np.ndarray] | None = field(default=None, repr=False)
 
     @property
     def horizon(self) -> float:
@@ -229,11 +240,20 @@ class ReferenceResult:
             return np.hstack([p, v]), lam, u
         if t.size == 0:
             return np.zeros((0, nx)), np.zeros((0, nx)), np.zeros((0, S.nu))
-        assert self.nodes is not None and self.levels is not None
+        nodes, levels, starts = self._pieces()
         s_out, l_out, u_out = _dense_from_nodes(
-            S.core.flow.dense, self.nodes, self.levels, self.phase_starts, self.ocp.horizon, t
+            S.core.flow.dense, nodes, levels, starts, self.ocp.horizon, t
         )
         return s_out, l_out, u_out
+
+    def _pieces(self) -> tuple[list[np.ndarray], Sequence[int], np.ndarray]:
+        """The dense output's nodes, steps and start times: per arc where they are kept,
+        else per phase."""
+        if self.arc_nodes is not None:
+            assert self.arc_levels is not None and self.arc_starts is not None
+            return self.arc_nodes, self.arc_levels, self.arc_starts
+        assert self.nodes is not None and self.levels is not None
+        return self.nodes, self.levels, self.phase_starts
 
     def control(self, t: float) -> np.ndarray:
         """The optimal control ``u(t)`` (right-continuous at events)."""
@@ -244,9 +264,9 @@ class ReferenceResult:
         C = self.control_coefficients()
         starts = self.phase_starts
         if C is None:
-            assert self.nodes is not None and self.levels is not None
+            nodes, levels, piece_starts = self._pieces()
             return _control_from_nodes(
-                self.system.core.flow.dense_u, self.nodes, self.levels, starts, self.ocp.horizon
+                self.system.core.flow.dense_u, nodes, levels, piece_starts, self.ocp.horizon
             )
 
         def u(t: float) -> np.ndarray:
@@ -373,6 +393,12 @@ class ReferenceResult:
             arrays["control_coefficients"] = C
         if self.levels is not None:
             arrays["substeps"] = np.asarray(self.levels, dtype=np.int64)
+        if self.arc_nodes is not None:
+            assert self.arc_levels is not None
+            arrays["arc_starts"] = np.asarray(self.arc_starts, dtype=float)
+            arrays["arc_states"] = np.asarray(self.arc_states, dtype=float)
+            arrays["arc_costates"] = np.asarray(self.arc_costates, dtype=float)
+            arrays["arc_substeps"] = np.asarray(self.arc_levels, dtype=np.int64)
         base_info = {
             "residual": float(self.residual),
             "sequence": list(self.sequence),
@@ -445,7 +471,8 @@ def reference_control(
         ``hybridoc.evaluate_callable(ocp, u, breakpoints=breakpoints)``.
     """
     if isinstance(obj, ReferenceResult):
-        return obj.control_function(), [float(t) for t in obj.event_times]
+        cuts = obj.event_times if obj.arc_starts is None else obj.arc_starts[1:]
+        return obj.control_function(), [float(t) for t in cuts]
     ref = getattr(obj, "reference", None)
     if isinstance(ref, ReferenceResult):
         return reference_control(ref)
@@ -503,9 +530,38 @@ def hmp_control(solution: Any, problem: Any) -> tuple[Callable[[float], np.ndarr
     # accurate, though not bit for bit the saved solve's)
     levels = tuple(int(n) for n in arrays.get("substeps", [LEGACY_SUBSTEPS] * starts_g.size))
     S = shooting_system(ocp, seq, levels, free=False)
+    if "arc_starts" in arrays:
+        # path constraints with junctions: per arc, under the constrained minimum of H
+        # (the nodes the solve's own u(t) has)
+        starts_a = np.asarray(arrays["arc_starts"], dtype=float)
+        steps = tuple(int(n) for n in arrays["arc_substeps"])
+        nodes = _arc_nodes(
+            S.core.flow, starts_a, np.asarray(arrays["arc_states"]),
+            np.asarray(arrays["arc_costates"]), steps, ocp.horizon,
+        )  # fmt: skip
+        u = _control_from_nodes(S.core.flow.dense_u, nodes, steps, starts_a, ocp.horizon)
+        return u, [float(t) for t in starts_a[1:]]
     nodes = S.nodes(starts_g, P, L0)
     u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
     return u, [float(t) for t in starts_g[1:]]
+
+
+def _arc_nodes(
+    flow: Any,
+    starts: np.ndarray,
+    states: np.ndarray,
+    costates: np.ndarray,
+    levels: Sequence[int],
+    horizon: float,
+) -> list[np.ndarray]:
+    """Per arc, the ``(n + 1, 2 nx + 1)`` nodes of its ``n`` DOP853 steps under ``flow``
+    (the constrained minimum of ``H``, which is each arc's own law on a consistent
+    extremal) from the arc's start."""
+    ends = np.append(starts[1:], horizon)
+    return [
+        np.asarray(flow.nodes(int(n))(s, lam, float(b - a))).T.copy()
+        for a, b, s, lam, n in zip(starts, ends, states, costates, levels, strict=True)
+    ]
 
 
 # ---------------------------------------------------------------------- one sequence
@@ -525,6 +581,7 @@ def make_result(
     rates = rates.ravel()
     levels = None if S.disc else tuple(S.levels)
     nodes = None if S.disc else S.nodes(starts.ravel(), s0.T, l0.T)
+    arcs = _arc_pieces(S, nr.z, float(out[11].item())) if _has_junctions(S) else None
     return ReferenceResult(
         ocp=S.ocp,
         sequence=list(S.sequence),
@@ -556,4 +613,44 @@ def make_result(
         # the conditions require
         terminal_ineq_multipliers=np.maximum(np.asarray(mu, dtype=float).ravel(), 0.0),
         final_hamiltonian=float(H_T.item()),
+        **(arcs or {}),
     )
+
+
+def _has_junctions(S: ShootingSystem) -> bool:
+    """Whether ``S`` is a generic problem's system with path constraints and some phase of
+    more than one arc (its ``u(t)`` is then rebuilt per arc)."""
+    return not S.disc and S.ocp.path is not None and any(len(p) > 1 for p in S.core.arcs)
+
+
+def _arc_pieces(S: ShootingSystem, z: np.ndarray, horizon: float) -> dict[str, Any]:
+    """The arcs of ``S`` at ``z`` as :class:`ReferenceResult`'s ``arc_*`` fields: each arc's
+    start, ``s`` and ``lambda`` there (the shooting's own phase maps carry them across the
+    junctions), its steps and its nodes."""
+    out = S.traj(z)
+    starts, s0, l0 = out[0].ravel(), out[1].T, out[2].T
+    core = S.core
+    switches = S.switch_times(z)
+    lengths = core.arc_lengths(starts, horizon, switches)
+    times, states, costates = [], [], []
+    i = 0
+    for k in range(S.K + 1):
+        s, lam = s0[k], l0[k]
+        cuts = [float(starts[k]), *switches[k]]
+        for j, (t, law) in enumerate(zip(cuts, core.laws[k], strict=True)):
+            times.append(t)
+            states.append(np.asarray(s, dtype=float).ravel())
+            costates.append(np.asarray(lam, dtype=float).ravel())
+            h = lengths[k][j]
+            s, lam, _ = (np.asarray(v).ravel() for v in law.phase(core.arc_levels[i])(s, lam, h))
+            i += 1
+    arc_starts = np.array(times)
+    P, L = np.array(states), np.array(costates)
+    levels = tuple(int(n) for n in core.arc_levels)
+    return {
+        "arc_starts": arc_starts,
+        "arc_states": P,
+        "arc_costates": L,
+        "arc_levels": levels,
+        "arc_nodes": _arc_nodes(core.flow, arc_starts, P, L, levels, horizon),
+    }

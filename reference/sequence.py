@@ -238,7 +238,7 @@ def solve_sequence(
 
     def run(system: ShootingSystem, z0: np.ndarray) -> tuple[ShootingSystem, NewtonResult]:
         nr = solve(system, z0)
-        if not ocp.has_bounds:
+        if not (ocp.has_bounds or ocp.path is not None):
             return system, nr
         # control bounds: the saturated arcs (shooting.saturate), from the extremal of the
         # clipped control (a disc scene: of its closed-form phases), else from the

@@ -77,6 +77,7 @@ Globalisation (disc scenes)
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 import threading
@@ -97,9 +98,14 @@ __all__ = [
     "SATURATION_ROUNDS",
     "SATURATION_SAMPLES",
     "SATURATION_TOL",
+    "arc_mismatch",
     "clip_mode",
     "detect_arcs",
     "free_mode",
+    "global_law",
+    "path_check",
+    "path_multipliers",
+    "path_rows",
     "saturate",
     "saturation_check",
     "saturation_mismatch",
@@ -161,9 +167,11 @@ def _built_once(cache: MutableMapping[Any, _T], key: Any, build: Callable[[], _T
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
     """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``, without
-    terminal constraints or a free final time (those take the generic flow, whose phases are
-    exact for the disc scenes' polynomial flow too: one DOP853 step each)."""
-    return isinstance(ocp, DiscOCP) and not (ocp.has_terminal_constraints or ocp.free_horizon)
+    terminal constraints, a free final time or path constraints (those take the generic flow,
+    whose phases are exact for the disc scenes' polynomial flow too: one DOP853 step each)."""
+    return isinstance(ocp, DiscOCP) and not (
+        ocp.has_terminal_constraints or ocp.free_horizon or ocp.path is not None
+    )
 
 
 def hamiltonian_check(ocp: HybridOCP) -> str | None:
@@ -268,10 +276,13 @@ def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
 
 
 # An arc's control law: per component the interval (lo, hi) that argmin H is clipped to:
-# (-inf, inf) free, (c, c) saturated at c, (u_min, u_max) clipped.
+# (-inf, inf) free, (c, c) saturated at c, (u_min, u_max) clipped. A problem with m path
+# constraints c(s, u) >= 0 has m more entries, one per row, the interval c_r is held in:
+# (-inf, inf) ignored, (0, 0) active (c_r = 0 with its multiplier), (0, inf) enforced (the
+# pointwise minimum of H over the constraint set: the dense output's law).
 ArcLaw = tuple[tuple[float, float], ...]
 # Per phase (between events), its arcs' laws in time order; consecutive arcs of one phase
-# differ in one component, at a saturation switch.
+# differ in one entry, at a saturation switch or a junction of a path constraint.
 Arcs = tuple[tuple[ArcLaw, ...], ...]
 
 
@@ -286,6 +297,49 @@ def clip_mode(ocp: HybridOCP) -> ArcLaw:
     return tuple((float(a), float(b)) for a, b in zip(ocp.u_min, ocp.u_max, strict=True))
 
 
+def path_rows(ocp: HybridOCP) -> int:
+    """The number of path constraints ``c(s, u) >= 0`` of ``ocp`` (0 without them)."""
+    return 0 if ocp.path is None else int(ocp.path.numel_out(0))
+
+
+def global_law(ocp: HybridOCP) -> ArcLaw:
+    """The law of the pointwise constrained minimum of ``H``: ``u*`` minimises ``H`` over
+    the bounds and the path constraints (``clip_mode`` with bounds only, ``free_mode``
+    without constraints). Right on every arc of a consistent extremal: the dense output's
+    law."""
+    box = clip_mode(ocp) if ocp.has_bounds else free_mode(ocp.nu)
+    return box + ((0.0, math.inf),) * path_rows(ocp)
+
+
+def path_check(ocp: HybridOCP) -> str | None:
+    """``None`` when the reference can take ``ocp``'s path constraints (none, or mixed
+    constraints ``c(s, u) >= 0`` whose every row depends on ``u``, affinely), else the
+    one-line reason."""
+    if ocp.path is None:
+        return None
+    s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+    try:
+        c = ocp.path(s, u)
+    except RuntimeError:
+        return "the reference needs the path constraints as an SX-evaluable function"
+    Cu = ca.jacobian(c, u)
+    pure = [r for r in range(c.numel()) if not ca.depends_on(c[r], u)]
+    if pure:
+        rows = ", ".join(str(r) for r in pure)
+        return (
+            f"the HMP reference does not handle pure state constraints (path constraint row(s) "
+            f"{rows} independent of u: c(s) >= 0 needs boundary arcs of higher order and a "
+            "costate jump at their entry); mixed constraints c(s, u) >= 0 and control bounds "
+            "are handled; use method 'dt'"
+        )
+    if ca.depends_on(Cu, u):
+        return (
+            "the HMP reference handles path constraints c(s, u) >= 0 affine in u only (then the "
+            "constrained minimum of H has a closed form on each arc); use method 'dt'"
+        )
+    return None
+
+
 class _Law:
     """One control law of a structure : ``u*``, ``H`` at ``u*``, the
     state-costate right-hand side, its DOP853 step and the phase maps of each number of
@@ -296,11 +350,17 @@ class _Law:
         nx = fl.nx
         self.mode = mode
         self.nx = nx
-        if all(lo == -math.inf and hi == math.inf for lo, hi in mode):
+        box, rows = mode[: fl.nu], mode[fl.nu :]
+        nu_star = ca.SX.zeros(fl.m_path)
+        cls = ca.SX.zeros(fl.nu + fl.m_path)
+        sig = ca.SX.zeros(fl.m_path)
+        if any(r != (-math.inf, math.inf) for r in rows):
+            u_star, nu_star, cls, sig = _constrained_minimum(fl, mode)
+        elif all(lo == -math.inf and hi == math.inf for lo, hi in box):
             u_star = fl.u_unc_expr
         else:
             comps = []
-            for i, (lo, hi) in enumerate(mode):
+            for i, (lo, hi) in enumerate(box):
                 ui = fl.u_unc_expr[i]
                 if lo == hi:
                     ui = ca.SX(lo)
@@ -313,8 +373,15 @@ class _Law:
             u_star = ca.vertcat(*comps)
         self.u_star = ca.Function("u_star", [s, lam], [u_star])
         self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
-        # costate flow -dH/ds at the minimising u (envelope theorem: partial at fixed u)
+        # path constraints: their multipliers nu (0 where a row is not active), the
+        # entries' classes (controls +1/-1 at a bound, rows 1 active) and, per row, a
+        # function that changes sign at its junctions (nu where active, -c elsewhere)
+        self.path_law = ca.Function("path_law", [s, lam], [nu_star, cls, sig])
+        # costate flow -dH/ds at the minimising u (envelope theorem: partial at fixed u);
+        # on a constrained arc of the Lagrangian H - nu^T c: -(H_s - c_s^T nu)
         dlam = -ca.substitute(ca.gradient(H, s), u, u_star)
+        if fl.m_path and not nu_star.is_zero():
+            dlam = dlam + ca.mtimes(ca.substitute(fl.c_s, u, u_star).T, nu_star)
         x = ca.vertcat(s, lam)
         # the running cost rides along as a last component that nothing depends on
         xj = ca.vertcat(x, ca.SX.sym("j"))
@@ -383,6 +450,18 @@ class _Flow:
         self.H = ca.Function("H", [s, lam, u], [H])
         self.f = ocp.f
         self.L = ocp.L
+        # path constraints c(s, u) = a(s) + B(s) u >= 0 (path_check: affine in u) and the
+        # constant control weight W = d2H/du2 (hamiltonian_check) of their closed forms
+        self.m_path = path_rows(ocp)
+        if self.m_path:
+            assert ocp.path is not None
+            c = ocp.path(s, u)
+            self.c = ca.Function("path", [s, u], [c])
+            self.c_expr = c
+            self.c_a = ca.substitute(c, u, ca.DM.zeros(nu))
+            self.c_B = ca.jacobian(c, u)
+            self.c_s = ca.jacobian(c, s)
+            self.W = np.asarray(ca.evalf(Huu), dtype=float)
         self._laws: dict[ArcLaw, _Law] = {}
         free = self.law(free_mode(nu))
         self.u_star, self.H_star = free.u_star, free.H_star
@@ -403,9 +482,120 @@ class _Flow:
         self.terminal = _terminal_fn(ocp, s)
 
     def law(self, mode: ArcLaw) -> _Law:
-        """The :class:`_Law` of ``mode``, built once."""
-        mode = tuple((float(lo), float(hi)) for lo, hi in mode)
+        """The :class:`_Law` of ``mode``, built once (a law of the controls alone, on a
+        problem with path constraints, ignores them)."""
+        mode = _full_law(mode, self.nu + self.m_path)
         return _built_once(self._laws, mode, lambda: _Law(self, mode))
+
+
+def _full_law(mode: ArcLaw, width: int) -> ArcLaw:
+    """``mode`` as floats, with an ignored entry for each path constraint it leaves out."""
+    mode = tuple((float(lo), float(hi)) for lo, hi in mode)
+    return mode + ((-math.inf, math.inf),) * (width - len(mode))
+
+
+def _constrained_minimum(fl: _Flow, mode: ArcLaw) -> tuple[Any, Any, Any, Any]:
+    """``u*``, the path multipliers ``nu``, the classes and the junction functions of a law
+    with path constraints (:class:`_Law`), in closed form.
+
+    ``H = u^T W u / 2 + g(s, lambda)^T u + ...`` with ``W`` constant and every constraint
+    affine in ``u``: with the rows ``C u = d`` held as equalities (saturated controls
+    ``u_i = v``, active rows ``a_r + B_r u = 0``) the minimum is
+    ``u = u_unc + W^-1 C^T kappa``, ``(C W^-1 C^T) kappa = d - C u_unc``, and ``nu_r`` is
+    ``kappa`` of row ``r`` (stationarity of ``H - nu^T c``). Entries held as inequalities
+    (the dense output's law, :func:`global_law`) enumerate their active sets: of the
+    candidates that meet every inequality (to rounding), the one of least ``H`` is the
+    minimum over the constraint set (the problem is a strictly convex QP).
+    """
+    u, H = fl.u_sym, fl.H_expr
+    nu, m = fl.nu, fl.m_path
+    Winv = np.linalg.inv(fl.W)
+    u_unc = fl.u_unc_expr
+    a, B = fl.c_a, fl.c_B
+    # a row: (C (1, nu), d, kind, index, side): kind "u" (a control at a value) or "c"
+    eq: list[tuple[Any, Any, str, int, int]] = []
+    ineq: list[tuple[Any, Any, str, int, int]] = []
+    for i, (lo, hi) in enumerate(mode[:nu]):
+        e = ca.DM.zeros(1, nu)
+        e[i] = 1.0
+        if lo == hi:
+            eq.append((e, ca.SX(lo), "u", i, 0))
+            continue
+        if lo > -math.inf:
+            ineq.append((e, ca.SX(lo), "u", i, -1))
+        if hi < math.inf:
+            ineq.append((e, ca.SX(hi), "u", i, 1))
+    for r, (lo, hi) in enumerate(mode[nu:]):
+        if (lo, hi) == (0.0, 0.0):
+            eq.append((B[r, :], -a[r], "c", r, 1))
+        elif (lo, hi) == (0.0, math.inf):
+            ineq.append((B[r, :], -a[r], "c", r, 1))
+        elif (lo, hi) != (-math.inf, math.inf):
+            raise ValueError(f"path constraint {r}: law entry {(lo, hi)} is not one of the three")
+    room = nu - len(eq)
+    subsets: list[tuple[int, ...]] = [()]
+    for k in range(1, max(room, 0) + 1):
+        for sub in itertools.combinations(range(len(ineq)), k):
+            comps = [ineq[j][3] for j in sub if ineq[j][2] == "u"]
+            if len(comps) == len(set(comps)):
+                subsets.append(sub)
+
+    def candidate(sub: tuple[int, ...]) -> tuple[Any, Any, Any, Any, Any]:
+        rows = eq + [ineq[j] for j in sub]
+        if rows:
+            C = ca.vertcat(*[r[0] for r in rows])
+            d = ca.vertcat(*[r[1] for r in rows])
+            M = ca.mtimes(ca.mtimes(C, Winv), C.T)
+            kappa = ca.solve(M, d - ca.mtimes(C, u_unc)) if len(rows) > 1 else (
+                (d - ca.mtimes(C, u_unc)) / M
+            )  # fmt: skip
+            us = u_unc + ca.mtimes(ca.mtimes(Winv, C.T), kappa)
+        else:
+            kappa, us = ca.SX(0, 1), u_unc
+        cs = ca.substitute(fl.c_expr, u, us)
+        nus = ca.SX.zeros(m)
+        for p, row in enumerate(rows):
+            if row[2] == "c":
+                nus[row[3]] = kappa[p]
+        # the worst violation of the inequalities, each relative to its own terms' size
+        worst: Any = -ca.inf
+        for j, (_, dr, kind, idx, side) in enumerate(ineq):
+            if j in sub:
+                continue
+            if kind == "u":
+                gap = (dr - us[idx]) if side < 0 else (us[idx] - dr)
+                scale = 1.0 + ca.fabs(dr)
+            else:
+                gap = -cs[idx]
+                scale = 1.0 + ca.fabs(a[idx]) + ca.sum1(ca.fabs(B[idx, :].T * us))
+            worst = ca.fmax(worst, gap / scale)
+        cls = ca.SX.zeros(nu + m)
+        sig = -cs
+        for row in rows:
+            if row[2] == "u" and row[4]:
+                cls[row[3]] = row[4]
+            elif row[2] == "c":
+                cls[nu + row[3]] = 1
+                sig[row[3]] = nus[row[3]]
+        return us, nus, cls, sig, (ca.substitute(H, u, us), worst)
+
+    tol = 1e-11  # rounding of the exact candidate's constraints, far below any real gap
+    best = candidate(subsets[0])
+    u_b, nu_b, cls_b, sig_b, (H_b, V_b) = best
+    for sub in subsets[1:]:
+        u_c, nu_c, cls_c, sig_c, (H_c, V_c) = candidate(sub)
+        # a feasible candidate beats an infeasible one, then the smaller H (the smaller
+        # violation between infeasible ones: the dense law stays defined off the set)
+        take = ca.if_else(
+            V_c <= tol, ca.logic_or(V_b > tol, H_c < H_b), ca.logic_and(V_b > tol, V_c < V_b)
+        )
+        u_b = ca.if_else(take, u_c, u_b)
+        nu_b = ca.if_else(take, nu_c, nu_b)
+        cls_b = ca.if_else(take, cls_c, cls_b)
+        sig_b = ca.if_else(take, sig_c, sig_b)
+        H_b = ca.if_else(take, H_c, H_b)
+        V_b = ca.if_else(take, V_c, V_b)
+    return u_b, nu_b, cls_b, sig_b
 
 
 def _terminal_fn(ocp: HybridOCP, s: Any) -> ca.Function | None:
@@ -594,8 +784,7 @@ class _CoreBase:
             J: Any = 0
             for j in range(len(self.arcs[k])):
                 if j:
-                    _, i, value = self.switches[k][j - 1]
-                    switch_res.append(self.u_unc(s, lam)[i] - value)
+                    switch_res.append(self.switch_condition(k, j, s, lam))
                 s, lam, Jj = phase(k, j, s, lam, ends[j + 1] - ends[j])
                 J = Jj if j == 0 else J + Jj
             return s, lam, J
@@ -663,6 +852,22 @@ class _CoreBase:
     def law_at(self, k: int, j: int) -> Any:
         """The law (``u_star``, ``H_star``) of arc ``j`` of phase ``k``."""
         return self  # disc scenes: one law
+
+    def switch_condition(self, k: int, j: int, s: Any, lam: Any) -> Any:
+        """The equation of the switch into arc ``j`` of phase ``k`` at ``(s, lambda)``:
+        ``argmin H_i = bound`` for a saturation; on a problem with path constraints the
+        free side's ``u*_i = bound``, or ``c_r(s, u*) = 0`` under the law without the row
+        (``u`` is continuous at a junction: ``nu_r = 0`` there)."""
+        _, i, value = self.switches[k][j - 1]
+        fl = getattr(self, "fl", None)
+        if fl is None or not fl.m_path:
+            return self.u_unc(s, lam)[i] - value
+        a = self.arcs[k][j - 1]
+        free = self.law_at(k, j - 1) if a[i][0] != a[i][1] else self.law_at(k, j)
+        u = free.u_star(s, lam)
+        if i < self.nu:
+            return u[i] - value
+        return fl.c(s, u)[i - self.nu]
 
 
 class _DiscPieces:
@@ -764,9 +969,10 @@ class _FlowCore(_CoreBase):
             i += len(p)
         self.levels = tuple(self.levels)
         self.laws = [[fl.law(m) for m in p] for p in self.arcs]
-        # the dense output's law: the problem's clip, right on every arc of a consistent
-        # extremal (the unconstrained flow itself without bounds)
-        self.flow: Any = fl.law(clip_mode(ocp)) if ocp.has_bounds else fl
+        # the dense output's law: the problem's clip (the constrained minimum of H with
+        # path constraints), right on every arc of a consistent extremal (the
+        # unconstrained flow itself without constraints)
+        self.flow: Any = fl.law(global_law(ocp)) if ocp.has_bounds or fl.m_path else fl
         self.u_star, self.H, self.H_star, self.f = fl.u_star, fl.H, fl.H_star, fl.f
         self.u_unc = fl.u_unc
         self.rhs, self.polynomial, self.phi = fl.rhs, fl.polynomial, fl.phi
@@ -1246,9 +1452,9 @@ def _core(
     free = ocp.free_horizon if free is None else bool(free)
     if not disc:
         if arcs is None:
-            mode = clip_mode(ocp) if ocp.has_bounds else free_mode(ocp.nu)
-            arcs = ((mode,),) * (len(sequence) + 1)
-        arcs = tuple(tuple(tuple((float(a), float(b)) for a, b in m) for m in p) for p in arcs)
+            arcs = ((global_law(ocp),),) * (len(sequence) + 1)
+        width = ocp.nu + path_rows(ocp)
+        arcs = tuple(tuple(_full_law(m, width) for m in p) for p in arcs)
         if len(arcs) != len(sequence) + 1:
             raise ValueError(f"arcs: one tuple per phase ({len(sequence) + 1}), got {len(arcs)}")
         if levels is None:
@@ -1513,23 +1719,32 @@ def _bound_scale(ocp: HybridOCP) -> float:
     return 1.0 + float(np.abs(finite).max(initial=0.0))
 
 
-def _samples(
+def _phase_samples(
     S: ShootingSystem, z: np.ndarray, samples: int
-) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, float]:
-    """Per phase, sample times and ``argmin H`` there ``(n + 1, nu)``; phase starts; ``T``."""
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per phase, ``samples + 1`` equally spaced times and the nodes ``(s, lambda, running
+    cost)`` there, through the arcs of ``S``."""
     out = S.traj(z)
     starts, s0, l0 = out[0].ravel(), out[1].T, out[2].T
     T = float(out[11].item())
     nodes = S.sample(starts, s0, l0, [samples] * (S.K + 1), T, S.switch_times(z))
-    fl = _flow(S.ocp)
-    nx = S.nx
     ends = np.append(starts, T)
-    times, U = [], []
+    times = []
     for k, X in enumerate(nodes):
         n = X.shape[0] - 1
         times.append(ends[k] + (ends[k + 1] - ends[k]) * np.arange(n + 1) / n)
-        U.append(np.asarray(fl.u_unc.map(n + 1)(X[:, :nx].T, X[:, nx : 2 * nx].T)).T)
-    return times, U, starts, T
+    return times, nodes
+
+
+def _samples(
+    S: ShootingSystem, z: np.ndarray, samples: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per phase, sample times and ``argmin H`` there ``(n + 1, nu)``."""
+    times, nodes = _phase_samples(S, z, samples)
+    fl = _flow(S.ocp)
+    nx = S.nx
+    U = [np.asarray(fl.u_unc.map(X.shape[0])(X[:, :nx].T, X[:, nx : 2 * nx].T)).T for X in nodes]
+    return times, U
 
 
 def saturation_mismatch(
@@ -1539,7 +1754,7 @@ def saturation_mismatch(
     on a free arc ``argmin H`` outside the bounds, on a saturated arc inside them."""
     ocp = S.ocp
     assert ocp.u_min is not None and ocp.u_max is not None
-    times, U, _, _ = _samples(S, z, samples)
+    times, U = _samples(S, z, samples)
     sw = S.switch_times(z)
     worst = 0.0
     for k in range(S.K + 1):
@@ -1563,9 +1778,11 @@ def detect_arcs(
     """The arcs that ``u* = clip(argmin H)`` takes along the extremal ``(S, z)`` and their
     switch times, interpolated linearly between ``samples + 1`` samples per phase."""
     ocp = S.ocp
+    if path_rows(ocp):
+        return _detect_path_arcs(S, z, samples)
     assert ocp.u_min is not None and ocp.u_max is not None
     lo, hi = ocp.u_min, ocp.u_max
-    times, U, _, _ = _samples(S, z, samples)
+    times, U = _samples(S, z, samples)
 
     def mode_of(cls: np.ndarray) -> ArcLaw:
         return tuple(
@@ -1601,6 +1818,114 @@ def detect_arcs(
     return tuple(arcs), switches
 
 
+def _arc_of_samples(S: ShootingSystem, z: np.ndarray, k: int, t: np.ndarray) -> np.ndarray:
+    """The arc of phase ``k`` that holds each time ``t``."""
+    return np.searchsorted(np.asarray(S.switch_times(z)[k]), t, side="right")
+
+
+def _detect_path_arcs(
+    S: ShootingSystem, z: np.ndarray, samples: int
+) -> tuple[Arcs, list[list[float]]]:
+    """:func:`detect_arcs` with path constraints: the active set of the constrained minimum
+    of ``H`` (:func:`global_law`) at each sample, a junction of a row where its function
+    (``nu`` where active, ``-c`` elsewhere) changes sign, interpolated linearly; a bound's
+    switch at the middle of the samples around it."""
+    ocp = S.ocp
+    nu = ocp.nu
+    lo = np.full(nu, -np.inf) if ocp.u_min is None else ocp.u_min
+    hi = np.full(nu, np.inf) if ocp.u_max is None else ocp.u_max
+    law = _flow(ocp).law(global_law(ocp))
+    times, nodes = _phase_samples(S, z, samples)
+    nx = S.nx
+
+    def mode_of(cls: np.ndarray) -> ArcLaw:
+        box = tuple(
+            (-math.inf, math.inf) if c == 0 else (float(hi[i]), float(hi[i]))
+            if c > 0 else (float(lo[i]), float(lo[i]))
+            for i, c in enumerate(cls[:nu])
+        )  # fmt: skip
+        return box + tuple((0.0, 0.0) if c > 0 else (-math.inf, math.inf) for c in cls[nu:])
+
+    arcs: list[tuple[ArcLaw, ...]] = []
+    switches: list[list[float]] = []
+    for t, X in zip(times, nodes, strict=True):
+        _, cls, sig = (
+            np.asarray(v).T for v in law.path_law.map(X.shape[0])(X[:, :nx].T, X[:, nx : 2 * nx].T)
+        )
+        cls = np.rint(cls).astype(int)
+        cur = cls[0].copy()
+        modes, sw = [mode_of(cur)], []
+        for i in range(1, t.size):
+            if np.array_equal(cls[i], cur):
+                continue
+            events = []
+            for c in np.nonzero(cls[i] != cur)[0]:
+                a, b = int(cur[c]), int(cls[i][c])
+                path = [a, 0, b] if a * b == -1 else [a, b]
+                frac = 0.5
+                if c >= nu:
+                    f0, f1 = sig[i - 1, c - nu], sig[i, c - nu]
+                    if f0 * f1 < 0:
+                        frac = f0 / (f0 - f1)
+                for q in path[1:]:
+                    events.append((t[i - 1] + (t[i] - t[i - 1]) * frac, int(c), q))
+            for tt, c, q in sorted(events):
+                cur[c] = q
+                modes.append(mode_of(cur))
+                sw.append(float(tt))
+        arcs.append(tuple(modes))
+        switches.append(sw)
+    return tuple(arcs), switches
+
+
+def arc_mismatch(S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAMPLES) -> float:
+    """The largest inconsistency of ``S``'s arcs at ``z``: :func:`saturation_mismatch`
+    without path constraints; with them, on ``samples + 1`` samples per phase, the largest
+    of the arc's control against the constrained minimum of ``H`` (relative to ``1 + max
+    |u|``) and of a negative multiplier ``nu`` of an active row (relative to ``1 + max
+    |nu|``): zero exactly when each arc's law is the pointwise minimum of ``H`` over the
+    constraints with ``nu >= 0``."""
+    ocp = S.ocp
+    if not path_rows(ocp):
+        return saturation_mismatch(S, z, samples) if ocp.has_bounds else 0.0
+    fl = _flow(ocp)
+    glob = fl.law(global_law(ocp))
+    times, nodes = _phase_samples(S, z, samples)
+    nx = S.nx
+    du, neg, u_max, nu_max = 0.0, 0.0, 0.0, 0.0
+    for k, (t, X) in enumerate(zip(times, nodes, strict=True)):
+        j = _arc_of_samples(S, z, k, t)
+        for i in range(t.size):
+            s, lam = X[i, :nx], X[i, nx : 2 * nx]
+            law = S.core.laws[k][int(j[i])]
+            ua = np.asarray(law.u_star(s, lam)).ravel()
+            ug = np.asarray(glob.u_star(s, lam)).ravel()
+            nus = np.asarray(law.path_law(s, lam)[0]).ravel()
+            du = max(du, float(np.max(np.abs(ua - ug))))
+            u_max = max(u_max, float(np.max(np.abs(ug))))
+            nu_max = max(nu_max, float(np.max(np.abs(nus), initial=0.0)))
+            neg = max(neg, float(np.max(-nus, initial=0.0)))
+    return max(du / (1.0 + u_max), neg / (1.0 + nu_max))
+
+
+def path_multipliers(
+    S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAMPLES
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per phase, ``samples + 1`` times and the path constraints' multipliers ``nu`` there
+    ``(samples + 1, m)``, under each arc's own law (0 where a row is not active)."""
+    times, nodes = _phase_samples(S, z, samples)
+    nx = S.nx
+    out = []
+    for k, (t, X) in enumerate(zip(times, nodes, strict=True)):
+        j = _arc_of_samples(S, z, k, t)
+        rows = [
+            np.asarray(S.core.laws[k][int(j[i])].path_law(X[i, :nx], X[i, nx : 2 * nx])[0]).ravel()
+            for i in range(t.size)
+        ]
+        out.append(np.array(rows))
+    return times, out
+
+
 def saturate(
     S: ShootingSystem, nr: NewtonResult, *, tol: float = 1e-10, verbose: bool = False
 ) -> tuple[ShootingSystem, NewtonResult, str]:
@@ -1623,7 +1948,7 @@ def saturate(
         them, the input.
     """
     ocp = S.ocp
-    if not ocp.has_bounds:
+    if not (ocp.has_bounds or path_rows(ocp)):
         return S, nr, ""
     if S.disc:
         if ocp.bound_violation(_disc_control_range(S, nr.z)) <= 0.0:
@@ -1639,26 +1964,26 @@ def saturate(
         if arcs == S.core.arcs:
             return S, nr, ""
         if arcs in seen:
-            return S, nr, "the saturated arcs cycle between patterns"
+            return S, nr, "the arcs cycle between patterns"
         seen.add(arcs)
         new = S.with_arcs(arcs)
         z0 = new.core.with_switches(S.core.strip_switches(nr.z), switches)
         if verbose:
-            print(f"  saturation {S.sequence}: arcs {_arcs_text(arcs)}", file=sys.stderr)
+            print(f"  saturation {S.sequence}: arcs {_arcs_text(arcs, ocp.nu)}", file=sys.stderr)
         nr_new = newton(new, z0, tol=tol, verbose=verbose)
         if not nr_new.converged:
             return (
                 new,
                 nr_new,
-                f"Newton on the saturated arcs {_arcs_text(arcs)}: residual {nr_new.residual:.2e}",
+                f"Newton on the arcs {_arcs_text(arcs, ocp.nu)}: residual {nr_new.residual:.2e}",
             )
         bad = _switch_order(new, nr_new.z)
         if bad:
             return new, nr_new, bad
         S, nr = new, nr_new
-        if saturation_mismatch(S, nr.z) <= SATURATION_TOL:
+        if arc_mismatch(S, nr.z) <= SATURATION_TOL:
             return S, nr, ""
-    return S, nr, f"no consistent saturated arcs after {SATURATION_ROUNDS} rounds"
+    return S, nr, f"no consistent arcs after {SATURATION_ROUNDS} rounds"
 
 
 def _switch_order(S: ShootingSystem, z: np.ndarray) -> str:
@@ -1668,13 +1993,15 @@ def _switch_order(S: ShootingSystem, z: np.ndarray) -> str:
     for k, w in enumerate(S.switch_times(z)):
         cuts = np.array([ends[k], *w, ends[k + 1]])
         if np.any(np.diff(cuts) < 0):
-            return f"saturation switches {w} not in order inside phase {k}"
+            return f"switches {w} (saturations, junctions) not in order inside phase {k}"
     return ""
 
 
-def _arcs_text(arcs: Arcs) -> str:
+def _arcs_text(arcs: Arcs, nu: int) -> str:
     def one(m: ArcLaw) -> str:
-        return "(" + ", ".join("free" if lo != hi else f"{lo:g}" for lo, hi in m) + ")"
+        box = ["free" if lo != hi else f"{lo:g}" for lo, hi in m[:nu]]
+        rows = [f"c{r} = 0" for r, (lo, hi) in enumerate(m[nu:]) if lo == hi]
+        return "(" + ", ".join(box + rows) + ")"
 
     return "; ".join(" ".join(one(m) for m in p) for p in arcs)
 

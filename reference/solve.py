@@ -77,7 +77,7 @@ from hybridoc.reference.candidates import (
     guess_times,
     lower_bound,
 )
-from hybridoc.reference.result import ReferenceResult, make_result
+from hybridoc.reference.result import ReferenceResult, make_result, reference_control
 from hybridoc.reference.sequence import (
     COST_RTOL,
     RTOL_RANGE,
@@ -92,6 +92,7 @@ from hybridoc.reference.shooting import (
     hamiltonian_check,
     is_disc_scene,
     newton,
+    path_check,
     prepare,
     refine,
     saturation_check,
@@ -113,11 +114,14 @@ __all__ = [
     "MAX_SEARCH",
     "METHOD",
     "MULTISTART",
+    "PATH_SAMPLES",
+    "PATH_TOL",
     "ReferenceOptions",
     "coverage_line",
     "families_line",
     "parse_budget",
     "parse_search",
+    "path_violation",
     "reference_supports",
     "solve_reference",
 ]
@@ -145,6 +149,13 @@ FAILED_SHOWN = 4
 KNOWN_STARTS = 2
 """A sequence whose solve failed is started again from at most this many known controls
 with its events (the cheapest)."""
+PATH_TOL = 1e-9
+"""The largest violation of the path constraints a control may show and still count as
+feasible (the judge's :attr:`~hybridoc.Evaluation.feasible`): a known control beyond it
+bounds nothing, an extremal beyond it is ``infeasible``."""
+PATH_SAMPLES = 8
+"""Times per grid cell at which :func:`path_violation` checks the path constraints besides
+the judge's own."""
 DEFAULT_BUDGET = 30.0
 """Seconds the default reference (without ``sequence``) may spend: its sources get what is
 left of it, and the enumeration stops when it is spent (``budget``)."""
@@ -156,14 +167,27 @@ def _events(k: int) -> str:
 
 
 def reference_supports(ocp: HybridOCP) -> str | None:
-    """``None`` when the reference can solve ``ocp``, else the one-line reason."""
-    if ocp.path is not None:
-        return (
-            "the HMP reference does not handle path constraints (c(s, u) >= 0 needs a "
-            "multiplier and boundary arcs that its shooting does not model); control bounds "
-            "are handled (saturated arcs); use method 'dt' for path constraints"
-        )
-    return hamiltonian_check(ocp) or saturation_check(ocp)
+    """``None`` when the reference can solve ``ocp``, else the one-line reason (pure state
+    constraints, path constraints not affine in ``u``, a Hamiltonian not quadratic in
+    ``u``, bounds with a coupled control weight)."""
+    return (
+        _control_reset_check(ocp)
+        or hamiltonian_check(ocp)
+        or path_check(ocp)
+        or saturation_check(ocp)
+    )
+
+
+def _control_reset_check(ocp: HybridOCP) -> str | None:
+    """The reason the reference refuses resets that depend on the control, else ``None``."""
+    names = [g.name for g in ocp.guards if g.uses_control]
+    if not names:
+        return None
+    return (
+        f"the HMP reference does not solve resets that depend on the control (guard(s) "
+        f"{', '.join(map(repr, names))}: s+ = g(s, u)); use method 'dt' (each reset's "
+        "control is a decision of its own) or 'gd' (the reset reads its grid cell's control)"
+    )
 
 
 def parse_search(text: str) -> int:
@@ -338,9 +362,54 @@ class _Known:
     feasible: bool = True
 
 
+def path_violation(
+    ocp: HybridOCP, ev: Evaluation, control: Any = None, samples: int = PATH_SAMPLES
+) -> float:
+    """The largest violation of ``ocp``'s path constraints along a judged trajectory: the
+    judge's own (grid and event times) and ``samples`` more times inside every grid cell
+    (0 without path constraints).
+
+    Parameters
+    ----------
+    ocp
+        The problem.
+    ev
+        The judge's evaluation of the control (its trajectory is sampled,
+        :meth:`~hybridoc.Evaluation.sample`).
+    control
+        ``u(t)`` of a continuous control; ``None``: ``ev``'s grid controls, constant over
+        each cell (a control that meets the constraints at the grid times only may break
+        them in between, and its cost then bounds nothing).
+    samples
+        Times per grid cell, at ``(i + 1/2) / samples`` of it.
+    """
+    if ocp.path is None:
+        return 0.0
+    grid = ev.ocp.time_grid()
+    frac = (np.arange(samples) + 0.5) / samples
+    cells = np.repeat(np.arange(grid.size - 1), samples)
+    t = grid[cells] + np.tile(frac, grid.size - 1) * np.diff(grid)[cells]
+    states = ev.sample(t)
+    if control is None:
+        U = np.asarray(ev.controls, dtype=float)[cells]
+    else:
+        U = np.array([np.asarray(control(float(tt)), dtype=float).ravel() for tt in t])
+    c = np.asarray(ocp.path.map(t.size)(states.T, U.T), dtype=float)
+    return max(float(ev.path_violation), float(np.max(-c, initial=0.0)))
+
+
 def _feasible(ocp: HybridOCP, ev: Evaluation | None) -> bool:
-    """Whether a judged control is feasible for ``ocp``'s terminal constraints and final-time
-    bounds (always, without them): an infeasible control's cost bounds nothing."""
+    """Whether a judged control is feasible for ``ocp``'s path constraints (between the grid
+    times too, :func:`path_violation`), terminal constraints and final-time bounds (always,
+    without them): an infeasible control's cost bounds nothing."""
+    if ocp.path is not None:
+        if ev is None:
+            return False
+        try:
+            if path_violation(ocp, ev) > PATH_TOL:
+                return False
+        except HybridocError:
+            return False
     if not (ocp.has_terminal_constraints or ocp.free_horizon):
         return True
     if ev is None:
@@ -1145,7 +1214,31 @@ def _verdict(
             f"the HMP extremal violates the control bounds by {bounds_violation:.3g} (its "
             "saturated arcs do not hold); use method 'dt'"
         )
+    violation = _extremal_path_violation(ocp, best)
+    if violation > PATH_TOL:
+        status = Status.INFEASIBLE
+        message = (
+            f"the best HMP extremal found violates the path constraints by {violation:.3g} "
+            f"(> {PATH_TOL:g}) along the judge's re-simulation: no extremal that meets them "
+            "was found (the constraints may be infeasible from x0, or active on arcs the "
+            "reference did not find); use method 'dt'"
+        )
     return status, message, cheapest, landscape
+
+
+def _extremal_path_violation(ocp: HybridOCP, best: ReferenceResult) -> float:
+    """The path constraints' largest violation along the judge's re-simulation of the
+    extremal's ``u(t)`` (:func:`path_violation`; 0 without path constraints)."""
+    if ocp.path is None:
+        return 0.0
+    from hybridoc.callable_eval import evaluate_callable
+
+    u, breakpoints = reference_control(best)
+    try:
+        ev = evaluate_callable(best.ocp, u, breakpoints=breakpoints)
+    except HybridocError:
+        return math.inf
+    return path_violation(ocp, ev, u)
 
 
 def _check_coalescing(ocp: HybridOCP, c: _Known, best: ReferenceResult) -> None:
@@ -1186,8 +1279,9 @@ def _finish(
         "candidates": candidates,
         "known_controls": [
             {"source": k.source, "cost": k.cost, "sequence": k.sequence}
-            # only where feasibility is in question (terminal constraints, a free final time)
-            | ({"feasible": k.feasible} if problem_features(ocp) else {})
+            # only where feasibility is in question (terminal or path constraints, a free
+            # final time)
+            | ({"feasible": k.feasible} if problem_features(ocp) or ocp.path is not None else {})
             for k in book.known
         ],
         "sources": list(book.sources),
