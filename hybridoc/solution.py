@@ -232,6 +232,71 @@ def _right_interpolation(times: np.ndarray, values: np.ndarray, t: np.ndarray) -
     return out
 
 
+_PHASES = frozenset({"phase_starts", "phase_states", "phase_costates"})
+COSTATE_RTOL = 1e-13
+"""Relative tolerance of the costates that :meth:`Solution.sample` rebuilds."""
+
+
+class _PhaseCostates:
+    """The costate of a reference Solution at any times: state and costate integrated from
+    the start of each time's phase under the Solution's control (:meth:`Solution.sample`)."""
+
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        u: Callable[[float], np.ndarray],
+        starts: np.ndarray,
+        states: Any,
+        costates: Any,
+    ) -> None:
+        import casadi as ca
+
+        self.u = u
+        self.starts = starts
+        self.states = np.asarray(states, dtype=float).reshape(starts.size, -1)
+        self.costates = np.asarray(costates, dtype=float).reshape(starts.size, -1)
+        self.nx = self.states.shape[1]
+        s, lam, uu = ca.MX.sym("s", ocp.nx), ca.MX.sym("lam", ocp.nx), ca.MX.sym("u", ocp.nu)
+        H = ocp.L(s, uu) + ca.dot(lam, ocp.f(s, uu))
+        # partial derivative at fixed u: u(t) is given, not the minimiser of this H
+        self.rhs = ca.Function("state_costate", [s, lam, uu], [ocp.f(s, uu), -ca.gradient(H, s)])
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        from scipy.integrate import solve_ivp
+
+        nx = self.nx
+        out = np.empty((times.size, nx))
+        phase = np.clip(np.searchsorted(self.starts, times, side="right") - 1, 0, None)
+
+        def rhs(t: float, z: np.ndarray) -> np.ndarray:
+            ds, dl = self.rhs(z[:nx], z[nx:], self.u(t))
+            return np.concatenate([np.asarray(ds).ravel(), np.asarray(dl).ravel()])
+
+        for k in np.unique(phase):
+            rows = np.flatnonzero(phase == k)
+            t0 = float(self.starts[k])
+            z0 = np.concatenate([self.states[k], self.costates[k]])
+            at = times[rows]
+            ahead = at > t0
+            out[rows[~ahead]] = self.costates[k]
+            if not ahead.any():
+                continue
+            order = np.argsort(at[ahead], kind="stable")
+            t_eval = at[ahead][order]
+            scale = np.maximum(np.abs(z0), 1.0)
+            sol = solve_ivp(
+                rhs, (t0, float(t_eval[-1])), z0, method="DOP853", t_eval=t_eval,
+                rtol=COSTATE_RTOL, atol=COSTATE_RTOL * scale,
+            )  # fmt: skip
+            if not sol.success:
+                raise HybridocError(
+                    f"the costate from the phase starting at t = {t0:.6g} could not be "
+                    f"integrated: {sol.message}"
+                )
+            out[rows[ahead][order]] = sol.y[nx:].T
+        return out
+
+
 def _stem(path: str | Path) -> Path:
     """``x``, ``x.npz`` and ``x.json`` all name the pair ``x.npz`` + ``x.json``."""
     p = Path(path)
@@ -340,8 +405,10 @@ class SolutionSample:
     controls
         ``(M, nu)`` the Solution's control (right-continuous at its breakpoints).
     costates
-        ``(M, nx)`` the method's costate, interpolated linearly between the times it stored
-        them (after a jump at an event time); ``None`` when the method stores none.
+        ``(M, nx)`` the costate after any jump at exactly that time: the reference's
+        rebuilt exactly, other methods' interpolated linearly between the times they stored
+        them (:meth:`Solution.sample` says what it is per control kind); ``None`` when the
+        method stores none.
     modes
         The mode of each state (problems with modes); ``None`` otherwise.
     """
@@ -774,8 +841,23 @@ class Solution:
 
         The states are the judge's event-exact simulation of :meth:`control`
         (:meth:`Evaluation.sample <hybridoc.Evaluation.sample>`), after any jump at exactly
-        that time; the costates (where the method stores them) are interpolated linearly
-        between the stored ones.
+        that time. What the costates are depends on :attr:`control_kind`:
+
+        ``"hmp"``, ``"phase-linear"`` (the reference)
+            The costate of the extremal, rebuilt exactly: state and costate integrated
+            together, ``s' = f(s, u(t))``, ``lambda' = -dH/ds(s, lambda, u(t))`` with
+            ``H = L + lambda^T f`` and ``u(t)`` the Solution's control, from the start of the
+            phase that holds ``t`` (``phase_starts``, ``phase_states``, ``phase_costates``:
+            after the jump at an event time) by an adaptive DOP853 at a relative tolerance
+            of ``1e-13``.
+        ``"piecewise-polynomial"`` (dt)
+            The transcription's multipliers, interpolated linearly between the times it
+            stored them: an approximation of the costate of its discrete problem.
+        ``"piecewise-constant"``
+            The costates a method stored, interpolated linearly; gd and a user's controls
+            store none (``None``). The exact costate of a piecewise-constant control is the
+            judge's discrete adjoint, :func:`hybridoc.gradient`'s ``costate_times`` and
+            ``costates``.
 
         Parameters
         ----------
@@ -795,7 +877,12 @@ class Solution:
         fn = self.control_function(ev.ocp)
         controls = np.array([fn(float(tk)) for tk in times]).reshape(times.size, -1)
         costates = None
-        if self.costates is not None and self.costate_times is not None:
+        a = self.arrays
+        if self.control_kind in ("hmp", "phase-linear") and _PHASES <= a.keys():
+            starts = np.asarray(a["phase_starts"], dtype=float)
+            rebuilt = _PhaseCostates(ev.ocp, fn, starts, a["phase_states"], a["phase_costates"])
+            costates = rebuilt(times)
+        elif self.costates is not None and self.costate_times is not None:
             costates = _right_interpolation(self.costate_times, self.costates, times)
         modes = None
         if ev.ocp.modes is not None:
