@@ -1140,8 +1140,17 @@ def _best_of(book: _Book) -> ReferenceResult:
     if best is None:
         lines = [f"{list(k)}: {v}" for k, v in book.reasons.items()]
         lines += [f"{list(k)}: {msg}" for k, (ok, msg) in book.verdicts.items() if not ok]
+        # path constraints that no control met satisfies: say so first, not only that
+        # Newton failed
+        infeasible = (
+            "infeasible as far as the reference can tell: no control it met satisfies the "
+            "path constraints and no HMP extremal that meets them was found; "
+            if book.ocp.path is not None and not book.rivals()
+            else ""
+        )
         raise ConvergenceError(
-            "no event sequence satisfies the HMP conditions and re-simulates to its own events"
+            infeasible
+            + "no event sequence satisfies the HMP conditions and re-simulates to its own events"
             + (" (" + "; ".join(lines) + ")" if lines else "")
             + ". hint: start from another initial guess (e.g. a solver's solution) or give "
             "an explicit --sequence"
