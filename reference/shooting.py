@@ -38,6 +38,15 @@ Control bounds (DESIGN.md section 6)
     so the kinks of the clip never fall inside a step. :func:`saturate` finds the arcs (an
     active-set loop from an extremal of the clipped law).
 
+Path constraints (DESIGN.md section 6)
+    Mixed constraints ``c(s, u) = a(s) + B(s) u >= 0`` add one entry per row to an arc's
+    law: ignored, active (``c_r = 0``; ``u`` and the multiplier ``nu`` in closed form from
+    the constant control weight) or enforced (the pointwise
+    minimum of ``H`` over the constraint set: the dense output's law). On an active arc the
+    costate follows ``-(H_s - c_s^T nu)``; each junction is an unknown time with
+    ``c_r(s, u*) = 0`` under the law without the row. :func:`saturate` finds these arcs as
+    it finds the saturated ones, and :func:`arc_mismatch` checks them (``nu >= 0``).
+
 Compiled once per problem structure
     The initial state and the horizon are parameters of the compiled functions, so problems
     that differ only in their data (:meth:`hybridoc.HybridOCP.replace`, a sweep over initial

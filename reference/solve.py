@@ -40,7 +40,12 @@ What it checks before it answers
 
     Control bounds enter the minimum condition as saturation, ``u* = clip(argmin H)``, with
     a switch time per saturation switch (:func:`~hybridoc.reference.shooting.saturate`);
-    an answer whose control still violates them has status ``infeasible``.
+    an answer whose control still violates them has status ``infeasible``. Mixed path
+    constraints ``c(s, u) >= 0`` (every row depending on ``u``, affinely) enter with their
+    multipliers on arcs where rows are active, found by the same loop; a known control
+    counts against the answer only when it meets them between the grid times too
+    (:func:`path_violation`), and an answer that violates them is ``infeasible``. Pure
+    state constraints are refused (:func:`reference_supports`).
 """
 
 from __future__ import annotations
@@ -692,7 +697,8 @@ def solve_reference(
     ----------
     problem
         Any problem (:func:`hybridoc.problem.as_ocp`) whose Hamiltonian is quadratic in
-        ``u`` and which has no path constraints.
+        ``u``, whose path constraints (if any) each depend on ``u``, affinely
+        (:func:`reference_supports`).
     sequence
         Guard names in event order (e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
         ``"ball1|ball2,ball2|wall"``; ``[]`` for no event): the extremal of that sequence.
@@ -747,26 +753,26 @@ def solve_reference(
     -------
     hybridoc.solution.Solution
         Method ``"reference"``; ``status`` ``success`` (the best extremal over the coverage
-        below, confirmed by the HMP: it satisfies the HMP conditions, re-simulates to its own
-        events, and no sequence proposed or enumerated, nor any control met, is cheaper;
+        below, confirmed by the HMP: it satisfies the HMP conditions, re-simulates to its
+        own events, and no sequence proposed or enumerated, nor any control met, is cheaper;
         sequences beyond the exhaustive length that no source proposed are not covered),
-        ``extremal`` (the extremal of a given ``sequence``, not compared
-        with other sequences; with ``search`` as well, the search runs without the sequence
-        and makes it ``success`` when it finds nothing cheaper), ``not-optimal`` (a cheaper
-        control is known: named in ``message`` and ``info["cheaper"]``) or ``infeasible``
-        (the extremal violates the control bounds); ``info`` holds ``residual``, ``sequence``,
-        ``newton_iterations``, ``grazing``, ``event_times``, ``candidates`` (every sequence
-        tried and its outcome), ``sources`` (each source used: ``name``, ``kind``
-        ``"reference"``, ``"registered"`` or ``"given"``, ``proposals``, ``time_s``, and
-        ``failed`` where it raised), ``warm_starts`` (the sources that may start Newton on
-        a sequence), ``coverage`` (what the search covered: ``sources``, the numbers of
-        distinct sequences ``proposed``, ``attempted``, ``solved`` (an extremal found) and
-        ``pruned`` (skipped by a lower bound), ``depth`` (the enumeration's target length),
-        ``exhaustive_length`` (every feasible sequence of up to this many events was
-        solved, an extremal found, or pruned by a valid bound: a sequence whose solve failed
-        leaves its length uncovered; ``None`` without an enumeration, or when not even the
-        empty sequence is covered), ``failed`` (the sequences attempted whose solve failed
-        and that no bound prunes: ``count`` and the first few ``sequences``),
+        ``extremal`` (the extremal of a given ``sequence``, not compared with other
+        sequences; with ``search`` as well, the search runs without the sequence and makes
+        it ``success`` when it finds nothing cheaper), ``not-optimal`` (a cheaper control is
+        known: named in ``message`` and ``info["cheaper"]``) or ``infeasible`` (the extremal
+        violates the control bounds or the path constraints); ``info`` holds ``residual``,
+        ``sequence``, ``newton_iterations``, ``grazing``, ``event_times``, ``candidates``
+        (every sequence tried and its outcome), ``sources`` (each source used: ``name``,
+        ``kind`` ``"reference"``, ``"registered"`` or ``"given"``, ``proposals``,
+        ``time_s``, and ``failed`` where it raised), ``warm_starts`` (the sources that may
+        start Newton on a sequence), ``coverage`` (what the search covered: ``sources``, the
+        numbers of distinct sequences ``proposed``, ``attempted``, ``solved`` (an extremal
+        found) and ``pruned`` (skipped by a lower bound), ``depth`` (the enumeration's
+        target length), ``exhaustive_length`` (every feasible sequence of up to this many
+        events was solved, an extremal found, or pruned by a valid bound: a sequence whose
+        solve failed leaves its length uncovered; ``None`` without an enumeration, or when
+        not even the empty sequence is covered), ``failed`` (the sequences attempted whose
+        solve failed and that no bound prunes: ``count`` and the first few ``sequences``),
         ``budget_s``, ``budget_stopped``, and ``families``: the best extremal of each
         sequence family, a family being the sequences of one number of events) and with
         ``search`` the ``landscape``.
