@@ -199,7 +199,9 @@ def mlp_policy(
         ``u_guess``; ``u_scale`` per control is half the bound interval where both bounds
         are finite, else the control that moves the state it drives fastest by its scale
         over the horizon, ``min_i s_scale_i / (T |df_i/du_j|)`` at ``(s_mean, u_offset)``
-        (1 for a control that drives no state there).
+        (1 for a control that drives no state there). The output is not clipped to the
+        bounds: a trained policy may leave them, which the judge reports
+        (:attr:`Evaluation.bound_violation <hybridoc.Evaluation>`).
 
     Parameters
     ----------
