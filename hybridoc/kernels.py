@@ -238,16 +238,34 @@ class _FlowNodes(NamedTuple):
     """Component scales at ``s(h)``."""
 
 
+def _node_fractions(x_nodes: np.ndarray) -> np.ndarray:
+    """The Chebyshev-Lobatto nodes after the first as fractions of the interval, in (0, 1]."""
+    fracs = (x_nodes[1:] + 1) / 2
+    fracs[-1] = 1.0
+    return fracs
+
+
 def _integrator_flow_nodes(
-    ocp: HybridOCP, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
+    ocp: HybridOCP,
+    s: Any,
+    u: Any,
+    h: Any,
+    a: Any,
+    b: Any,
+    x_nodes: np.ndarray,
+    sampler: Any = None,
 ) -> _FlowNodes:
-    """The nodes of the built-in CVODES flow map: one integration with a time grid."""
+    """The nodes of the built-in CVODES flow map: one integration with a time grid.
+
+    ``sampler(s, u, h) -> (states, running costs)`` at the nodes' fractions of ``h``
+    replaces CVODES (:func:`_dop853_sampler`); it is called for ``[0, h]``, then ``[0, a]``,
+    then ``[a, b]``.
+    """
     # no Jacobian of the flow (a sensitivity solve per call), so each component's scale is
     # its magnitude at the start and at the node
     D = len(x_nodes) - 1
-    fracs = (x_nodes[1:] + 1) / 2
-    fracs[-1] = 1.0
-    sampler = integrator_flow_samples(ocp.f, ocp.L, fracs)
+    if sampler is None:
+        sampler = integrator_flow_samples(ocp.f, ocp.L, _node_fractions(x_nodes))
     xs, qs = sampler(s, u, h)
     s_end, cost = xs[:, D - 1], qs[:, D - 1]
 
@@ -264,6 +282,70 @@ def _integrator_flow_nodes(
     return _FlowNodes(s_end, cost, node_states, win_states, sc_end)
 
 
+RK_TOL = 1e-13
+"""Relative and absolute tolerance of the judge's DOP853 flow (those of its CVODES flow)."""
+
+
+def _dop853_sampler(f: ca.Function, L: ca.Function, fractions: np.ndarray) -> ca.Function:
+    """``(s, u, h) -> (s(h * fractions), cost(h * fractions), err)`` by one step of Dormand
+    and Prince's eighth-order method from each fraction to the next (SX: compiled with the
+    judge's other kernels).
+
+    ``err`` is the sum over the steps of SciPy's DOP853 error norm (its fifth- and
+    third-order estimates combined) in units of :data:`RK_TOL` on every state component and
+    on the running cost: at most 1, the steps are as accurate as CVODES is asked to be
+    (``abstol = reltol = 1e-13``) over the whole interval, not only per step.
+    """
+    # SciPy ships the tableau as module data (as reference.shooting's dop853_step uses it)
+    from scipy.integrate._ivp import dop853_coefficients as tab
+
+    stages = int(tab.N_STAGES)
+    A = np.asarray(tab.A, dtype=float)[:stages, :stages]
+    B = np.asarray(tab.B, dtype=float)[:stages]
+    E3, E5 = np.asarray(tab.E3, dtype=float), np.asarray(tab.E5, dtype=float)
+    nx, nu = f.size1_in(0), f.size1_in(1)
+    s, u, h = ca.SX.sym("s", nx), ca.SX.sym("u", nu), ca.SX.sym("h")
+
+    def rhs(z: Any) -> Any:
+        return ca.vertcat(f(z[:nx], u), L(z[:nx], u))
+
+    z: Any = ca.vertcat(s, 0)
+    xs, qs, err, prev = [], [], ca.SX(0), 0.0
+    for frac in fractions:
+        dt = (float(frac) - prev) * h
+        K: list[Any] = []
+        for i in range(stages):
+            zi = z
+            for j in range(i):
+                if A[i, j] != 0.0:
+                    zi = zi + (dt * A[i, j]) * K[j]
+            K.append(rhs(zi))
+        inc = ca.SX.zeros(nx + 1)
+        for i in range(stages):
+            if B[i] != 0.0:
+                inc = inc + B[i] * K[i]
+        z_new = z + dt * inc
+        K.append(rhs(z_new))  # the FSAL stage, which SciPy's estimates use
+        scale = RK_TOL + RK_TOL * ca.fmax(ca.fabs(z), ca.fabs(z_new))
+        e5 = sum((E5[i] * K[i] for i in range(stages + 1) if E5[i] != 0.0), ca.SX.zeros(nx + 1))
+        e3 = sum((E3[i] * K[i] for i in range(stages + 1) if E3[i] != 0.0), ca.SX.zeros(nx + 1))
+        n5, n3 = ca.sumsqr(e5 / scale), ca.sumsqr(e3 / scale)
+        # SciPy's _estimate_error_norm; the tiny term keeps 0/0 (a step of length 0) at 0
+        err = err + ca.fabs(dt) * n5 / ca.sqrt((n5 + 0.01 * n3) * (nx + 1) + 1e-300)
+        z, prev = z_new, float(frac)
+        xs.append(z[:nx])
+        qs.append(z[nx])
+    return ca.Function("dop853_samples", [s, u, h], [ca.horzcat(*xs), ca.horzcat(*qs), err])
+
+
+def _sx_but_the_flow(ocp: HybridOCP) -> bool:
+    """Whether every function of the problem but its (integrator) flow map is SX."""
+    fns = [ocp.f, ocp.L, ocp.phi, ocp.path]
+    for g in ocp.guards:
+        fns += [g.psi, g.reset, g.detector]
+    return all(fn.is_a("SXFunction") for fn in fns if fn is not None)
+
+
 def _flow_map_nodes(
     ocp: HybridOCP, sym: Any, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
 ) -> _FlowNodes:
@@ -278,6 +360,64 @@ def _flow_map_nodes(
     node_states.append((s_end, flow_sc(s, u, h)[1]))
     win_states = [tuple(flow_sc(s, u, a + (b - a) * (xk + 1) / 2)) for xk in x_nodes]
     return _FlowNodes(s_end, cost, node_states, win_states, flow_sc(s, u, h)[1])
+
+
+def _dop853_twins(ocp: HybridOCP, x_nodes: np.ndarray) -> dict[str, ca.Function]:
+    """The kernels of an integrator's flow (``interval``, ``window``, ``flow``, ``point``,
+    ``seg_jac``) by :func:`_dop853_sampler` instead of CVODES, in SX, with the outputs of
+    :meth:`Kernels._build_interval_fns` and ``seg_jac`` plus a last one, the error estimate
+    (at most 1: as accurate as CVODES's tolerance; :class:`CheckedNum` falls back to CVODES
+    above). One DOP853 step per gap between the nodes: on pendulum-wall's grid intervals the
+    estimate is below 1e-5 of the tolerance and the states agree with CVODES to 3e-12."""
+    nx, nu, G = ocp.nx, ocp.nu, len(ocp.guards)
+    S = ca.SX
+    s, u, h, a, b = S.sym("s", nx), S.sym("u", nu), S.sym("h"), S.sym("a"), S.sym("b")
+    sp, sc = S.sym("sp", nx), S.sym("sc", nx)
+    dets = _Detectors(ocp, S, sp, sc)
+    rk = _dop853_sampler(ocp.f, ocp.L, _node_fractions(x_nodes))
+    errs: list[Any] = []
+
+    def sampler(s0: Any, u0: Any, h0: Any) -> tuple[Any, Any]:
+        xs, qs, e = rk(s0, u0, h0)
+        errs.append(e)
+        return xs, qs
+
+    flow = _integrator_flow_nodes(ocp, s, u, h, a, b, x_nodes, sampler)
+    err, err_w = errs[0], errs[1] + errs[2]  # [0, h]; then [0, a] and [a, b]
+    samples, noise = dets.columns(flow.nodes)
+    psi_end = ca.vertcat(*[g.psi(flow.s_end) for g in ocp.guards]) if G else S(0, 1)
+    w_samples, w_noise = dets.columns(flow.window)
+    det_v, det_n = dets.at(flow.s_end, flow.sc_end)
+    det_r = ca.jacobian(det_v, h) if G else S(0, 1)
+    jac = ca.jacobian(ca.vertcat(flow.s_end, flow.cost), ca.vertcat(s, u))
+    blocks = [jac[:nx, :nx], jac[:nx, nx:], jac[nx, :nx].T, jac[nx, nx:].T]
+    return {
+        "interval": dense_fn(
+            "rk_interval", [s, u, h], [flow.s_end, flow.cost, samples, noise, psi_end, err]
+        ),
+        "window": dense_fn("rk_window", [s, u, a, b], [w_samples, w_noise, err_w]),
+        "flow": dense_fn("rk_flow", [s, u, h], [flow.s_end, flow.cost, err]),
+        "point": dense_fn("rk_point", [s, u, h], [flow.s_end, det_v, det_r, det_n, err]),
+        "seg_jac": dense_fn("rk_seg_jac", [s, u, h], [*blocks, err]),
+    }
+
+
+class CheckedNum:
+    """A kernel of an integrator's flow through its compiled DOP853 twin, or through CVODES
+    where the twin's error estimate exceeds the tolerance (or is not a number): called as
+    :class:`Num`, with CVODES's outputs."""
+
+    def __init__(self, rk: Num, cvodes: Num) -> None:
+        self.rk, self.cvodes, self.name = rk, cvodes, cvodes.name
+        self.fallbacks = 0
+        """Calls answered by CVODES."""
+
+    def __call__(self, *args: Any) -> list[np.ndarray]:
+        out = self.rk(*args)
+        if out[-1][0] <= 1.0:
+            return out[:-1]
+        self.fallbacks += 1
+        return self.cvodes(*args)
 
 
 class Kernels:
@@ -313,14 +453,18 @@ class Kernels:
         fs = ocp.f(sp, u)
         self._build_state_fns(ocp, dets, sp, u, fs)
         self._build_adjoint_fns(ocp, sym, flow, [s, u, h], sp, fs)
+        # an integrator's flow: compiled DOP853 twins, CVODES where their error is too large
+        self.rk_fns: dict[str, ca.Function] = {}
+        if ocp.structure.integrator_flow and _sx_but_the_flow(ocp):
+            self.rk_fns = _dop853_twins(ocp, self.cheb.x)
         self._local = threading.local()
         self._acc: dict[str, compiled.Accelerated | None] = {}
 
     def accelerated(self, fn: ca.Function) -> compiled.Accelerated | None:
         """``fn`` (one of these kernels) as an :class:`~hybridoc.compiled.Accelerated`
         shared by every thread, or ``None`` where compiling is off or not worth it (an MX
-        kernel wraps CVODES, which generated C cannot call)."""
-        if not self.sx or not compiled.enabled():
+        kernel wraps CVODES, which generated C cannot call; its DOP853 twins are SX)."""
+        if not (self.sx or fn.is_a("SXFunction")) or not compiled.enabled():
             return None
         name = fn.name()
         with _LOCK:
@@ -445,25 +589,36 @@ class Numeric:
         self._resets: dict[int, Num] = {}
         self._event_jac: dict[int, Num] = {}
 
-    @cached_property
-    def interval(self) -> Num:
-        return Num(self.k.interval_fn)
+    def _checked(self, twin: str, fn: ca.Function) -> Num | CheckedNum:
+        """``fn``'s evaluator; through its DOP853 twin (the ``twin`` of
+        :attr:`Kernels.rk_fns`) where it has one. ``batch`` is ``interval`` there (one
+        interval per call)."""
+        num = Num(fn, self.k.accelerated(fn))
+        rk = self.k.rk_fns.get(twin)
+        if rk is None:
+            return num
+        assert twin != "interval" or self.k.chunk == 1
+        return CheckedNum(Num(rk, self.k.accelerated(rk)), num)
 
     @cached_property
-    def window(self) -> Num:
-        return Num(self.k.window_fn)
+    def interval(self) -> Num | CheckedNum:
+        return self._checked("interval", self.k.interval_fn)
 
     @cached_property
-    def batch(self) -> Num:
-        return Num(self.k.batch_fn, self.k.accelerated(self.k.batch_fn))
+    def window(self) -> Num | CheckedNum:
+        return self._checked("window", self.k.window_fn)
 
     @cached_property
-    def flow(self) -> Num:
-        return Num(self.k.flow_fn)
+    def batch(self) -> Num | CheckedNum:
+        return self._checked("interval", self.k.batch_fn)
 
     @cached_property
-    def point(self) -> Num:
-        return Num(self.k.point_fn, self.k.accelerated(self.k.point_fn))
+    def flow(self) -> Num | CheckedNum:
+        return self._checked("flow", self.k.flow_fn)
+
+    @cached_property
+    def point(self) -> Num | CheckedNum:
+        return self._checked("point", self.k.point_fn)
 
     @cached_property
     def det(self) -> Num:
@@ -486,8 +641,8 @@ class Numeric:
         return Num(self.k.psi_fn)
 
     @cached_property
-    def seg_jac(self) -> Num:
-        return Num(self.k.seg_jac_fn, self.k.accelerated(self.k.seg_jac_fn))
+    def seg_jac(self) -> Num | CheckedNum:
+        return self._checked("seg_jac", self.k.seg_jac_fn)
 
     @cached_property
     def fL(self) -> Num:

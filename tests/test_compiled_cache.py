@@ -110,3 +110,74 @@ def test_the_judge_compiles_nothing_without_codegen_or_for_an_integrator(
     assert ball.accelerated(ball.batch_fn) is None
     num = Num(ball.batch_fn, None)  # the virtual machine, as before
     assert len(num(np.zeros(ball.nx), np.zeros(ball.nu * ball.chunk), np.zeros(ball.chunk)))
+
+
+# ------------------------------------------------- an integrator's flow: DOP853 twins of CVODES
+
+
+def _cvodes_only(name: str):  # noqa: ANN202
+    """A fresh problem whose judge keeps CVODES (its kernels without DOP853 twins)."""
+    problem = load_problem(name)
+    kernels(problem).rk_fns = {}
+    return problem
+
+
+def test_the_dop853_flow_is_more_accurate_than_cvodes() -> None:
+    from scipy.integrate import solve_ivp
+
+    from hybridoc import kernels as kmod
+    from hybridoc.ocp import integrator_flow_samples
+
+    problem = load_problem("pendulum-wall")
+    fracs = kmod._node_fractions(kernels(problem).cheb.x)  # noqa: SLF001
+    rk = kmod._dop853_sampler(problem.f, problem.L, fracs)  # noqa: SLF001
+    cv = integrator_flow_samples(problem.f, problem.L, fracs)
+    f, L = problem.f, problem.L
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        s0, u0 = problem.x0 + rng.normal(0, 1, problem.nx), rng.normal(0, 3, problem.nu)
+        h = problem.dt * rng.uniform(0.3, 1.0)
+
+        def rhs(t, z, u0=u0):  # noqa: ANN001, ANN202, ARG001
+            x = z[: problem.nx]
+            return np.concatenate([np.asarray(f(x, u0)).ravel(), np.asarray(L(x, u0)).ravel()])
+
+        ref = solve_ivp(rhs, (0, h), np.append(s0, 0.0), method="DOP853", rtol=3e-14,
+                        atol=1e-16, t_eval=h * fracs, max_step=h / 64)  # fmt: skip
+        xs, qs, err = (np.asarray(v) for v in rk(s0, u0, h))
+        assert err.item() <= 1.0
+        rk_gap = np.max(np.abs(xs - ref.y[: problem.nx]))
+        cv_gap = np.max(np.abs(np.asarray(cv(s0, u0, h)[0]) - ref.y[: problem.nx]))
+        assert rk_gap < 1e-13
+        assert rk_gap < cv_gap
+        np.testing.assert_allclose(qs.ravel(), ref.y[problem.nx], rtol=1e-12, atol=1e-15)
+
+
+def test_the_judge_of_an_integrator_flow_agrees_with_cvodes() -> None:
+    twin, cvodes = load_problem("pendulum-wall"), _cvodes_only("pendulum-wall")
+    assert kernels(twin).rk_fns and not kernels(cvodes).rk_fns
+    rng = np.random.default_rng(1)
+    for u in (twin.u_guess, twin.u_guess + rng.normal(0, 2, twin.u_guess.shape)):
+        a, b = _judge(twin, u), _judge(cvodes, u)
+        assert abs(a[0].cost - b[0].cost) <= 1e-10 * abs(b[0].cost)
+        assert [e.guard for e in a[0].events] == [e.guard for e in b[0].events]
+        np.testing.assert_allclose(
+            [e.time for e in a[0].events], [e.time for e in b[0].events], atol=1e-10
+        )
+        scale = np.max(np.abs(b[1].d_controls))
+        np.testing.assert_allclose(a[1].d_controls, b[1].d_controls, atol=1e-7 * scale)
+    num = kernels(twin).numeric()
+    assert num.interval.fallbacks == 0 and num.point.fallbacks == 0
+
+
+def test_a_coarse_dop853_step_falls_back_to_cvodes() -> None:
+    twin, cvodes = load_problem("pendulum-wall"), _cvodes_only("pendulum-wall")
+    checked, plain = kernels(twin).numeric().flow, kernels(cvodes).numeric().flow
+    s0, u0 = twin.x0, np.array([0.5])
+    fine = checked(s0, u0, twin.dt)
+    assert checked.fallbacks == 0
+    np.testing.assert_allclose(fine[0], plain(s0, u0, twin.dt)[0], atol=1e-11)
+    coarse = checked(s0, u0, 40 * twin.horizon)  # 16 steps of seconds: far off the tolerance
+    assert checked.fallbacks == 1
+    for x, y in zip(coarse, plain(s0, u0, 40 * twin.horizon), strict=True):
+        np.testing.assert_array_equal(x, y)
