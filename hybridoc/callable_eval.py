@@ -59,6 +59,7 @@ def evaluate_callable(
     atol: float = 1e-12,
     penetration_tol: float = 1e-9,
     max_events: int = 10**6,
+    event_controls: np.ndarray | None = None,
 ) -> Evaluation:
     """Simulate under a control ``u(t)`` (or a continuous feedback ``u = pi(t, s)``).
 
@@ -81,6 +82,9 @@ def evaluate_callable(
         may penetrate before the motion counts as sustained contact, an error.
     max_events
         More events than this raise :class:`~hybridoc.errors.EvaluationError`.
+    event_controls
+        Optional ``(K, nu)``: the control a reset that depends on the control reads at the
+        ``k``-th event (:class:`hybridoc.events.EventResolver`); default: ``u`` there.
 
     Returns
     -------
@@ -94,6 +98,8 @@ def evaluate_callable(
         raise ControlsError("give exactly one of control (u(t)) and state_feedback (pi(t, s))")
     u_at = _control_function(ocp, control, state_feedback)
     sim = _Simulation(ocp, u_at, graze_tol, rtol, atol, penetration_tol, max_events)
+    if event_controls is not None:
+        sim.resolver = EventResolver(ocp, sim.num, graze_tol, event_controls)
     sim.run(breakpoints)
     return sim.evaluation()
 

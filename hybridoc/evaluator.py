@@ -136,6 +136,7 @@ def evaluate(
             breakpoints=u.breakpoints,
             graze_tol=graze_tol,
             penetration_tol=penetration_tol,
+            event_controls=getattr(u, "event_controls", None),
         )
     controls = getattr(controls, "controls", controls)  # a Solution
     if callable(controls):
@@ -579,14 +580,20 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
         # the first segment of each grid interval starts at the grid time t_n
         first = np.r_[True, idx[1:] != idx[:-1]]
         d_closed = np.zeros_like(u_all)
+    # a reset that reads the control of its cell: lambda(gamma+)^T dg/du joins that cell
+    reset_u = np.zeros((M, nu)) if any(k.reset_uses_u) else None
     for i in range(M - 1, -1, -1):
         seg = segs[i]
         if seg.event is not None:
+            if reset_u is not None and k.reset_uses_u[seg.event]:
+                reset_u[i] = _reset_du(num, seg, u_all[seg.interval]).T @ lam
             lam = _costate_jump(num, seg, u_all[seg.interval], lam)
             lam_jump[i] = lam
         lam_end[i] = lam
         if feedback is not None:
             d_closed[idx[i]] += Cu_a[i] + FuT_a[i] @ lam
+            if reset_u is not None:
+                d_closed[idx[i]] += reset_u[i]
         lam = Cs_a[i] + FsT_a[i] @ lam
         if feedback is not None and first[i]:
             # u_n = pi(t_n, s_n): s_n also acts through the control of its interval
@@ -599,6 +606,8 @@ def adjoint(ev: Evaluation, feedback: np.ndarray | None = None) -> Gradient:
         d_u = d_closed
     else:
         contrib = Cu_a + np.einsum("kij,kj->ki", FuT_a, lam_end)
+        if reset_u is not None:
+            contrib = contrib + reset_u
         d_u = np.zeros_like(u_all)
         # later segments first, as the recursion visits them
         np.add.at(d_u, idx[::-1], contrib[::-1])
@@ -667,6 +676,8 @@ def _terminal_adjoint(
         seg = segs[i]
         u = ev.controls[seg.interval]
         if seg.event is not None:
+            if num.k.reset_uses_u[seg.event]:
+                d_u[:, idx[i], :] += (_reset_du(num, seg, u).T @ lam).T
             lam = _costate_jump_block(num, seg, u, lam)
         d_u[:, idx[i], :] += (FuT_a[i] @ lam).T
         lam = FsT_a[i] @ lam
@@ -742,6 +753,13 @@ def _costate_record(
     lam_rec[-1] = lam_T
     t_rec[-1] = horizon
     return t_rec, lam_rec
+
+
+def _reset_du(num: Numeric, seg: Segment, u: np.ndarray) -> np.ndarray:
+    """``dg/du`` ``(nx, nu)`` of the reset at the event ending ``seg``, at ``s(gamma-)``."""
+    assert seg.event is not None
+    b = num.flow(seg.s0, u, seg.h)[0]
+    return num.reset_du(seg.event)(b, u)[0].reshape((num.k.nx, num.k.nu), order="F")
 
 
 def _costate_jump(num: Numeric, seg: Segment, u: np.ndarray, lam: np.ndarray) -> np.ndarray:

@@ -194,13 +194,32 @@ class EventResolver:
         The problem's buffer-bound kernels (:meth:`hybridoc.kernels.Kernels.numeric`).
     graze_tol
         The grazing threshold.
+    event_controls
+        Optional ``(K, nu)`` controls of the resets, event by event in the order this
+        resolver applies them: a reset that depends on the control reads row ``k`` at the
+        ``k``-th event instead of the control in force (a continuous-time solution's own
+        choice at its switches, :attr:`hybridoc.Solution.event_controls`). Events past the
+        last row read the control in force.
     """
 
-    def __init__(self, ocp: Any, num: Any, graze_tol: float) -> None:
+    def __init__(
+        self, ocp: Any, num: Any, graze_tol: float, event_controls: np.ndarray | None = None
+    ) -> None:
         self.ocp = ocp
         self.num = num
         self.graze_tol = graze_tol
         self.G = len(ocp.guards)
+        self.event_controls = (
+            None if event_controls is None else np.asarray(event_controls, dtype=float)
+        )
+        self.count = 0  # events applied so far (the row of event_controls of the next)
+
+    def reset_control(self, u: np.ndarray) -> np.ndarray:
+        """The control the next reset reads: ``u`` (in force) or its event control."""
+        ec = self.event_controls
+        if ec is not None and self.count < len(ec):
+            return ec[self.count]
+        return u
 
     def due(self, s: np.ndarray, u: np.ndarray, pending: set[int]) -> tuple[list[int], np.ndarray]:
         """Guards due at ``s``: approaching, and pending or at zero; and their rates."""
@@ -220,11 +239,13 @@ class EventResolver:
             due, rate = self.due(s, u, pending)
             if not due:
                 return s, events
+            u_reset = self.reset_control(u)
             if len(due) > 1:
-                self._check_commute(t, s, due)
+                self._check_commute(t, s, due, u_reset)
             j = due[0]
             pending.discard(j)
-            s_new = self.num.reset(j)(s)[0]
+            s_new = self.num.reset(j)(s, u_reset)[0]
+            self.count += 1
             g = self.ocp.guards[j]
             before, after = self._modes(g.name, t, s, s_new)
             events.append(
@@ -262,12 +283,12 @@ class EventResolver:
                 f"the reset of guard {name!r} at t = {t:.9g} leaves no valid mode: {exc}"
             ) from None
 
-    def _check_commute(self, t: float, s: np.ndarray, due: list[int]) -> None:
+    def _check_commute(self, t: float, s: np.ndarray, due: list[int], u: np.ndarray) -> None:
         for ia, a in enumerate(due):
             for b in due[ia + 1 :]:
                 ga, gb = self.num.reset(a), self.num.reset(b)
-                sa, sb = ga(s)[0], gb(s)[0]
-                ab, ba = ga(sb)[0], gb(sa)[0]
+                sa, sb = ga(s, u)[0], gb(s, u)[0]
+                ab, ba = ga(sb, u)[0], gb(sa, u)[0]
                 if commute_defect(ab, ba, s, sa, sb) > _COMMUTE_RTOL:
                     na, nb = self.ocp.guards[a].name, self.ocp.guards[b].name
                     raise SimultaneousEventError(

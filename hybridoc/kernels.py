@@ -39,6 +39,7 @@ from hybridoc.rootfind import Chebyshev
 __all__ = [
     "Kernels",
     "Num",
+    "Reset",
     "kernels",
     "flow_scale_fn",
     "rounding_level",
@@ -518,9 +519,11 @@ class Kernels:
         psi_noise = rounding_level(psi, sp, own_scale) if G else sym(0, 1)
         self.contact_fn = dense_fn("contact", [sp, u], [psi, rate, accel, psi_noise])
         self.psi_fn = dense_fn("guards_psi", [sp], [psi])
+        # every reset as (s, u) -> s (one that does not use the control ignores u)
         self.reset_fns = [
-            dense_fn(f"reset{j}", [sp], [g.reset(sp)]) for j, g in enumerate(ocp.guards)
+            dense_fn(f"reset{j}", [sp, u], [g.reset_at(sp, u)]) for j, g in enumerate(ocp.guards)
         ]
+        self.reset_uses_u = [g.uses_control for g in ocp.guards]
 
     def _build_adjoint_fns(
         self, ocp: HybridOCP, sym: Any, flow: _FlowNodes, suh: list[Any], sp: Any, fs: Any
@@ -539,8 +542,15 @@ class Kernels:
             dense_fn(
                 f"event_jac{j}",
                 [sp, u],
-                [ca.gradient(g.psi(sp), sp), ca.jacobian(g.reset(sp), sp), g.reset(sp)],
+                [ca.gradient(g.psi(sp), sp), ca.jacobian(g.reset_at(sp, u), sp), g.reset_at(sp, u)],
             )
+            for j, g in enumerate(ocp.guards)
+        ]
+        # dg/du of the resets that depend on the control (None for the others)
+        self.reset_du_fns = [
+            dense_fn(f"reset_du{j}", [sp, u], [ca.jacobian(g.reset_at(sp, u), u)])
+            if g.uses_control
+            else None
             for j, g in enumerate(ocp.guards)
         ]
         self.fL_fn = dense_fn("fL", [sp, u], [fs, ocp.L(sp, u)])
@@ -586,8 +596,9 @@ class Numeric:
 
     def __init__(self, k: Kernels) -> None:
         self.k = k
-        self._resets: dict[int, Num] = {}
+        self._resets: dict[int, Reset] = {}
         self._event_jac: dict[int, Num] = {}
+        self._reset_du: dict[int, Num] = {}
 
     def _checked(self, twin: str, fn: ca.Function) -> Num | CheckedNum:
         """``fn``'s evaluator; through its DOP853 twin (the ``twin`` of
@@ -664,15 +675,41 @@ class Numeric:
     def terminal(self) -> Num | None:
         return None if self.k.terminal_fn is None else Num(self.k.terminal_fn)
 
-    def reset(self, j: int) -> Num:
+    def reset(self, j: int) -> Reset:
         if j not in self._resets:
-            self._resets[j] = Num(self.k.reset_fns[j])
+            self._resets[j] = Reset(Num(self.k.reset_fns[j]), self.k.reset_uses_u[j], self.k.nu)
         return self._resets[j]
 
     def event_jac(self, j: int) -> Num:
         if j not in self._event_jac:
             self._event_jac[j] = Num(self.k.event_jac_fns[j])
         return self._event_jac[j]
+
+    def reset_du(self, j: int) -> Num:
+        """``dg/du`` of guard ``j``'s reset, ``(s, u) -> (nx * nu,)`` column-major (only for a
+        reset that depends on the control)."""
+        if j not in self._reset_du:
+            fn = self.k.reset_du_fns[j]
+            if fn is None:
+                raise ValueError(f"the reset of guard {j} does not depend on the control")
+            self._reset_du[j] = Num(fn)
+        return self._reset_du[j]
+
+
+class Reset:
+    """A guard's buffer-bound reset, ``reset(s, u) -> [s+]``; ``u`` may be left out for a
+    reset that does not depend on the control."""
+
+    def __init__(self, num: Num, uses_control: bool, nu: int) -> None:
+        self.num, self.uses_control = num, uses_control
+        self._zero = np.zeros(nu)
+
+    def __call__(self, s: Any, u: Any = None) -> list[np.ndarray]:
+        if u is None:
+            if self.uses_control:
+                raise ValueError(f"{self.num.name}: this reset depends on the control; give u")
+            u = self._zero
+        return self.num(s, u)
 
 
 def kernels(ocp: HybridOCP) -> Kernels:

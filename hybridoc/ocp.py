@@ -6,7 +6,7 @@ consume::
     minimise   phi(s(T)) + integral_0^T L(s, u) dt
     subject to ds/dt = f(s, u)                  between events
                psi_k(s(gamma-)) = 0             guard k fires when psi_k crosses 0 from above
-               s(gamma+) = g_k(s(gamma-))       reset of guard k
+               s(gamma+) = g_k(s(gamma-))       reset of guard k (or g_k(s(gamma-), u))
                u_min <= u(t) <= u_max           optional control bounds
                c(s(t), u(t)) >= 0               optional path constraints
 
@@ -21,6 +21,18 @@ Modes
     minimum principle comes out per mode: the Hamiltonian is ``L_q + lambda^T f_q`` on each
     side of a switch, and the costate of ``q`` decouples (``dH/dq = 0`` between switches).
     The state a user sees is ``(s, q)``, its last label ``"mode"``.
+
+Resets that depend on the control
+    A guard's reset may be ``s+ = g(s-, u)`` (:meth:`Guard.from_expressions` with ``u=``;
+    :attr:`Guard.uses_control`): a restitution or an impulse the controller sets at the
+    impact. On the N-grid (the judge of piecewise-constant controls, gradient descent) the
+    reset reads the control of the grid cell in which the event happens, and the judge's
+    adjoint adds ``lambda(gamma+)^T dg/du`` to that cell's gradient. In continuous time
+    (the transcription) the reset's control at each event is a decision of its own, ``v_k``
+    in the control bounds: a single instant carries no running cost, so ``v_k`` minimises
+    ``lambda(gamma+)^T g(s(gamma-), v)`` (a linear dependence needs bounds for a minimum to
+    exist). Such a Solution stores the ``v_k`` (``arrays["event_controls"]``) and the judge
+    applies them at its events. The HMP reference does not solve these problems yet.
 
 Terminal constraints and a free final time
     ``terminal_eq`` (``h(s(T)) = 0``) and ``terminal_ineq`` (``h(s(T)) >= 0``) are hard
@@ -48,7 +60,7 @@ A required final mode
 
 What the model cannot express yet
     Static parameters (decisions constant in time): fix such a parameter and solve for
-    each value; resets that depend on the control.
+    each value.
 
 Everything symbolic is a CasADi :class:`casadi.Function`. Disc scenes compile to it
 (:meth:`hybridoc.problems.Scene.to_ocp`); any other system is a few lines, e.g. a ball
@@ -76,6 +88,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -125,7 +138,8 @@ class Guard:
     psi
         CasADi Function ``s -> scalar``; positive in free space.
     reset
-        CasADi Function ``s -> s``.
+        CasADi Function ``s -> s``, or ``(s, u) -> s`` for a reset that depends on the
+        control (:attr:`uses_control`; module notes, "Resets that depend on the control").
     kind
         Free label reported with events, e.g. ``"disc-disc"``.
     bodies
@@ -155,6 +169,41 @@ class Guard:
     source: str | None = None
     target: str | None = None
 
+    def __post_init__(self) -> None:
+        r = self.reset
+        if not isinstance(r, ca.Function) or r.n_in() not in (1, 2) or r.n_out() != 1:
+            got = f"{r.n_in()} inputs" if isinstance(r, ca.Function) else type(r).__name__
+            raise SceneError(
+                f"guard {self.name!r}: the reset must be a casadi.Function s -> s or "
+                f"(s, u) -> s, got {got}"
+            )
+
+    @property
+    def uses_control(self) -> bool:
+        """Whether the reset is a function of the state and the control, ``(s, u) -> s``."""
+        return int(self.reset.n_in()) == 2
+
+    def reset_at(self, s: Any, u: Any) -> Any:
+        """The state after the jump, ``g(s)`` or ``g(s, u)``, for symbols or numbers
+        (``u`` is read only by a reset that :attr:`uses_control`)."""
+        return self.reset(s, u) if self.uses_control else self.reset(s)
+
+    def check_reset(self, nx: int, nu: int, *, what: str | None = None) -> None:
+        """Raise a :class:`~hybridoc.errors.SceneError` naming the expected signature unless
+        the reset is ``s -> s`` or ``(s, u) -> s`` with ``s`` of size ``nx`` and ``u`` of
+        size ``nu``."""
+        r = self.reset
+        sizes = tuple(r.size_in(i) for i in range(r.n_in()))
+        want = ((nx, 1),) if r.n_in() == 1 else ((nx, 1), (nu, 1))
+        if sizes != want or r.size_out(0) != (nx, 1):
+            shown = ", ".join(f"{a}x{b}" for a, b in sizes)
+            out = "x".join(map(str, r.size_out(0)))
+            raise SceneError(
+                f"{what or f'guard {self.name!r}'}: the reset must be a Function s -> s or "
+                f"(s, u) -> s with s of size {nx} and u of size {nu} (a reset that depends on "
+                f"the control takes the state first), got inputs ({shown}) -> {out}"
+            )
+
     @classmethod
     def from_expressions(
         cls,
@@ -169,14 +218,36 @@ class Guard:
         degree: int | None = None,
         source: str | None = None,
         target: str | None = None,
+        u: ca.SX | ca.MX | None = None,
     ) -> Guard:
-        """Build a guard from symbolic expressions in the state symbol ``s``."""
+        """Build a guard from symbolic expressions in the state symbol ``s``.
+
+        ``reset`` may also use the control symbol ``u`` when it is given: the reset is then
+        ``(s, u) -> s`` (module notes, "Resets that depend on the control"); a reset that
+        does not use ``u`` stays ``s -> s``.
+        """
         tag = _casadi_name(name)
         det = None if detector is None else ca.Function(f"det_{tag}", [s], [detector])
+        with_u = u is not None and isinstance(reset, ca.SX | ca.MX) and ca.depends_on(reset, u)
+        try:
+            g = (
+                ca.Function(f"g_{tag}", [s, u], [reset])
+                if with_u
+                else ca.Function(f"g_{tag}", [s], [reset])
+            )
+        except RuntimeError as exc:
+            # CasADi's last line names the free symbols ("variables [u] are free")
+            free = re.search(r"variables \[(.*?)\] are free", str(exc))
+            which = f"it uses {free.group(1)}" if free else str(exc).splitlines()[-1]
+            hint = "" if u is not None else " (pass u= for a reset that depends on the control)"
+            raise SceneError(
+                f"guard {name!r}: the reset must be an expression in s, or in s and u{hint}; "
+                f"{which}"
+            ) from None
         return cls(
             name=name,
             psi=ca.Function(f"psi_{tag}", [s], [psi]),
-            reset=ca.Function(f"g_{tag}", [s], [reset]),
+            reset=g,
             kind=kind,
             bodies=tuple(bodies),
             detector=det,
@@ -375,6 +446,7 @@ class HybridOCP:
         for g in self.guards:
             if not isinstance(g, Guard):
                 raise SceneError(f"guards must be Guard objects, got {g!r}")
+            g.check_reset(self.x0.size, self.nu)
         names = [g.name for g in self.guards]
         if len(set(names)) != len(names):
             raise SceneError(f"guard names must be unique: {names}")
@@ -828,7 +900,7 @@ class HybridOCP:
         f_sel = select([m.f(xs, uu) for m in mode_list])
         L_sel = select([sym(0.0) if m.L is None else m.L(xs, uu) for m in mode_list])
         phi_fn = ca.Function("phi_s", [s], [phi])
-        guards = [_transition(g, x, ns, index, names) for g in transitions]
+        guards = [_transition(g, x, uu, ns, index, names) for g in transitions]
         fm = None
         if all(m.flow_map is not None for m in mode_list):
             h = sym.sym("h")
@@ -1127,21 +1199,40 @@ class _TimeLift:
             return fn(self.x)
         raise SceneError(f"{what} must be a Function of s ({self.ns}) or of (s, t) ({self.ns + 1})")
 
+    def _of_state_u(self, fn: ca.Function, what: str) -> Any:
+        """A reset ``(s, u)`` or ``((s, t), u)`` at the symbolic ``(x, u)``."""
+        n, nu = fn.size1_in(0), int(self.u.numel())
+        if fn.size1_in(1) != nu:
+            raise SceneError(f"{what} must be a Function (s, u) -> s with u of size {nu}")
+        if n == self.ns:
+            return fn(self.xs, self.u)
+        if n == self.ns + 1:
+            return fn(self.x, self.u)
+        raise SceneError(
+            f"{what} must be a Function of (s, u) ({self.ns}) or of ((s, t), u) ({self.ns + 1})"
+        )
+
     def guard(self, g: Guard) -> Guard:
         """A guard of ``s`` (or ``(s, t)``) as a guard of ``x``; its reset keeps the time."""
         if not isinstance(g, Guard):
             raise SceneError(f"guards must be Guard objects, got {g!r}")
         tag = _casadi_name(g.name)
-        reset = self._of_state(g.reset, f"guard {g.name!r}: the reset")
+        if g.uses_control:
+            reset = self._of_state_u(g.reset, f"guard {g.name!r}: the reset")
+        else:
+            reset = self._of_state(g.reset, f"guard {g.name!r}: the reset")
         if reset.numel() == self.ns + 1:
             reset = reset[: self.ns]
         if reset.numel() != self.ns:
             raise SceneError(f"guard {g.name!r}: the reset must return the {self.ns} components")
         det = self._of_state(g.detector, f"guard {g.name!r}: the detector")
+        lifted = ca.vertcat(reset, self.xt)
         return dataclasses.replace(
             g,
             psi=ca.Function(f"psi_{tag}", [self.x], [self._of_state(g.psi, f"guard {g.name!r}")]),
-            reset=ca.Function(f"g_{tag}", [self.x], [ca.vertcat(reset, self.xt)]),
+            reset=ca.Function(f"g_{tag}", [self.x, self.u], [lifted])
+            if g.uses_control
+            else ca.Function(f"g_{tag}", [self.x], [lifted]),
             detector=None if det is None else ca.Function(f"det_{tag}", [self.x], [det]),
         )
 
@@ -1178,7 +1269,9 @@ class _TimeLift:
         )
 
 
-def _transition(g: Guard, x: Any, ns: int, index: dict[str, float], names: list[str]) -> Guard:
+def _transition(
+    g: Guard, x: Any, u: Any, ns: int, index: dict[str, float], names: list[str]
+) -> Guard:
     """A transition of ``from_modes`` as a guard of the augmented state ``x = (s, q)``."""
     if not isinstance(g, Guard):
         raise SceneError(f"transitions must be Guard objects, got {g!r}")
@@ -1187,11 +1280,10 @@ def _transition(g: Guard, x: Any, ns: int, index: dict[str, float], names: list[
             raise SceneError(f"transition {g.name!r} needs a {role} mode (one of {names})")
         if m not in index:
             raise SceneError(f"transition {g.name!r}: unknown {role} mode {m!r}; modes {names}")
-    for what, fn in (("psi", g.psi), ("reset", g.reset), ("detector", g.detector)):
+    for what, fn in (("psi", g.psi), ("detector", g.detector)):
         if fn is not None and (fn.n_in() != 1 or fn.size1_in(0) != ns):
             raise SceneError(f"transition {g.name!r}: {what} must be a Function of s ({ns})")
-    if g.reset.size_out(0) != (ns, 1):
-        raise SceneError(f"transition {g.name!r}: the reset must return the {ns} components of s")
+    g.check_reset(ns, int(u.numel()), what=f"transition {g.name!r}")
     xs, q = x[:ns], x[ns]
     here = ca.fabs(q - index[g.source]) < 0.5  # type: ignore[index]
     tag = _casadi_name(g.name)
@@ -1199,10 +1291,11 @@ def _transition(g: Guard, x: Any, ns: int, index: dict[str, float], names: list[
     def masked(fn: ca.Function, prefix: str) -> ca.Function:
         return ca.Function(f"{prefix}_{tag}", [x], [ca.if_else(here, fn(xs), _MASKED)])
 
+    after = ca.vertcat(g.reset_at(xs, u), index[g.target])  # type: ignore[index]
     return dataclasses.replace(
         g,
         psi=masked(g.psi, "psi"),
-        reset=ca.Function(f"g_{tag}", [x], [ca.vertcat(g.reset(xs), index[g.target])]),  # type: ignore[index]
+        reset=ca.Function(f"g_{tag}", [x, u] if g.uses_control else [x], [after]),
         detector=None if g.detector is None else masked(g.detector, "det"),
     )
 

@@ -372,15 +372,25 @@ class ControlFunction:
         events): the judge restarts its integration there.
     horizon
         ``T``.
+    event_controls
+        ``(K, nu)``: the control each reset reads, event by event
+        (:attr:`Solution.event_controls`), which the judge of a continuous control applies
+        at its events; ``None``: none.
     """
 
     def __init__(
-        self, kind: str, fn: Callable[[float], Any], breakpoints: Any, horizon: float
+        self,
+        kind: str,
+        fn: Callable[[float], Any],
+        breakpoints: Any,
+        horizon: float,
+        event_controls: np.ndarray | None = None,
     ) -> None:
         self.kind = kind
         self.fn = fn
         self.breakpoints = np.asarray(breakpoints, dtype=float).ravel()
         self.horizon = float(horizon)
+        self.event_controls = event_controls
 
     def __call__(self, t: float) -> np.ndarray:
         return np.asarray(self.fn(t), dtype=float).ravel()
@@ -669,6 +679,16 @@ class Solution:
         return "piecewise-constant"
 
     @property
+    def event_controls(self) -> np.ndarray | None:
+        """``(K, nu)``: the control each reset reads, event by event, for a continuous-time
+        control on a problem whose resets depend on the control (``arrays["event_controls"]``,
+        stored by dt: its ``v_k``); ``None`` otherwise. The judge of :meth:`control` applies
+        row ``k`` at the ``k``-th event (a piecewise-constant control's resets read their
+        cell's control)."""
+        value = self.arrays.get("event_controls")
+        return None if value is None else np.asarray(value, dtype=float)
+
+    @property
     def problem(self) -> HybridOCP | None:
         """The problem this Solution is bound to (:meth:`bind`; a method binds the problem
         it solved); ``None`` for a Solution loaded from a file until it is bound."""
@@ -722,7 +742,7 @@ class Solution:
             def u_poly(t: float) -> np.ndarray:
                 return lagrange_pieces(np.array([t]), bounds, nodes, vals, lo, hi)[0]
 
-            return ControlFunction(kind, u_poly, bounds[1:-1], T)
+            return ControlFunction(kind, u_poly, bounds[1:-1], T, self.event_controls)
         if kind == "phase-linear":
             C = np.asarray(a["control_coefficients"], dtype=float)
             starts = np.asarray(a["phase_starts"], dtype=float)
@@ -731,9 +751,9 @@ class Solution:
                 k = max(int(np.searchsorted(starts, t, side="right")) - 1, 0)
                 return C[k, 0] + C[k, 1] * (t - starts[k])
 
-            return ControlFunction(kind, u_lin, starts[1:], T)
+            return ControlFunction(kind, u_lin, starts[1:], T, self.event_controls)
         u, breakpoints = _hook(CONTROL_LAWS[kind])(self, self._ocp(problem))
-        return ControlFunction(kind, u, breakpoints, T)
+        return ControlFunction(kind, u, breakpoints, T, self.event_controls)
 
     def _control_nodes(self) -> np.ndarray:
         nodes = self.arrays.get("control_nodes")

@@ -12,9 +12,9 @@ length ``dt`` under a constant control ``u``:
    ``tau_0 = dt - psi(s^) / (d psi/dt)(s^)`` (Eq. 3), refined by Newton's method on the flow,
    ``tau <- tau - det(Phi(s, u, tau)) / (d det/dt)``, on the guard's detector (its polynomial
    form where it has one).
-4. **Jump** at the earliest located event, ``s+ = g(Phi(s, u, tau))``, and integrate the rest
-   of the step, ``Phi(s+, u, dt - tau)``; then look again (up to ``max_events`` events per
-   step).
+4. **Jump** at the earliest located event, ``s+ = g(Phi(s, u, tau))`` (``g(., u)`` for a
+   reset that depends on the control: the step's control), and integrate the rest of the
+   step, ``Phi(s+, u, dt - tau)``; then look again (up to ``max_events`` events per step).
 
 Everything is one CasADi SX expression with ``if_else`` branches, so its derivative goes
 through the event time: the gradient carries the saltation term of the jump. With an exact
@@ -101,7 +101,7 @@ def toi_step(
     u = ca.SX.sym("u", nu)
     sp = ca.SX.sym("sp", nx)
     guards = ocp.guards
-    psi_fns, det_fns, rate_fns, det_rate_fns, reset_fns = [], [], [], [], []
+    psi_fns, det_fns, rate_fns, det_rate_fns = [], [], [], []
     for g in guards:
         psi = g.psi(sp)
         det = g.detector(sp) if g.detector is not None else psi
@@ -109,7 +109,6 @@ def toi_step(
         det_fns.append(ca.Function("det", [sp], [det]))
         rate_fns.append(ca.Function("rate", [sp, u], [ca.jtimes(psi, sp, ocp.f(sp, u))]))
         det_rate_fns.append(ca.Function("det_rate", [sp, u], [ca.jtimes(det, sp, ocp.f(sp, u))]))
-        reset_fns.append(g.reset)
 
     state = s
     cost = ca.SX(0)
@@ -140,7 +139,8 @@ def toi_step(
             best_tau = ca.if_else(earlier, tau, best_tau)
             best_state = ca.if_else(earlier, s_ev, best_state)
             best_cost = ca.if_else(earlier, c_ev, best_cost)
-            best_after = ca.if_else(earlier, reset_fns[j](s_ev), best_after)
+            # a reset that depends on the control reads the step's own (the cell's) control
+            best_after = ca.if_else(earlier, guards[j].reset_at(s_ev, u), best_after)
             fired = ca.if_else(earlier, 1.0, fired)
         # no event: the flow to the end; an event: the state just after its jump
         cost = cost + best_cost

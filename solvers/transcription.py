@@ -181,7 +181,12 @@ class _PhaseNLP:
         for k in range(P):
             Xs.append(sym.sym(f"X{k}", nx, self.mesh[k] * d + 1))
             Us.append(sym.sym(f"U{k}", nu, self.mesh[k] * d))
-        w_all = ca.vertcat(h, *[ca.vec(X) for X in Xs], *[ca.vec(U) for U in Us])
+        # the events whose reset depends on the control: each reads its own control v_k, a
+        # decision of the NLP (an instant carries no running cost), stored after the U
+        self.reset_events = [k for k, gi in enumerate(self.guards) if ocp.guards[gi].uses_control]
+        V = sym.sym("V", nu, len(self.reset_events))
+        self.V_sym = V
+        w_all = ca.vertcat(h, *[ca.vec(X) for X in Xs], *[ca.vec(U) for U in Us], ca.vec(V))
         self.n_w = w_all.size1()
 
         cons = _Constraints()
@@ -209,6 +214,7 @@ class _PhaseNLP:
         self.n_g = cons.n
         # unpacking helpers
         sizes = [P] + [nx * (m * d + 1) for m in self.mesh] + [nu * m * d for m in self.mesh]
+        sizes.append(nu * len(self.reset_events))  # V: the resets' controls, bounded as U
         self._offsets = np.concatenate([[0], np.cumsum(sizes)])
         self.lbx, self.ubx = self._variable_bounds()
         self._solvers: dict[bool, Any] = {}
@@ -277,7 +283,8 @@ class _PhaseNLP:
         s_ = self.sym.sym("s", ocp.nx)
         dpsi = ca.Function("dpsi", [s_], [ca.jacobian(gd.psi(s_), s_)])
         cons.add(f"approach{k}", ca.mtimes(dpsi(s_minus), ocp.f(s_minus, U[:, -1])), -np.inf, 0.0)
-        cons.add(f"link{k}", X_next[:, 0] - gd.reset(s_minus), 0.0, 0.0)
+        v = self.V_sym[:, self.reset_events.index(k)] if gd.uses_control else None
+        cons.add(f"link{k}", X_next[:, 0] - gd.reset_at(s_minus, v), 0.0, 0.0)
 
     def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``lbx``, ``ubx``: phase durations in ``[1e-6 T, T]`` (``[1e-6 T_min, T_max]`` for
@@ -317,11 +324,30 @@ class _PhaseNLP:
         return self._solvers[verbose]
 
     # --- packing ------------------------------------------------------------------------
-    def pack(self, h: np.ndarray, X: list[np.ndarray], U: list[np.ndarray]) -> np.ndarray:
+    def pack(
+        self,
+        h: np.ndarray,
+        X: list[np.ndarray],
+        U: list[np.ndarray],
+        V: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The NLP's variables; ``V`` ``(nu, len(reset_events))``: the resets' controls
+        (default: the control at the end of each phase that ends in such an event)."""
         parts = [np.asarray(h, dtype=float)]
         parts += [np.asarray(x, dtype=float).ravel(order="F") for x in X]
         parts += [np.asarray(u, dtype=float).ravel(order="F") for u in U]
+        if self.reset_events:
+            if V is None:
+                V = np.column_stack(
+                    [np.asarray(U[k], dtype=float)[:, -1] for k in self.reset_events]
+                )
+            parts.append(np.asarray(V, dtype=float).ravel(order="F"))
         return np.concatenate(parts)
+
+    def unpack_v(self, w: np.ndarray) -> np.ndarray:
+        """The resets' controls ``(nu, len(reset_events))`` of the variables ``w``."""
+        o, nu = self._offsets, self.ocp.nu
+        return w[o[-2] : o[-1]].reshape((nu, len(self.reset_events)), order="F").copy()
 
     def unpack(self, w: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
         o, P, nx, nu, d = self._offsets, self.P, self.ocp.nx, self.ocp.nu, self.d
@@ -465,6 +491,7 @@ def nlp_size(
     n_b = int(np.count_nonzero(np.isfinite(ocp.u_min) | np.isfinite(ocp.u_max)))
     n_c = 0 if ocp.path is None else int(ocp.path.size1_out(0))
     n_w = P + sum(nx * (m * d + 1) + nu * m * d for m in mesh)
+    n_w += nu * sum(ocp.guards[g].uses_control for g in guards)  # the resets' controls
     n_g = 1 + nx + _terminal_count(ocp)
     for k, m in enumerate(mesh):
         n_g += m * nx * d
@@ -569,7 +596,12 @@ def _initial_point(
         X.append(Xk)
         idx = np.clip((times[k][1:] / T * N).astype(int), 0, N - 1)
         U.append(nlp.clip_controls(np.asarray(controls, dtype=float)[idx].T))
-    return nlp.pack(h, X, U), h
+    V = None
+    if nlp.reset_events:
+        # each reset's control: the guess's control in the cell of its event
+        cells = [int(np.clip(bounds[k + 1] / T * N, 0, N - 1)) for k in nlp.reset_events]
+        V = nlp.clip_controls(np.asarray(controls, dtype=float)[cells].T)
+    return nlp.pack(h, X, U, V), h
 
 
 # ----------------------------------------------------------------------------------------
@@ -627,6 +659,11 @@ class DTResult:
     element_bounds: np.ndarray
     _nlp: _PhaseNLP
     _w: np.ndarray
+
+    event_controls: np.ndarray | None = None
+    """``(K, nu)`` the control each event's reset reads (``v_k`` for a reset that depends on
+    the control, the control at the phase's end for the others); ``None`` when no reset of
+    the sequence depends on the control."""
 
     def control_function(self) -> Callable[[float], np.ndarray]:
         """The continuous-time control: per element, the polynomial through the Radau points."""
@@ -817,6 +854,12 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
     for k in range(P):
         bounds.append(times[k][d::d])
     element_bounds = np.concatenate(bounds)
+    event_controls = None
+    if nlp.reset_events:
+        V = nlp.clip_controls(nlp.unpack_v(w))
+        event_controls = np.array([U[k][:, -1] for k in range(P - 1)], dtype=float)
+        for i, k in enumerate(nlp.reset_events):
+            event_controls[k] = V[:, i]
     return DTResult(
         sequence=list(sequence),
         nlp_cost=float(res["f"]),
@@ -836,6 +879,7 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
         element_bounds=element_bounds,
         _nlp=nlp,
         _w=w,
+        event_controls=event_controls,
     )
 
 
@@ -888,7 +932,12 @@ def _candidates(observed: list[str]) -> list[list[str]]:
 def _resimulate(ocp: HybridOCP, r: DTResult) -> Evaluation:
     from hybridoc.callable_eval import evaluate_callable
 
-    return evaluate_callable(_at(ocp, r), r.control_function(), breakpoints=r.element_bounds[1:-1])
+    return evaluate_callable(
+        _at(ocp, r),
+        r.control_function(),
+        breakpoints=r.element_bounds[1:-1],
+        event_controls=r.event_controls,
+    )
 
 
 def _resimulated_names(ocp: HybridOCP, ev: Evaluation) -> list[str]:
@@ -943,7 +992,8 @@ def _refined(ocp: HybridOCP, r: DTResult, verbose: bool) -> DTResult:
         bu = _lagrange_basis(rad.tau[1:], su)  # (n, d)
         ucols = eu[:, None] * d + np.arange(d)[None, :]
         U.append(fine.clip_controls(np.einsum("nj,unj->un", bu, Uc[k][:, ucols])))
-    return _solve_nlp(fine, fine.pack(h, X, U), list(r.sequence), verbose)
+    V = coarse.unpack_v(r._w) if coarse.reset_events else None
+    return _solve_nlp(fine, fine.pack(h, X, U, V), list(r.sequence), verbose)
 
 
 def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndarray, float]:
@@ -1543,6 +1593,8 @@ def _assemble(
     if ocp.has_bounds:  # u(t) is clipped into them (also after saving and loading)
         arrays["u_min"] = np.array(ocp.u_min, dtype=float)
         arrays["u_max"] = np.array(ocp.u_max, dtype=float)
+    if best.event_controls is not None:  # the resets' own controls, which the judge applies
+        arrays["event_controls"] = np.array(best.event_controls)
     sol = Solution(
         method="dt",
         scene=scene_name,
