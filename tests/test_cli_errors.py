@@ -1,14 +1,20 @@
 """Bad input on the command line and in the Python API: one clear error, never a traceback.
 
-Each CLI case runs ``python -m hybridoc`` in a subprocess and requires exit code 2, exactly one
-line ``hybridoc: error: ...`` on stderr and nothing on stdout. The cases fail before any
-solver runs, so the file stays fast; the slow commands (ablation, full solves) are only fed
-arguments that are rejected up front.
+Each CLI case requires exit code 2, exactly one line ``hybridoc: error: ...`` on stderr and
+nothing on stdout. Hostile inputs (files that run code, huge values) run ``python -m
+hybridoc`` in a subprocess; the plain usage and user errors run the same entry point,
+:func:`hybridoc.cli.main`, in this process (``_run_here``: a subprocess each cost about
+0.5 s of start-up), and a few of them also as subprocesses, so that the two stay alike. The
+cases fail before any solver runs, so the file stays fast; the slow commands (ablation, full
+solves) are only fed arguments that are rejected up front.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +51,24 @@ def _run(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=120,
     )
+
+
+def _run_here(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """What ``python -m hybridoc ARGS`` does (``sys.exit(main())``), in this process."""
+    from hybridoc.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(list(args))
+            except SystemExit as exc:  # argparse's usage errors
+                code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    finally:
+        os.chdir(old)
+    return subprocess.CompletedProcess(["hybridoc", *args], code, out.getvalue(), err.getvalue())
 
 
 def _one_error(proc: subprocess.CompletedProcess[str], *fragments: str) -> str:
@@ -91,7 +115,7 @@ def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ],
 )
 def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments) -> None:
-    _one_error(_run(work, *args), *fragments)
+    _one_error(_run_here(work, *args), *fragments)
 
 
 # ----------------------------------------------------------------- user errors (exit 2)
@@ -131,7 +155,25 @@ def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments)
     ],
 )
 def test_user_errors_are_one_line(work: Path, args: tuple[str, ...], fragments) -> None:
-    _one_error(_run(work, *args), *fragments)
+    _one_error(_run_here(work, *args), *fragments)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("solve", "head-on", "--lr", "nan"),
+        ("evaluate",),
+        ("reference", "head-on", "--sequence", "nosuch"),
+        ("validate", "head-on", "short.npy"),
+    ],
+)
+def test_in_process_errors_are_the_subprocess_errors(work: Path, args: tuple[str, ...]) -> None:
+    here, there = _run_here(work, *args), _run(work, *args)
+    assert (here.returncode, here.stdout, here.stderr) == (
+        there.returncode,
+        there.stdout,
+        there.stderr,
+    )
 
 
 def test_solve_out_checked_before_solving(work: Path) -> None:
