@@ -236,6 +236,10 @@ _PHASES = frozenset({"phase_starts", "phase_states", "phase_costates"})
 COSTATE_RTOL = 1e-13
 """Relative tolerance of the costates that :meth:`Solution.sample` rebuilds."""
 
+_ACTIVE_ROW = 1e-9
+"""A path row whose value is within this of 0 under the reference's control is on an arc
+where it is active (the reference holds such rows at 0 to its own tolerance)."""
+
 
 class _PhaseCostates:
     """The costate of a reference Solution at any times: state and costate integrated from
@@ -260,6 +264,26 @@ class _PhaseCostates:
         H = ocp.L(s, uu) + ca.dot(lam, ocp.f(s, uu))
         # partial derivative at fixed u: u(t) is given, not the minimiser of this H
         self.rhs = ca.Function("state_costate", [s, lam, uu], [ocp.f(s, uu), -ca.gradient(H, s)])
+        self.path = None
+        if ocp.path is not None:
+            # on an arc where path rows are active the costate also carries c_s^T nu, with
+            # nu from the stationarity H_u = c_u^T nu of the active rows
+            c = ocp.path(s, uu)
+            self.path = ca.Function(
+                "path_parts",
+                [s, lam, uu],
+                [c, ca.jacobian(c, uu), ca.jacobian(c, s), ca.gradient(H, uu)],
+            )
+
+    def _path_term(self, s: np.ndarray, lam: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``c_s^T nu`` over the path rows active at ``(s, u)`` (zero where none is)."""
+        assert self.path is not None
+        c, cu, cs, hu = (np.asarray(v, dtype=float) for v in self.path(s, lam, u))
+        active = np.flatnonzero(np.abs(c.ravel()) <= _ACTIVE_ROW)
+        if active.size == 0:
+            return np.zeros(self.nx)
+        nu = np.linalg.lstsq(cu[active].T, hu.ravel(), rcond=None)[0]
+        return cs[active].T @ nu
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         from scipy.integrate import solve_ivp
@@ -269,8 +293,12 @@ class _PhaseCostates:
         phase = np.clip(np.searchsorted(self.starts, times, side="right") - 1, 0, None)
 
         def rhs(t: float, z: np.ndarray) -> np.ndarray:
-            ds, dl = self.rhs(z[:nx], z[nx:], self.u(t))
-            return np.concatenate([np.asarray(ds).ravel(), np.asarray(dl).ravel()])
+            u = self.u(t)
+            ds, dl = self.rhs(z[:nx], z[nx:], u)
+            dl = np.asarray(dl).ravel()
+            if self.path is not None:
+                dl = dl + self._path_term(z[:nx], z[nx:], u)
+            return np.concatenate([np.asarray(ds).ravel(), dl])
 
         for k in np.unique(phase):
             rows = np.flatnonzero(phase == k)

@@ -84,3 +84,19 @@ def test_the_bouncing_balls_costate_is_linear_on_each_arc(
     grad = [2 * p["weight_height"] * (h_T - p["target_height"]),
             2 * p["weight_velocity"] * (v_T - p["target_velocity"])]  # fmt: skip
     np.testing.assert_allclose(got.costates[-1], grad, rtol=0, atol=1e-9)
+
+
+def test_the_costate_on_an_active_path_arc_carries_the_multiplier() -> None:
+    """The ceiling integrator of test_reference_path (x' = u, c = 1 - x - u >= 0): lambda =
+    -k before the junction t1 and -k cosh(t - t1) on the boundary arc, where lambda' =
+    -(H_x - nu c_x) = -nu is not -H_x = 0 (the rebuild adds c_s^T nu of the active rows)."""
+    from test_reference_path import ceiling, ceiling_closed_form
+
+    cf = ceiling_closed_form()
+    sol = hybridoc.solve(ceiling(), "reference")
+    assert sol.success, sol.message
+    ts = np.linspace(0.0, 2.0, 29) + 0.013
+    ts[-1] = 2.0
+    got = sol.sample(ts).costates[:, 0]
+    tau = np.maximum(ts - cf["t1"], 0.0)
+    np.testing.assert_allclose(got, -cf["k"] * np.cosh(tau), rtol=0, atol=1e-8)
