@@ -136,3 +136,24 @@ def test_crossval_flags_reach_the_methods(
             main(["crossval", "bouncing-ball", *bad])
         assert exc.value.code == 2
         assert "--tolerance" in capsys.readouterr().err
+
+
+def test_the_grid_projection_reports_its_terminal_violation() -> None:
+    """friction-patch (x(T) = 1, v(T) = 0): the reference meets the constraints, its cell
+    averages on the grid miss them a little, and the report says by how much (so that a
+    negative gap to the projection reads as what it is)."""
+    from hybridoc.workflows.validation import representable
+
+    ocp = hybridoc.as_ocp("friction-patch")
+    ref = hybridoc.solve(ocp, "reference")
+    assert ref.success and ref.evaluation(ocp).terminal_violation < 1e-8
+    best = representable(ocp, "gd", ref)
+    grid = hybridoc.evaluate(ocp, ref.to_grid(problem=ocp))
+    assert best["representable_cost"] == grid.cost
+    assert best["representable_terminal_violation"] == grid.terminal_violation > 1e-8
+    plain = representable(
+        "single-collision",
+        "gd",
+        hybridoc.solve("single-collision", "reference", sequence=["ball1|ball2"]),
+    )
+    assert "representable_terminal_violation" not in plain

@@ -339,10 +339,15 @@ def _grid_projection(ocp: HybridOCP, ref: Solution | None) -> dict[str, Any]:
     if ref is None or ocp.free_horizon:
         return {"grid_cost": None, "grid_gap_relative": None}
     try:
-        cost = float(ref.to_grid(problem=ocp).cost)
+        grid = ref.to_grid(problem=ocp)
+        cost = float(grid.cost)
     except HybridocError as exc:
         return {"grid_cost": None, "grid_gap_relative": None, "grid_error": str(exc)}
-    return {"grid_cost": cost, "grid_gap_relative": _relative(cost, ref.cost)}
+    out = {"grid_cost": cost, "grid_gap_relative": _relative(cost, ref.cost)}
+    violation = _terminal_violation(ocp, grid)
+    if violation is not None:
+        out["grid_terminal_violation"] = violation
+    return out
 
 
 def _relative(cost: float, against: float) -> float:
@@ -429,7 +434,10 @@ def representable(
     dict
         ``representable`` (what it is, in words), ``representable_cost`` and
         ``discretisation_gap_relative`` (``(J_best - J*) / |J*|``); ``representable_cost``
-        is ``None`` with ``representable_error`` when it could not be built.
+        is ``None`` with ``representable_error`` when it could not be built. On a problem
+        with terminal constraints or a final mode the grid projection also reports its
+        judged ``representable_terminal_violation``: the projection does not keep the
+        constraints, so a method that meets them may cost more than it, or less.
     """
     ocp = as_ocp(problem)
     if method == "dt":
@@ -445,14 +453,32 @@ def representable(
         if ocp.free_horizon:
             return _no_representable(what, "a free final time has no fixed grid to project on")
         try:
-            cost = float(ref.to_grid(problem=ocp).cost)
+            grid = ref.to_grid(problem=ocp)
+            cost = float(grid.cost)
         except HybridocError as exc:
             return _no_representable(what, str(exc))
+        violation = _terminal_violation(ocp, grid)
+        if violation is not None:
+            return {
+                "representable": what,
+                "representable_cost": cost,
+                "discretisation_gap_relative": _relative(cost, ref.cost),
+                "representable_terminal_violation": violation,
+            }
     return {
         "representable": what,
         "representable_cost": cost,
         "discretisation_gap_relative": _relative(cost, ref.cost),
     }
+
+
+def _terminal_violation(ocp: HybridOCP, sol: Solution) -> float | None:
+    """The judged terminal violation of ``sol`` on a problem with terminal constraints or a
+    final mode (the grid projection of ``J*`` does not keep them: a method that meets them
+    may cost more than it, so a gap to it is no finding), else ``None``."""
+    if not (ocp.has_terminal_constraints or ocp.final_mode is not None):
+        return None
+    return float(sol.evaluation(ocp).terminal_violation)
 
 
 def _no_representable(what: str, why: str) -> dict[str, Any]:
