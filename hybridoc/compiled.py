@@ -538,7 +538,12 @@ class NativeFunction:
         self._f.restype = ctypes.c_int
         self._f.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int]
         self._lock = threading.Lock()
-        self._work = self._new_work()
+        # the lock holder's buffers, their pointers bound once (see __call__)
+        self._in_bufs = [np.zeros(max(r * c, 1)) for r, c in self._in_shapes]
+        self._out_bufs = [
+            np.zeros(max(r * c if where is None else len(where), 1)) for (r, c), where in self._outs
+        ]
+        self._bound = self._bind(self._in_bufs, self._out_bufs)
 
     def _new_work(self) -> tuple[Any, Any, np.ndarray, np.ndarray]:
         n_arg, n_res, n_iw, n_w = self._sizes
@@ -580,6 +585,10 @@ class NativeFunction:
                 raise ValueError(f"a buffer of {buf.size} {buf.dtype} where {size} float64")
         if any(where is not None for _, where in self._outs):
             raise ValueError("a sparse output cannot be bound")
+        return self._bind(inputs, outputs)
+
+    def _bind(self, inputs: list[np.ndarray], outputs: list[np.ndarray]) -> Callable[[], int]:
+        """:meth:`bind` without its checks (``outputs``: each output's nonzeros)."""
         n_arg, n_res, n_iw, n_w = self._sizes
         arg = (ctypes.c_void_p * n_arg)(*[b.ctypes.data for b in inputs])
         res = (ctypes.c_void_p * n_res)(*[b.ctypes.data for b in outputs])
@@ -603,6 +612,12 @@ class NativeFunction:
         """
         if len(inputs) != self.n_in:
             raise TypeError(f"expected {self.n_in} inputs, got {len(inputs)}")
+        if self._lock.acquire(blocking=False):
+            try:
+                return self._call_bound(inputs)
+            finally:
+                self._lock.release()
+        # a concurrent caller (threads): buffers and work arrays of its own
         ins = []
         for x, shape in zip(inputs, self._in_shapes, strict=True):
             a = np.asarray(x, dtype=np.float64)
@@ -619,25 +634,38 @@ class NativeFunction:
             else:
                 outs.append(np.zeros(shape, order="F"))
                 bufs.append(np.empty(max(len(where), 1)))
-        # one set of work arrays, reused; a concurrent caller (threads) takes its own
-        mine = self._lock.acquire(blocking=False)
-        try:
-            arg, res, iw, w = self._work if mine else self._new_work()
-            for i, a in enumerate(ins):
-                arg[i] = a.ctypes.data
-            for i, b in enumerate(bufs):
-                res[i] = b.ctypes.data
-            rc = self._f(
-                ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data, 0
-            )
-        finally:
-            if mine:
-                self._lock.release()
+        arg, res, iw, w = self._new_work()
+        for i, a in enumerate(ins):
+            arg[i] = a.ctypes.data
+        for i, b in enumerate(bufs):
+            res[i] = b.ctypes.data
+        rc = self._f(ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data, 0)
         if rc:
             raise RuntimeError(f"the compiled function returned the error code {rc}")
         for out, b, (_, where) in zip(outs, bufs, self._outs, strict=True):
             if where is not None and len(where):
                 out.reshape(-1, order="F")[where] = b[: len(where)]
+        return outs
+
+    def _call_bound(self, inputs: tuple[Any, ...]) -> list[np.ndarray]:
+        """:meth:`__call__` through the buffers bound once (the lock held): the inputs copied
+        in, the outputs copied out; no pointer to take per call (each costs 1.5 us)."""
+        for x, buf, shape in zip(inputs, self._in_bufs, self._in_shapes, strict=True):
+            a = np.asarray(x, dtype=np.float64)
+            if a.size != shape[0] * shape[1]:
+                raise ValueError(f"an input of {a.size} values where {shape} was expected")
+            buf[: a.size].reshape(shape, order="F")[...] = a.reshape(shape, order="F")
+        rc = self._bound()
+        if rc:
+            raise RuntimeError(f"the compiled function returned the error code {rc}")
+        outs = []
+        for buf, (shape, where) in zip(self._out_bufs, self._outs, strict=True):
+            if where is None:
+                outs.append(buf[: shape[0] * shape[1]].reshape(shape, order="F").copy(order="F"))
+            else:
+                out = np.zeros(shape, order="F")
+                out.reshape(-1, order="F")[where] = buf[: len(where)]
+                outs.append(out)
         return outs
 
 
