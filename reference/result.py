@@ -125,6 +125,11 @@ class ReferenceResult:
     judged_terminal_violation
         The terminal constraints' violation at the judge's re-simulated final state, set by
         :func:`~hybridoc.reference.sequence.judged_reference` (``None`` before).
+    event_controls
+        ``(K, nu)``: the control each event's reset reads, on a sequence with a reset that
+        depends on the control: its own control ``v_k`` there (a shooting unknown), elsewhere
+        ``u(gamma_k-)`` (which that reset does not read); ``None`` on any other sequence.
+        The judge applies them at its events (``arrays["event_controls"]``).
     arc_starts, arc_states, arc_costates, arc_levels, arc_nodes
         A generic problem with path constraints whose phases have junctions: every arc's
         start time (phase starts and junctions, in time order), ``s`` and ``lambda`` there,
@@ -168,6 +173,7 @@ class ReferenceResult:
     terminal_ineq_multipliers: np.ndarray = field(default_factory=lambda: np.zeros(0))
     final_hamiltonian: float = 0.0
     judged_terminal_violation: float | None = None
+    event_controls: np.ndarray | None = None
     coverage: dict[str, Any] | None = field(default=None, repr=False)
     arc_starts: np.ndarray | None = None
     arc_states: np.ndarray | None = None
@@ -364,6 +370,11 @@ class ReferenceResult:
             out["terminal_eq"] = float(np.max(np.abs(R[end : end + m_eq])))
         if m_in:
             out["terminal_ineq"] = float(np.max(np.abs(R[end + m_eq : end + m_eq + m_in])))
+        n_v = int(getattr(self.system.core, "n_v", 0))
+        if n_v:
+            # the reset controls' conditions close the residual (before a free T's H(T))
+            stop = R.size - int(self.system.core.free)
+            out["event_control"] = float(np.max(np.abs(R[stop - n_v : stop])))
         if self.ocp.free_horizon and self.horizon_at_bound is None:
             out["free_time"] = abs(float(self.final_hamiltonian))
         return out
@@ -399,6 +410,9 @@ class ReferenceResult:
             arrays["arc_states"] = np.asarray(self.arc_states, dtype=float)
             arrays["arc_costates"] = np.asarray(self.arc_costates, dtype=float)
             arrays["arc_substeps"] = np.asarray(self.arc_levels, dtype=np.int64)
+        if self.event_controls is not None:
+            # the resets' own controls, which the judge applies at its events
+            arrays["event_controls"] = np.asarray(self.event_controls, dtype=float)
         base_info = {
             "residual": float(self.residual),
             "sequence": list(self.sequence),
@@ -583,6 +597,7 @@ def make_result(
     nodes = None if S.disc else S.nodes(starts.ravel(), s0.T, l0.T)
     arcs = _arc_pieces(S, nr.z, float(out[11].item())) if _has_junctions(S) else None
     return ReferenceResult(
+        event_controls=_event_controls(S, nr.z, sm, lm),
         ocp=S.ocp,
         sequence=list(S.sequence),
         event_times=np.array([float(g) for g in gam]),
@@ -615,6 +630,24 @@ def make_result(
         final_hamiltonian=float(H_T.item()),
         **(arcs or {}),
     )
+
+
+def _event_controls(
+    S: ShootingSystem, z: np.ndarray, s_minus: np.ndarray, l_minus: np.ndarray
+) -> np.ndarray | None:
+    """``(K, nu)``: per event the control its reset reads (:attr:`ReferenceResult.
+    event_controls`), ``None`` when no reset of the sequence reads the control."""
+    core = S.core
+    if not getattr(core, "n_v", 0):
+        return None
+    vs = core.unpack_event_controls(np.asarray(z, dtype=float))
+    rows = []
+    for k, v in enumerate(vs):
+        u = np.asarray(core.law_at(k, -1).u_star(s_minus[:, k], l_minus[:, k]), float).ravel()
+        if v is not None:
+            u[list(core.v_comps[k])] = v[list(core.v_comps[k])]
+        rows.append(u)
+    return np.array(rows, dtype=float)
 
 
 def _has_junctions(S: ShootingSystem) -> bool:

@@ -112,9 +112,14 @@ def fit_coeffs(ocp: HybridOCP, u: np.ndarray, gamma: np.ndarray) -> np.ndarray:
 
 
 def _pi_from_jump(
-    S: ShootingSystem, k: int, s_minus: np.ndarray, lm: np.ndarray, lp: np.ndarray
+    S: ShootingSystem,
+    k: int,
+    s_minus: np.ndarray,
+    lm: np.ndarray,
+    lp: np.ndarray,
+    v: np.ndarray | None = None,
 ) -> float:
-    _, gpsi, _, Dg = (np.asarray(x) for x in S.guard_fns[k](s_minus))
+    _, gpsi, _, Dg = (np.asarray(x) for x in S.core.guard_at(k, s_minus, v))
     gpsi = gpsi.ravel()
     r = lm - Dg.T @ lp
     return float(gpsi @ r / max(float(gpsi @ gpsi), 1e-300))
@@ -152,31 +157,39 @@ def z_zero_costate(S: ShootingSystem, gamma: np.ndarray) -> np.ndarray:
 def z_from_gradient(S: ShootingSystem, grad: Any, gamma: np.ndarray) -> np.ndarray:
     """Newton start from the judge's adjoint costate of a control with these events."""
     ct, cs = np.asarray(grad.costate_times), np.asarray(grad.costates)
-    lps, pis = [], []
+    lps, pis, vs = [], [], []
     for k, g in enumerate(gamma):
         i_after = int(np.searchsorted(ct, g, side="right")) - 1
         i_after = min(max(i_after, 0), ct.size - 1)
         lp = cs[i_after]
         lm = cs[max(i_after - 1, 0)]
         s_m = grad.evaluation.sample([g])[0]
-        pis.append(_pi_from_jump(S, k, s_m, lm, lp))
+        # a reset that reads the control: its own control minimises lambda+^T g there
+        vs.append(S.core.start_event_control(k, s_m, lp))
+        pis.append(_pi_from_jump(S, k, s_m, lm, lp, vs[-1]))
         lps.append(lp)
     # the adjoint ends at grad phi: no terminal multipliers
-    return S.pack(np.asarray(grad.d_initial_state), gamma, pis, lps, T=S.T)
+    return S.pack(np.asarray(grad.d_initial_state), gamma, pis, lps, T=S.T, v=vs)
 
 
 def z_from_costates(S: ShootingSystem, w: PhaseCostates) -> np.ndarray:
     """Newton start from costates per phase (a transcription's multipliers): the costate
     jumps follow from the costates on both sides of each event."""
+    vs = [
+        S.core.start_event_control(k, np.asarray(w.state_end[k]), w.costate_start[k + 1])
+        for k in range(S.K)
+    ]
     pis = [
-        _pi_from_jump(S, k, np.asarray(w.state_end[k]), w.costate_end[k], w.costate_start[k + 1])
+        _pi_from_jump(
+            S, k, np.asarray(w.state_end[k]), w.costate_end[k], w.costate_start[k + 1], vs[k]
+        )
         for k in range(S.K)
     ]
     nu, mu = _terminal_estimate(S, np.asarray(w.state_end[-1]), np.asarray(w.costate_end[-1]))
     T = S.T if getattr(w, "horizon", None) is None else float(w.horizon)  # type: ignore[arg-type]
     return S.pack(
         w.costate_start[0], np.asarray(w.event_times), pis, list(w.costate_start[1:]), nu, mu,
-        T=T,
+        T=T, v=vs,
     )  # fmt: skip
 
 
@@ -276,11 +289,15 @@ def solve_sequence(
         else:
             reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
 
-    def attempt(z0: np.ndarray, path: str) -> None:
+    def attempt(z0: np.ndarray, path: str, again: bool = True) -> None:
         Sr, nr = run(S, z0)
         if not S.core.free:
             if nr.converged:
                 keep(Sr, nr, path)
+                # the first-order conditions of a reset's control hold at any stationary
+                # point of the cost in it: Newton again from other extremes of lambda+^T g
+                for z1 in _reset_controls_moved(Sr, nr.z) if again else []:
+                    attempt(Sr.core.strip_switches(z1), f"{path}, reset controls moved", False)
             else:
                 failed(Sr, nr, path)
             return
@@ -359,6 +376,34 @@ def solve_sequence(
     return None, "; ".join(reasons) or "no start for Newton"
 
 
+def _reset_controls_moved(S: ShootingSystem, z: np.ndarray) -> list[np.ndarray]:
+    """Other starts for an extremal with reset controls ``v_k``: ``z`` with every ``v_k``
+    moved to the sampled minimum of ``lambda(gamma+)^T g(s(gamma-), v)`` over its bounds
+    (the HMP's pointwise minimum at this costate), and ``z`` with every ``v_k`` moved to
+    its maximum (the minimum for a costate of the other sign: a reset that is not monotone
+    in ``v`` admits an extremal whose costate has the wrong sign for the optimum), each
+    where it moves some ``v_k``; empty without such resets."""
+    core = S.core
+    if not getattr(core, "n_v", 0):
+        return []
+    sm = np.asarray(S.traj(z)[6], dtype=float)
+    lps = S.unpack(z)[3]
+    vs = core.unpack_event_controls(np.asarray(z, dtype=float))
+    out = []
+    for sign in (1.0, -1.0):
+        moved, changed = list(vs), False
+        for k, v in enumerate(vs):
+            if v is None:
+                continue
+            lam = sign * np.asarray(lps[k], dtype=float)
+            w = core.start_event_control(k, sm[:, k], lam, hint=v)
+            if w is not None and not np.array_equal(w, np.clip(v, *core.v_bounds)):
+                moved[k], changed = w, True
+        if changed:
+            out.append(core.with_event_controls(z, moved))
+    return out
+
+
 def _canonical(ocp: HybridOCP, names: list[str], times: np.ndarray) -> list[str]:
     """Guard names in time order, those at one instant (to rounding) in guard order."""
     order = sorted(
@@ -383,7 +428,7 @@ def _compare(
     u, bps = reference_control(res)
     ocp = res.ocp
     try:
-        sim = evaluate_callable(ocp, u, breakpoints=bps)
+        sim = evaluate_callable(ocp, u, breakpoints=bps, event_controls=res.event_controls)
     except HybridocError as exc:
         return False, None, f"re-simulation failed: {exc}", None, False
     times = np.array([e.time for e in sim.events])

@@ -115,10 +115,13 @@ __all__ = [
     "path_check",
     "path_multipliers",
     "path_rows",
+    "reset_control_check",
+    "reset_controls",
     "saturate",
     "saturation_check",
     "saturation_mismatch",
     "DEFAULT_RTOL",
+    "EVENT_CONTROL_SAMPLES",
     "MAX_SUBSTEPS",
     "SUBSTEPS",
     "SUBSTEPS_POLYNOMIAL",
@@ -480,12 +483,25 @@ class _Flow:
         )  # fmt: skip
         self.phase, self.nodes = free.phase, free.nodes
         self.guards = []
+        # a reset that reads the control takes the event's own control v as a second input;
+        # lambda^T g(s, v) and its gradient in v give that control's condition and start
+        self.reset_values: list[ca.Function | None] = []
+        self.reset_grads: list[ca.Function | None] = []
+        v = ca.SX.sym("v", nu)
         for j, g in enumerate(ocp.guards):
             psi = g.psi(s)
-            gs = g.reset(s)
+            gs = g.reset_at(s, v)
+            ins = [s, v] if g.uses_control else [s]
             self.guards.append(
-                ca.Function(f"ev{j}", [s], [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
+                ca.Function(f"ev{j}", ins, [psi, ca.gradient(psi, s), gs, ca.jacobian(gs, s)])
             )
+            if g.uses_control:
+                lg = ca.dot(lam, gs)
+                self.reset_values.append(ca.Function(f"rv{j}", [s, v, lam], [lg]))
+                self.reset_grads.append(ca.Function(f"rg{j}", [s, v, lam], [ca.gradient(lg, v)]))
+            else:
+                self.reset_values.append(None)
+                self.reset_grads.append(None)
         phi = ocp.phi(s)
         self.phi = ca.Function("phi", [s], [phi, ca.gradient(phi, s)])
         self.terminal = _terminal_fn(ocp, s)
@@ -635,6 +651,81 @@ def _flow(ocp: HybridOCP) -> _Flow:
     return _built_once(_FLOWS, ocp.structure, lambda: _Flow(ocp))
 
 
+# ------------------------------------------------------------- resets that read the control
+_RESET_CONTROLS: weakref.WeakKeyDictionary[Structure, tuple[tuple[int, ...], ...]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def reset_controls(ocp: HybridOCP) -> tuple[tuple[int, ...], ...]:
+    """Per guard of ``ocp``, the control components its reset ``g(s, u)`` reads (empty for a
+    reset ``g(s)``): at an event of that guard, the components of the reset's own control
+    ``v_k``, which the shooting takes as unknowns."""
+
+    def build() -> tuple[tuple[int, ...], ...]:
+        s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+        out = []
+        for g in ocp.guards:
+            gs = g.reset(s, u) if g.uses_control else None
+            out.append(() if gs is None else tuple(
+                i for i in range(ocp.nu) if ca.depends_on(gs, u[i])
+            ))  # fmt: skip
+        return tuple(out)
+
+    if not any(g.uses_control for g in ocp.guards):
+        return ((),) * len(ocp.guards)
+    return _built_once(_RESET_CONTROLS, ocp.structure, build)
+
+
+def reset_control_check(ocp: HybridOCP) -> str | None:
+    """``None`` when the reference can take ``ocp``'s resets (none reads the control, or
+    each reset ``g(s, u)`` is SX-evaluable and, in every control component it is affine in,
+    bounded on at least one side), else the one-line reason.
+
+    At an event whose reset reads the control, the reset's own control ``v_k`` minimises
+    ``lambda(gamma+)^T g(s(gamma-), v)`` over the bounds (module notes); a reset affine in
+    an unbounded component has no such minimum (its slope in ``v`` does not vanish in
+    general): such a dependence is refused, naming the component."""
+    if not any(g.uses_control for g in ocp.guards):
+        return None
+    s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+    lo = np.full(ocp.nu, -np.inf) if ocp.u_min is None else np.asarray(ocp.u_min, dtype=float)
+    hi = np.full(ocp.nu, np.inf) if ocp.u_max is None else np.asarray(ocp.u_max, dtype=float)
+    for g in ocp.guards:
+        if not g.uses_control:
+            continue
+        try:
+            gs = g.reset(s, u)
+        except RuntimeError:
+            return (
+                f"the reference needs the reset of guard {g.name!r} (which reads the control) "
+                "as an SX-evaluable function"
+            )
+        for i in range(ocp.nu):
+            if not ca.depends_on(gs, u[i]) or ca.depends_on(ca.jacobian(gs, u[i]), u[i]):
+                continue
+            if lo[i] == -np.inf and hi[i] == np.inf:
+                return (
+                    f"the reset of guard {g.name!r} is affine in the control u[{i}], which has "
+                    "no bounds: lambda(gamma+)^T g(s, v) is then linear in the reset's own "
+                    f"control v and has no minimum over it (no optimum exists); bound u[{i}] "
+                    "(u_min, u_max)"
+                )
+    return None
+
+
+def _reset_bounds(ocp: HybridOCP) -> tuple[np.ndarray, np.ndarray]:
+    """The control bounds as two ``(nu,)`` arrays (infinite where there are none)."""
+    lo = np.full(ocp.nu, -np.inf) if ocp.u_min is None else np.asarray(ocp.u_min, dtype=float)
+    hi = np.full(ocp.nu, np.inf) if ocp.u_max is None else np.asarray(ocp.u_max, dtype=float)
+    return lo, hi
+
+
+EVENT_CONTROL_SAMPLES = 65
+"""Samples per component (up to two components; 4096 points in all beyond) on which the
+shooting's start looks for the minimum of ``lambda^T g`` over a reset's own control."""
+
+
 class _CoreBase:
     """The unknowns of one (structure, sequence) and their layout."""
 
@@ -665,6 +756,12 @@ class _CoreBase:
             for k, p in enumerate(arcs)
         ]
         self.n_switch = sum(len(w) for w in self.switches)
+        # resets that read the control: per event, the components of its own control v_k
+        # (unknowns after the switches, before a free T; 0 where the reset reads none)
+        comps = reset_controls(ocp)
+        self.v_comps: list[tuple[int, ...]] = [comps[j] for j in self.guard_index]
+        self.n_v = sum(len(c) for c in self.v_comps)
+        self.v_bounds = _reset_bounds(ocp)
         self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
 
@@ -697,7 +794,7 @@ class _CoreBase:
         """Number of unknowns."""
         return (
             self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + self.n_switch
-            + int(self.free)
+            + self.n_v + int(self.free)
         )  # fmt: skip
 
     def unpack_switches(self, z: Any) -> list[list[Any]]:
@@ -724,6 +821,119 @@ class _CoreBase:
         """The point without its switch times (:meth:`with_switches`'s ``z_base``)."""
         o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
         return np.concatenate([z[:o], z[o + self.n_switch :]])
+
+    def unpack_event_controls(self, z: Any) -> list[Any]:
+        """Per event, the control its reset reads: ``v_k`` (``(nu,)``, its components from
+        ``z``, 0 in those the reset does not read) for a reset that reads the control,
+        ``None`` for any other."""
+        o = self.nz - int(self.free) - self.n_v
+        numeric = isinstance(z, np.ndarray)
+        out: list[Any] = []
+        for comps in self.v_comps:
+            if not comps:
+                out.append(None)
+                continue
+            parts: list[Any] = []
+            for i in range(self.nu):
+                if i in comps:
+                    parts.append(z[o])
+                    o += 1
+                else:
+                    parts.append(0.0)
+            out.append(np.array(parts, dtype=float) if numeric else ca.vertcat(*parts))
+        return out
+
+    def with_event_controls(self, z: np.ndarray, controls: Sequence[Any]) -> np.ndarray:
+        """``z`` with the reset controls ``controls`` (per event a ``(nu,)`` control or
+        ``None``; only the components each reset reads are taken)."""
+        z = np.array(z, dtype=float)
+        o = self.nz - int(self.free) - self.n_v
+        for comps, v in zip(self.v_comps, controls, strict=True):
+            for i in comps:
+                if v is not None:
+                    z[o] = float(np.asarray(v, dtype=float).ravel()[i])
+                o += 1
+        return z
+
+    def guard_at(self, k: int, s: Any, v: Any = None) -> Any:
+        """``(psi, grad psi, g, Dg)`` of event ``k``'s guard at ``s``: a reset that reads the
+        control at ``v`` (``Dg`` its Jacobian in ``s`` there)."""
+        fn = self.guard_fns[k]
+        return fn(s) if v is None else fn(s, v)
+
+    def event_control_conditions(self, k: int, s: Any, v: Any, lam: Any) -> list[Any]:
+        """The conditions of event ``k``'s reset control ``v`` at ``s(gamma-)`` and
+        ``lambda(gamma+)``: per component ``i`` it reads, with ``d_i = d/dv_i lambda^T
+        g(s, v)``, ``v_i - clip(v_i - d_i, lo_i, hi_i)``: zero exactly when ``d_i = 0``
+        inside the bounds, ``d_i >= 0`` at the lower bound and ``d_i <= 0`` at the upper one
+        (the first-order conditions of the box-constrained minimum; ``d_i`` alone without
+        bounds). One system decides which bounds are active, as the Fischer-Burmeister
+        terms do for terminal inequalities."""
+        comps = self.v_comps[k]
+        if not comps:
+            return []
+        d = self.reset_grads[k](s, v, lam)
+        lo, hi = self.v_bounds
+        out = []
+        for i in comps:
+            if lo[i] == -math.inf and hi[i] == math.inf:
+                out.append(d[i])
+                continue
+            w = v[i] - d[i]
+            if lo[i] > -math.inf:
+                w = ca.fmax(w, float(lo[i]))
+            if hi[i] < math.inf:
+                w = ca.fmin(w, float(hi[i]))
+            out.append(v[i] - w)
+        return out
+
+    def start_event_control(
+        self, k: int, s: np.ndarray, lam: np.ndarray, hint: Any = None
+    ) -> np.ndarray | None:
+        """A start for event ``k``'s reset control at ``s(gamma-)`` and ``lambda(gamma+)``:
+        the least ``lambda^T g(s, v)`` over samples of the bounds of the components the
+        reset reads (:data:`EVENT_CONTROL_SAMPLES`; a side without a bound sampled up to
+        100 from the other), the pointwise minimum the HMP asks of ``v``; ``hint`` (default
+        0 clipped into the bounds) where no sample is lower. ``None`` for a reset that does
+        not read the control."""
+        comps = self.v_comps[k]
+        if not comps:
+            return None
+        lo, hi = self.v_bounds
+        base = np.zeros(self.nu) if hint is None else np.array(hint, dtype=float).ravel()
+        base = np.clip(base, lo, hi)
+        axes = []
+        for i in comps:
+            a, b = lo[i], hi[i]
+            n = EVENT_CONTROL_SAMPLES
+            far = np.concatenate([[0.0], np.logspace(-3, 2, n - 1)])
+            if math.isfinite(a) and math.isfinite(b):
+                axes.append(np.linspace(a, b, n))
+            elif math.isfinite(a):
+                axes.append(a + far)
+            elif math.isfinite(b):
+                axes.append(b - far)
+            else:
+                axes.append(np.concatenate([-far[:0:-1], far]))
+        if len(axes) <= 2:
+            grid = np.array(list(itertools.product(*axes)), dtype=float)
+        else:
+            rng = np.random.default_rng(0)
+            grid = np.column_stack([rng.choice(ax, 4096) for ax in axes])
+        V = np.repeat(base[None, :], grid.shape[0] + 1, axis=0)
+        V[1:, list(comps)] = grid
+        fn = self.reset_values[k]
+        vals = np.asarray(
+            fn.map(V.shape[0])(np.repeat(np.asarray(s, float).reshape(-1, 1), V.shape[0], 1),
+                               V.T, np.repeat(np.asarray(lam, float).reshape(-1, 1),
+                                              V.shape[0], 1)),
+            dtype=float,
+        ).ravel()  # fmt: skip
+        vals = np.where(np.isfinite(vals), vals, np.inf)
+        j = int(np.argmin(vals))
+        if not vals[j] < vals[0] - 1e-12 * (1.0 + abs(vals[0])):
+            return base
+        return V[j]
 
     def horizon(self, z: Any, T: Any) -> Any:
         """The final time at ``z``: its last entry when free, else the parameter ``T``."""
@@ -755,9 +965,12 @@ class _CoreBase:
         nu: Any = None,
         mu: Any = None,
         T: float | None = None,
+        v: Sequence[Any] | None = None,
     ) -> np.ndarray:
         """Inverse of :meth:`unpack` (and :meth:`unpack_terminal`) for numbers: the terminal
-        multipliers default to 0, a free final time to ``T`` (required then)."""
+        multipliers default to 0, a free final time to ``T`` (required then), the reset
+        controls (per event ``(nu,)`` or ``None``, :meth:`unpack_event_controls`) to 0
+        clipped into the bounds."""
         parts = [np.asarray(lam0, float).ravel()]
         for k in range(self.K):
             parts += [[float(gam[k]), float(pis[k])], np.asarray(lps[k], float).ravel()]
@@ -765,6 +978,12 @@ class _CoreBase:
         parts.append(np.zeros(self.m_in) if mu is None else np.asarray(mu, float).ravel())
         if self.n_switch:
             raise ValueError("a point with saturation switches is made by with_switches()")
+        lo, hi = self.v_bounds
+        for k, comps in enumerate(self.v_comps):
+            given = None if v is None or v[k] is None else np.asarray(v[k], float).ravel()
+            parts.append(np.array(
+                [float(np.clip(0.0 if given is None else given[i], lo[i], hi[i])) for i in comps]
+            ))  # fmt: skip
         if self.free:
             if T is None:
                 raise ValueError("a free final time needs its value in pack(T=...)")
@@ -786,6 +1005,8 @@ class _CoreBase:
         starts, s_starts, l_starts, costs, s_minus, l_minus, rates = [], [], [], [], [], [], []
         sig = self.unpack_switches(z)
         switch_res: list[Any] = []
+        vs = self.unpack_event_controls(z)
+        v_res: list[Any] = []
 
         def arcs_of(k: int, s: Any, lam: Any, t0: Any, t1: Any) -> tuple[Any, Any, Any]:
             # the phase's arcs, with the switching condition u_unc_i = value at each switch
@@ -804,8 +1025,10 @@ class _CoreBase:
             l_starts.append(lam)
             sm, lm, J = arcs_of(k, s, lam, t, gam[k])
             costs.append(J)
-            psi, gpsi, sp, Dg = self.guard_fns[k](sm)
+            # a reset that reads the control: s+ = g(s-, v_k), Dg its Jacobian at v_k
+            psi, gpsi, sp, Dg = self.guard_at(k, sm, vs[k])
             lp = lps[k]
+            v_res += self.event_control_conditions(k, sm, vs[k], lp)
             before, after = self.law_at(k, -1), self.law_at(k + 1, 0)
             res.append(psi)
             res.append(lm - ca.mtimes(Dg.T, lp) - pis[k] * gpsi)
@@ -831,6 +1054,7 @@ class _CoreBase:
             res.append(fischer_burmeister(mu, h_in))
         H_T = self.law_at(self.K, -1).H_star(sT, lT)
         res += switch_res
+        res += v_res
         if self.free:
             res.append(H_T)
         R = ca.vertcat(*res)
@@ -987,6 +1211,8 @@ class _FlowCore(_CoreBase):
         self.rhs, self.polynomial, self.phi = fl.rhs, fl.polynomial, fl.phi
         self.terminal = fl.terminal
         self.guard_fns = [fl.guards[j] for j in self.guard_index]
+        self.reset_values = [fl.reset_values[j] for j in self.guard_index]
+        self.reset_grads = [fl.reset_grads[j] for j in self.guard_index]
 
     def law_at(self, k: int, j: int) -> Any:
         return self.laws[k][j]
@@ -1471,7 +1697,13 @@ def _core(
         if levels is None:
             fl = _flow(ocp)
             levels = tuple(fl.law(m).start_steps for p in arcs for m in p)
-    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free, arcs)
+    # the bounds of the resets' own controls enter the compiled conditions (data, not
+    # structure: part of the key)
+    comps = dict(zip([g.name for g in ocp.guards], reset_controls(ocp), strict=True))
+    vkey = None
+    if any(comps.get(n) for n in sequence):
+        vkey = tuple(tuple(map(float, b)) for b in _reset_bounds(ocp))
+    key = (tuple(sequence), None if disc else tuple(int(n) for n in levels), free, arcs, vkey)
     cores = _CORES.setdefault(ocp.structure, {})
     return _built_once(
         cores,

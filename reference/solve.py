@@ -100,6 +100,7 @@ from hybridoc.reference.shooting import (
     path_check,
     prepare,
     refine,
+    reset_control_check,
     saturation_check,
     shooting_system,
 )
@@ -115,6 +116,7 @@ from hybridoc.solution import Solution, Status
 
 __all__ = [
     "DEFAULT_BUDGET",
+    "EVENT_CONTROL_PROBE",
     "MAX_EVENTS",
     "MAX_SEARCH",
     "METHOD",
@@ -123,6 +125,7 @@ __all__ = [
     "PATH_TOL",
     "ReferenceOptions",
     "coverage_line",
+    "event_control_rival",
     "families_line",
     "parse_budget",
     "parse_search",
@@ -174,24 +177,12 @@ def _events(k: int) -> str:
 def reference_supports(ocp: HybridOCP) -> str | None:
     """``None`` when the reference can solve ``ocp``, else the one-line reason (pure state
     constraints, path constraints not affine in ``u``, a Hamiltonian not quadratic in
-    ``u``, bounds with a coupled control weight)."""
+    ``u``, bounds with a coupled control weight, a reset affine in an unbounded control)."""
     return (
-        _control_reset_check(ocp)
+        reset_control_check(ocp)
         or hamiltonian_check(ocp)
         or path_check(ocp)
         or saturation_check(ocp)
-    )
-
-
-def _control_reset_check(ocp: HybridOCP) -> str | None:
-    """The reason the reference refuses resets that depend on the control, else ``None``."""
-    names = [g.name for g in ocp.guards if g.uses_control]
-    if not names:
-        return None
-    return (
-        f"the HMP reference does not solve resets that depend on the control (guard(s) "
-        f"{', '.join(map(repr, names))}: s+ = g(s, u)); use method 'dt' (each reset's "
-        "control is a decision of its own) or 'gd' (the reset reads its grid cell's control)"
     )
 
 
@@ -1222,6 +1213,16 @@ def _verdict(
             f"candidate(s), of up to {max(map(len, skipped))} events, were not solved "
             "(MAX_EVENTS)"
         )
+    if status in (Status.SUCCESS, Status.EXTREMAL):
+        rival = event_control_rival(ocp, best)
+        if rival is not None:
+            status = Status.NOT_OPTIMAL
+            message = (
+                f"the extremal found costs {best.cost:.10g}, but {rival['source']} costs "
+                f"{rival['cost']:.10g}: the reset's control meets its first-order conditions "
+                "without being a minimum; this is not the optimum"
+            )
+            cheapest = rival
     bounds_violation = ocp.bound_violation(best.cell_averages()) if ocp.has_bounds else 0.0
     if bounds_violation > 1e-9:
         status = Status.INFEASIBLE
@@ -1250,10 +1251,74 @@ def _extremal_path_violation(ocp: HybridOCP, best: ReferenceResult) -> float:
 
     u, breakpoints = reference_control(best)
     try:
-        ev = evaluate_callable(best.ocp, u, breakpoints=breakpoints)
+        ev = evaluate_callable(
+            best.ocp, u, breakpoints=breakpoints, event_controls=best.event_controls
+        )
     except HybridocError:
         return math.inf
     return path_violation(ocp, ev, u)
+
+
+EVENT_CONTROL_PROBE = 1e-3
+"""How far, relative to ``1 + |v|``, :func:`event_control_rival` moves a reset's own
+control on each side (besides trying its bounds)."""
+
+
+def event_control_rival(ocp: HybridOCP, best: ReferenceResult) -> dict[str, Any] | None:
+    """A control cheaper than the extremal ``best`` found by moving one reset control
+    ``v_k`` (``u(t)`` kept), or ``None``.
+
+    The shooting's conditions on ``v_k`` are first order (stationary inside the bounds, the
+    right sign at a bound), which a maximum meets too; the judge is the arbiter: each
+    component ``v_k,i`` a reset reads is moved by :data:`EVENT_CONTROL_PROBE` ``(1 +
+    |v|)`` either way and to each finite bound, and a feasible move (:func:`_feasible`) with
+    the same events that the judge finds cheaper by more than ``1e-9`` relative is
+    returned: ``{"source", "cost", "sequence", "event", "component", "value"}``.
+    """
+    V0 = best.event_controls
+    if V0 is None:
+        return None
+    from hybridoc.callable_eval import evaluate_callable
+
+    u, breakpoints = reference_control(best)
+
+    def judge(V: np.ndarray) -> Evaluation | None:
+        try:
+            return evaluate_callable(best.ocp, u, breakpoints=breakpoints, event_controls=V)
+        except HybridocError:
+            return None
+
+    base = judge(V0)
+    if base is None:
+        return None
+    lo, hi = best.system.core.v_bounds
+    for k, comps in enumerate(best.system.core.v_comps):
+        for i in comps:
+            v = float(V0[k, i])
+            step = EVENT_CONTROL_PROBE * (1.0 + abs(v))
+            trials = {v - step, v + step, float(lo[i]), float(hi[i])}
+            for w in sorted(x for x in trials if math.isfinite(x) and x != v):
+                if not lo[i] <= w <= hi[i]:
+                    continue
+                V = np.array(V0, dtype=float)
+                V[k, i] = w
+                ev = judge(V)
+                if (
+                    ev is not None
+                    and ev.sequence == base.sequence
+                    and ev.cost < base.cost - _OPT_RTOL * abs(base.cost)
+                    and _feasible(ocp, ev)
+                ):
+                    return {
+                        "source": f"the extremal with the control of event {k + 1}'s reset "
+                        f"u[{i}] = {w:.6g} instead of {v:.6g}",
+                        "cost": float(ev.cost),
+                        "sequence": list(ev.sequence),
+                        "event": k,
+                        "component": i,
+                        "value": w,
+                    }
+    return None
 
 
 def _check_coalescing(ocp: HybridOCP, c: _Known, best: ReferenceResult) -> None:

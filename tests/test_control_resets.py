@@ -286,6 +286,29 @@ def test_gd_gap_to_the_continuous_optimum_shrinks_with_the_grid() -> None:
     assert gaps[2] < 0.35 * gaps[0]  # about O(T / N)
 
 
-def test_the_reference_refuses_and_names_dt_and_gd() -> None:
-    with pytest.raises(hybridoc.HybridocError, match=r"depend on the control .*'dt'.*'gd'"):
-        hybridoc.solve(restitution_ball(), "reference")
+def test_the_reference_refuses_a_reset_affine_in_an_unbounded_control() -> None:
+    """``v+ = -0.8 v- + 0.3 u[1]``: ``lambda+^T g`` is linear in the reset's control, with
+    no minimum over an unbounded ``u[1]``; the same reset with ``u[1]`` bounded on one side
+    is accepted (the minimum at that bound when the slope has the sign for it). The
+    reference on the control-dependent resets it accepts: tests/test_reference_control_resets.py."""
+    from hybridoc.reference.solve import reference_supports
+
+    s, u = ca.SX.sym("s", 2), ca.SX.sym("u", 2)
+    kick = Guard.from_expressions(
+        "kick", s, s[0], ca.vertcat(s[0], -0.8 * s[1] + 0.3 * u[1]), u=u, degree=2
+    )
+
+    def problem(**bounds: list[float]) -> HybridOCP:
+        return HybridOCP.from_expressions(
+            s, u, f=ca.vertcat(s[1], u[0] - G), L=EPS * ca.sumsqr(u), phi=(s[0] - 0.9) ** 2,
+            guards=[kick], x0=[1.0, 0.0], horizon=0.8, steps=8, **bounds,
+        )  # fmt: skip
+
+    with pytest.raises(
+        SceneError, match=r"'kick' is affine in the control u\[1\], which has no bounds: .*no "
+        r"minimum over it .*bound u\[1\] \(u_min, u_max\)",
+    ):  # fmt: skip
+        hybridoc.solve(problem(), "reference")
+    one_side = problem(u_min=[-np.inf, -1.0], u_max=[np.inf, np.inf])
+    assert reference_supports(one_side) is None
+    assert reference_supports(restitution_ball()) is None
