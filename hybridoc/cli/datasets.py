@@ -137,10 +137,14 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     reference of each: the cost gap (mean, median, p95, max), how often the event
     sequence differs from the optimal one, the worst cases with their initial states.
 
-    Exit code 1 when some draw's policy beats its reference (a reference that is not
-    optimal) or no draw could be compared.
+    A draw whose closed loop violates the problem's control bounds, path or terminal
+    constraints is infeasible: its cost is not compared with the optimum, and the report
+    names what is violated, on how many draws, by how much.
+
+    Exit code 1 when the policy is infeasible on some draw, some draw's policy beats its
+    reference (a reference that is not optimal) or no draw could be compared.
     """
-    from hybridoc.workflows.policies import validate_policy
+    from hybridoc.workflows.policies import validate_policy, violation_lines
 
     scene = _source_arg(args.problem)
     policy = _policy_arg(args)
@@ -165,6 +169,11 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
         warn(f"{s['reference_failed']} draw(s) without a verified reference are not compared")
     if s["rollout_failed"]:
         warn(f"{s['rollout_failed']} rollout(s) the judge could not simulate are not compared")
+    if s["infeasible"]:
+        broken = "; the ".join(violation_lines(s["violations"]))
+        warn(f"the policy is INFEASIBLE on {s['infeasible']} of {s['judged']} judged draw(s): "
+             f"it violates the {broken}; its cost gaps are not a result")  # fmt: skip
+        return 1
     if s["compared"] == 0:
         warn("no draw could be compared (see the status column)")
         return 1
@@ -212,14 +221,21 @@ def _print_policy_report(
     say(args, f"problem    {scene.name} ({s['samples']} draws, hold {args.hold})")
     say(args, f"policy     {_policy_arg(args)}")
     say(args, f"compared   {s['compared']} (reference failed {s['reference_failed']}, "
-              f"rollout failed {s['rollout_failed']})")  # fmt: skip
+              f"rollout failed {s['rollout_failed']}, infeasible {s['infeasible']})")  # fmt: skip
+    if s["infeasible"]:
+        from hybridoc.workflows.policies import violation_lines
+
+        broken = "; ".join(violation_lines(s["violations"]))
+        say(args, f"INFEASIBLE on {s['infeasible']} draw(s): {broken}")
     rows = [
         ["absolute", fmt(s["gap_mean"], 6), fmt(s["gap_median"], 6), fmt(s["gap_p95"], 6),
          fmt(s["gap_max"], 6)],
         ["relative", fmt(s["rel_gap_mean"], 6), fmt(s["rel_gap_median"], 6),
          fmt(s["rel_gap_p95"], 6), fmt(s["rel_gap_max"], 6)],
     ]  # fmt: skip
-    say(args, "gap to the reference (policy - optimum)")
+    say(args, "gap to the reference (policy - optimum)" if not s["infeasible"] else
+        f"gap to the reference over the {s['compared']} feasible draw(s) only: NOT the "
+        "policy's gap (it is infeasible elsewhere)")  # fmt: skip
     for line in format_table(["gap", "mean", "median", "p95", "max"], rows).splitlines():
         say(args, "  " + line)
     rate = s["sequence_mismatch_rate"]

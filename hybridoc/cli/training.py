@@ -45,10 +45,17 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     the judged cost, and the event times' sensitivity is always in the gradient (--no-toi is
     refused there). The training draws use the seed --seed (default: the distribution's
     seed + 1), so that they are not the draws that validate-policy judges by default.
+
+    On a problem with control bounds the policy's output is clipped to them (the policy
+    file's saturation), so its controls never leave them. The training minimises the cost
+    alone: when the trained policy's closed loop on some training draw still violates the
+    problem's path or terminal constraints (judged once more after the training), the
+    report says which, on how many draws and by how much, and the exit code is 1.
     """
     import numpy as np
 
     from hybridoc.problems import Scene
+    from hybridoc.workflows.policies import violation_lines, violation_summary
     from hybridoc.workflows.policy_format import save_mlp_policy
     from hybridoc.workflows.training import mlp_policy, train_policy, training_draws
 
@@ -87,6 +94,9 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         "losses": res.losses,
         "seconds": res.seconds,
         "message": res.message,
+        "saturated": getattr(res.policy, "u_min", None) is not None,
+        "infeasible": res.infeasible,
+        "violations": violation_summary(res.feasibility) if res.feasibility else None,
     }
     report = Path(f"{stem}_report.json")
     try:
@@ -107,6 +117,11 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         say(args, f"loss        {fmt(payload['initial_loss'], 8)} -> {fmt(res.final_loss, 8)} "
                   f"({what})")  # fmt: skip
         say(args, f"time        {res.seconds:.3g} s")
+        if payload["saturated"]:
+            say(args, "output      clipped to the control bounds")
+        if res.infeasible:
+            say(args, f"INFEASIBLE  on {res.infeasible} of {args.samples} training draws: "
+                      + "; ".join(violation_lines(payload["violations"])))  # fmt: skip
         for p in (path, path.with_suffix(".npz"), report):
             say(args, f"wrote {p}")
         say(args, f"judge it: hybridoc validate-policy {args.problem} --policy {path} --samples M")
@@ -114,6 +129,12 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         warn(res.message)
     if not np.isfinite(res.final_loss):
         raise HybridocError("the training diverged: the final loss is not finite (a smaller --lr?)")
+    if res.infeasible:
+        broken = "; the ".join(violation_lines(payload["violations"]))
+        warn(f"the trained policy is INFEASIBLE on {res.infeasible} of {args.samples} training "
+             f"draw(s): it violates the {broken}; its loss is the cost of controls the problem "
+             "does not allow")  # fmt: skip
+        return 1
     return 0
 
 

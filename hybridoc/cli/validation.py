@@ -172,7 +172,12 @@ def _print_crossval(args: argparse.Namespace, ocp: Any, report: dict[str, Any]) 
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    """Judge a control file (.npy, .csv or a saved Solution) against the reference optimum."""
+    """Judge a control file (.npy, .csv or a saved Solution) against the reference optimum.
+
+    Controls that violate the problem's control bounds, path or terminal constraints are
+    not a solution of the problem: the report says which constraints, by how much, and
+    the exit code is 1 (their cost gap is not a result).
+    """
     import dataclasses
 
     import numpy as np
@@ -189,6 +194,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     ref = solve(ocp, "reference")
     report = validate_controls(ocp, u, reference=ref, substeps=k)
     report["controls_file"] = source
+    broken = _violated(report)
     written: list[Path] = []
     if out is not None:
         stem = output_stem(out, problem_slug(args.problem, ocp), "validate")
@@ -215,9 +221,27 @@ def cmd_validate(args: argparse.Namespace) -> int:
             say(args, f"  same event sequence; time errors {errs or '-'}")
         else:
             say(args, "  event sequence DIFFERS from the reference's")
+        if broken:
+            say(args, f"  INFEASIBLE        violates the {', the '.join(broken)}")
     for p in written:
         say(args, f"wrote {p}")
-    return exit_code(ref.status, f"the reference itself: {ref.message}") if not ref.success else 0
+    if not ref.success:
+        return exit_code(ref.status, f"the reference itself: {ref.message}")
+    if broken:
+        warn(f"the controls are INFEASIBLE: they violate the {', the '.join(broken)}; their "
+             "cost gap is not a result")  # fmt: skip
+        return 1
+    return 0
+
+
+def _violated(report: dict[str, Any]) -> list[str]:
+    """What a :func:`~hybridoc.workflows.validation.validate_controls` report's controls
+    violate, with the largest violation (empty when they are feasible)."""
+    if report["feasible"]:
+        return []
+    from hybridoc.workflows.policies import violation_phrases
+
+    return violation_phrases(report)
 
 
 def _validate_controls_path(args: argparse.Namespace) -> Path:

@@ -14,11 +14,15 @@ distribution (a scene's ``[distribution]`` or a Python one,
 :func:`~hybridoc.workflows.datasets.distribution_problem`) and compares each with the exact
 reference of the same draw (from a dataset of :mod:`hybridoc.workflows.datasets`, computed
 when not given): the cost gap, whether the event sequence differs from the optimal one, the
-worst cases. Rollouts run in the same engines as datasets (a local process pool, or Dask),
-one chunk of draws per task. An MLP policy file or a CasADi policy is compiled into the
-closed-loop step and each chunk runs as one call, every rollout certified by the judge
-(:mod:`hybridoc.workflows.rollouts`); other policies, and rollouts the judge does not
-certify, go through the per-step judge.
+worst cases. A draw whose closed loop violates the problem's control bounds, path or
+terminal constraints (the judge's :attr:`Evaluation.feasible <hybridoc.Evaluation>`) is
+``infeasible``: its cost is reported but not compared with the optimum (a control the problem
+does not allow can cost less than the optimum), and the report counts such draws and their
+largest violations (:attr:`PolicyReport.feasible`). Rollouts run in the same engines as
+datasets (a local process pool, or Dask), one chunk of draws per task. An MLP policy file
+or a CasADi policy is compiled into the closed-loop step and each chunk runs as one call,
+every rollout certified by the judge (:mod:`hybridoc.workflows.rollouts`); other policies,
+and rollouts the judge does not certify, go through the per-step judge.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ import numpy as np
 
 from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
+from hybridoc.evaluation import TERMINAL_TOL
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.workflows.datasets import (
     CHUNK,
@@ -67,9 +72,14 @@ __all__ = [
     "policy_figures",
     "report_figures",
     "validate_policy",
+    "violation_lines",
+    "violation_phrases",
+    "violation_summary",
 ]
 
 _TORCH_SUFFIXES = (".pt", ".pth", ".ts")
+# Evaluation.feasible's tolerances, per kind of violation (to say which ones a draw breaks)
+_TOLERANCES = {"bound": 1e-9, "path": 1e-9, "terminal": TERMINAL_TOL}
 WORST = 5
 """Worst cases listed in a report."""
 ROLLOUTS = ("auto", "compiled", "judge")
@@ -175,8 +185,14 @@ class PolicyReport:
     Attributes
     ----------
     summary
-        Scalars: ``samples``, ``judged`` (rollouts the judge could simulate), ``compared``
-        (with a successful reference as well), gap statistics ``gap_mean``,
+        Scalars: ``samples``, ``judged`` (rollouts the judge could simulate),
+        ``infeasible`` (judged rollouts whose controls violate the problem's control
+        bounds, path or terminal constraints: :attr:`Evaluation.feasible
+        <hybridoc.Evaluation>` is false), ``violations`` (per kind ``bound``, ``path``,
+        ``terminal``: ``draws`` that violate it and the largest violation ``max``),
+        ``compared`` (feasible, with a successful reference as well: the only draws in
+        the gap statistics, as an infeasible control's cost is not comparable with the
+        optimum's), gap statistics ``gap_mean``,
         ``gap_median``, ``gap_p95``, ``gap_max`` (absolute, ``J_policy - J*``) and the same
         of the relative gap ``rel_gap_*`` (``(J_policy - J*) / J*``), ``sequence_mismatch_rate``,
         ``rollout_time_s``, and ``rollouts``: how they ran (``mode``, the counts
@@ -184,8 +200,11 @@ class PolicyReport:
         ``compiled_max_rel_diff``; :func:`validate_policy`).
     columns
         Per draw: ``index``, ``x0``, ``policy_cost``, ``reference_cost``, ``gap``,
-        ``rel_gap``, ``policy_sequence``, ``reference_sequence``, ``mismatch``, ``status``
-        (``ok``, ``reference-failed``, ``rollout-failed``), ``message``, ``rollout_path``
+        ``rel_gap``, ``policy_sequence``, ``reference_sequence``, ``mismatch``,
+        ``bound_violation``, ``path_violation``, ``terminal_violation`` (the judge's; NaN for a
+        failed rollout), ``feasible``, ``status`` (``ok``, ``reference-failed``,
+        ``rollout-failed``, ``infeasible``: the policy's cost is in ``policy_cost``, its gap
+        is NaN), ``message`` (for ``infeasible``, what is violated by how much), ``rollout_path``
         (``compiled``: certified by the judge; ``fallback``: compiled, not certified, run in
         the per-step judge; ``judge``: the per-step judge) and ``fallback_reason``.
     worst
@@ -196,6 +215,13 @@ class PolicyReport:
     columns: dict[str, np.ndarray]
     worst: list[dict[str, Any]] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def feasible(self) -> bool:
+        """Whether every judged rollout meets the problem's control bounds, path and
+        terminal constraints. When not, the gap statistics cover the feasible draws only
+        and say nothing of the policy as a whole."""
+        return int(self.summary["infeasible"]) == 0
 
     def to_json(self) -> dict[str, Any]:
         """The JSON shape (summary, worst cases, settings)."""
@@ -236,10 +262,21 @@ def _compiled_runner(common: dict[str, Any], ctx: Any, policy: Any) -> Any:
     return runner
 
 
-def _judge_rollout(
-    ocp: Any, i: int, policy: Any, key: str | None, hold: str
-) -> tuple[float, str, str, str]:
-    """One rollout in the per-step judge: cost, sequence, status, message."""
+_NOT_JUDGED = (np.nan, np.nan, np.nan, False)
+
+
+def _judged_row(ev: Any) -> tuple[Any, ...]:
+    """What a rollout task keeps of the judge's evaluation: cost, sequence, status, message,
+    the three violations and the judge's feasibility verdict."""
+    return (
+        float(ev.cost), ",".join(ev.sequence), "ok", "",
+        float(ev.bound_violation), float(ev.path_violation), float(ev.terminal_violation),
+        bool(ev.feasible),
+    )  # fmt: skip
+
+
+def _judge_rollout(ocp: Any, i: int, policy: Any, key: str | None, hold: str) -> tuple[Any, ...]:
+    """One rollout in the per-step judge: :func:`_judged_row`, or a failed rollout's."""
     from hybridoc.evaluator import evaluate
 
     try:
@@ -250,8 +287,8 @@ def _judge_rollout(
         who = "the policy" if key is None else f"policy {key!r}"
         raise PolicyError(exit_message(who, exc, f"in the rollout of sample {i}")) from None
     except EvaluationError as exc:
-        return np.nan, "", "rollout-failed", " ".join(str(exc).split())
-    return float(ev.cost), ",".join(ev.sequence), "ok", ""
+        return (np.nan, "", "rollout-failed", " ".join(str(exc).split()), *_NOT_JUDGED)
+    return _judged_row(ev)
 
 
 def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.ndarray]:
@@ -265,28 +302,30 @@ def _rollout_chunk(common: dict[str, Any], indices: list[int]) -> dict[str, np.n
     certs: list[Any] = [None] * n
     if common.get("rollouts") == "compiled":
         certs = _compiled_runner(common, ctx, policy).certify(ocps)
-    costs, seqs, status, msgs = [], [], [], []
+    rows = []
     paths, reasons, kinds = [], [], []
     diff = np.full(n, np.nan)
     for k, (i, ocp, cert) in enumerate(zip(indices, ocps, certs, strict=True)):
         if cert is not None and cert.evaluation is not None:
-            ev = cert.evaluation
-            row = (float(ev.cost), ",".join(ev.sequence), "ok", "")
+            rows.append(_judged_row(cert.evaluation))
             paths.append("compiled")
             diff[k] = cert.cost_rel_diff
         else:
-            row = _judge_rollout(ocp, i, policy, key, common["hold"])
+            rows.append(_judge_rollout(ocp, i, policy, key, common["hold"]))
             paths.append("judge" if cert is None else "fallback")
         reasons.append("" if cert is None else cert.reason)
         kinds.append("" if cert is None else cert.kind)
-        for col, v in zip((costs, seqs, status, msgs), row, strict=True):
-            col.append(v)
+    cols = list(zip(*rows, strict=True))
     return {
         "index": np.array(indices, dtype=np.int64),
-        "policy_cost": np.array(costs, dtype=float),
-        "policy_sequence": np.array(seqs, dtype=str),
-        "rollout_status": np.array(status, dtype=str),
-        "rollout_message": np.array(msgs, dtype=str),
+        "policy_cost": np.array(cols[0], dtype=float),
+        "policy_sequence": np.array(cols[1], dtype=str),
+        "rollout_status": np.array(cols[2], dtype=str),
+        "rollout_message": np.array(cols[3], dtype=str),
+        "bound_violation": np.array(cols[4], dtype=float),
+        "path_violation": np.array(cols[5], dtype=float),
+        "terminal_violation": np.array(cols[6], dtype=float),
+        "feasible": np.array(cols[7], dtype=bool),
         "rollout_path": np.array(paths, dtype=str),
         "fallback_reason": np.array(reasons, dtype=str),
         "fallback_kind": np.array(kinds, dtype=str),
@@ -527,12 +566,21 @@ def _report(
 ) -> PolicyReport:
     ref_ok = ref["status"] == "success"
     roll_ok = roll["rollout_status"] == "ok"
-    both = ref_ok & roll_ok
+    # a rollout whose controls break the bounds, path or terminal constraints is not a
+    # control of the problem: its cost is reported, never compared with the optimum
+    infeasible = roll_ok & ~roll["feasible"]
+    both = ref_ok & roll_ok & ~infeasible
     gap = np.where(both, roll["policy_cost"] - ref["cost"], np.nan)
     rel = np.where(both, gap / np.where(both, ref["cost"], 1.0), np.nan)
     mismatch = both & (roll["policy_sequence"] != ref["sequence"])
-    status = np.where(~ref_ok, "reference-failed", np.where(~roll_ok, "rollout-failed", "ok"))
-    message = np.where(~ref_ok, ref["message"], roll["rollout_message"])
+    status = np.where(
+        ~ref_ok, "reference-failed",
+        np.where(~roll_ok, "rollout-failed", np.where(infeasible, "infeasible", "ok")),
+    )  # fmt: skip
+    violated = _violation_text(roll)
+    message = np.where(
+        ~ref_ok, ref["message"], np.where(infeasible, violated, roll["rollout_message"])
+    )
     cols = {
         "index": ref["index"],
         "x0": ref["x0"],
@@ -546,6 +594,10 @@ def _report(
         "mismatch": mismatch,
         "status": status.astype(str),
         "message": message.astype(str),
+        "bound_violation": roll["bound_violation"],
+        "path_violation": roll["path_violation"],
+        "terminal_violation": roll["terminal_violation"],
+        "feasible": roll_ok & roll["feasible"],
         "rollout_path": roll["rollout_path"],
         "fallback_reason": roll["fallback_reason"],
     }
@@ -568,6 +620,8 @@ def _report(
         "compared": n_both,
         "reference_failed": int((~ref_ok).sum()),
         "rollout_failed": int((~roll_ok).sum()),
+        "infeasible": int(infeasible.sum()),
+        "violations": violation_summary(roll),
         **stats(gap, "gap"),
         **stats(rel, "rel_gap"),
         "sequence_mismatch_rate": (float(mismatch.sum()) / n_both) if n_both else None,
@@ -589,6 +643,98 @@ def _report(
         for i in order
     ]
     return PolicyReport(summary, cols, worst)
+
+
+_VIOLATIONS = (
+    ("bound", "control bounds"),
+    ("path", "path constraints"),
+    ("terminal", "terminal constraints"),
+)
+
+
+def violation_phrases(values: Any) -> list[str]:
+    """What one judged control violates beyond the judge's tolerances, with how much.
+
+    Parameters
+    ----------
+    values
+        A mapping (or anything indexable by name) with ``bound_violation``,
+        ``path_violation`` and ``terminal_violation`` (an
+        :class:`~hybridoc.Evaluation`'s, e.g. in a report).
+
+    Returns
+    -------
+    list of str
+        E.g. ``["control bounds by 0.42", "terminal constraints by 1.7"]``; empty for a
+        feasible control (the tolerances of :attr:`Evaluation.feasible
+        <hybridoc.Evaluation>`).
+    """
+    return [
+        f"{what} by {float(values[f'{key}_violation']):.3g}"
+        for key, what in _VIOLATIONS
+        if float(values[f"{key}_violation"]) > _TOLERANCES[key]
+    ]
+
+
+def _violation_text(roll: dict[str, np.ndarray]) -> np.ndarray:
+    """Per draw, what its controls violate and by how much (empty where nothing does)."""
+    out = []
+    for k in range(roll["feasible"].size):
+        parts = violation_phrases({f"{key}_violation": roll[f"{key}_violation"][k]
+                                   for key, _ in _VIOLATIONS})  # fmt: skip
+        out.append("the policy's controls violate the " + ", ".join(parts) if parts else "")
+    return np.array(out, dtype=str)
+
+
+def violation_summary(columns: dict[str, np.ndarray]) -> dict[str, Any]:
+    """What the infeasible rollouts among some judged ones violate, per kind.
+
+    Parameters
+    ----------
+    columns
+        Per rollout: ``bound_violation``, ``path_violation``, ``terminal_violation`` (the
+        judge's; NaN for a rollout the judge could not simulate) and ``feasible``
+        (:attr:`Evaluation.feasible <hybridoc.Evaluation>`).
+
+    Returns
+    -------
+    dict
+        Per kind ``bound``, ``path``, ``terminal``: ``draws`` (infeasible rollouts that
+        violate it beyond the judge's tolerance) and ``max`` (the largest violation over
+        the judged rollouts; ``None`` when none was judged).
+    """
+    judged = ~np.isnan(np.asarray(columns["bound_violation"], dtype=float))
+    infeasible = judged & ~np.asarray(columns["feasible"], dtype=bool)
+    out: dict[str, Any] = {}
+    for key, _ in _VIOLATIONS:
+        v = np.asarray(columns[f"{key}_violation"], dtype=float)
+        out[key] = {
+            "draws": int(np.sum(infeasible & (v > _TOLERANCES[key]))),
+            "max": float(np.max(v[judged])) if judged.any() else None,
+        }
+    return out
+
+
+def violation_lines(violations: dict[str, Any]) -> list[str]:
+    """What infeasible draws violate, one phrase per kind of constraint.
+
+    Parameters
+    ----------
+    violations
+        :func:`violation_summary` (``PolicyReport.summary["violations"]``).
+
+    Returns
+    -------
+    list of str
+        E.g. ``"control bounds on 3 draw(s) (by up to 0.42)"``; empty when no draw
+        violates anything.
+    """
+    lines = []
+    for key, what in _VIOLATIONS:
+        v = violations[key]
+        if v["draws"]:
+            lines.append(f"{what} on {v['draws']} draw(s) (by up to {v['max']:.3g})")
+    return lines
 
 
 def varying_coordinates(x0: np.ndarray, labels: list[str]) -> list[tuple[int, str]]:
@@ -649,7 +795,11 @@ def policy_figures(report: PolicyReport, labels: list[str], title: str) -> dict[
         if mm.any():
             ax.scatter(x[mm], y[mm], marker="x", c="red", s=36, lw=1.2,
                        label=f"events differ from the optimum ({int(mm.sum())})")  # fmt: skip
-        bad = ~ok
+        infeasible = c["status"] == "infeasible"
+        if infeasible.any():
+            ax.scatter(x[infeasible], np.nan_to_num(y[infeasible]), marker="^", c="tab:red",
+                       s=30, label=f"policy infeasible ({int(infeasible.sum())})")  # fmt: skip
+        bad = ~ok & ~infeasible
         if bad.any():
             ax.scatter(x[bad], np.nan_to_num(y[bad]), marker="s", facecolors="none",
                        edgecolors="k", s=30, label=f"not compared ({int(bad.sum())})")  # fmt: skip

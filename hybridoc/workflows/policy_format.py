@@ -14,7 +14,8 @@ The format (version 1)
         {"format": "hybridoc-mlp-policy", "version": 1,
          "weights": "policy.npz", "sha256": "<hex digest of policy.npz>",
          "input": "t,state", "horizon": 1.0,
-         "layers": [9, 32, 32, 2], "activation": "tanh"}
+         "layers": [9, 32, 32, 2], "activation": "tanh",
+         "saturation": {"kind": "clip", "lower": [-1.0, null], "upper": [1.0, 2.5]}}
 
     and ``policy.npz`` with the arrays ``layer<k>.weight`` (``(out, in)``, as
     ``torch.nn.Linear``) and ``layer<k>.bias`` for each of the ``len(layers) - 1`` affine
@@ -33,6 +34,23 @@ The format (version 1)
     :class:`hybridoc.workflows.training.MLPPolicy`, which :func:`save_mlp_policy` writes as
     it is. ``weights`` names a file in the folder of the JSON file; ``sha256`` (written by
     :func:`save_mlp_policy`, optional for hand-written files) must then match it.
+
+    ``saturation`` (optional; absent or ``null``: none) bounds the output,
+
+    .. math::
+
+        u_j \\leftarrow \\min(\\max(u_j, l_j), h_j),
+
+    with ``lower`` ``l`` and ``upper`` ``h`` one entry per control each, ``null`` for a side
+    without a bound. :func:`~hybridoc.workflows.training.mlp_policy` puts the problem's
+    control bounds there, so that the policy's controls never leave them (the judge's
+    :attr:`Evaluation.bound_violation <hybridoc.Evaluation>` is 0). A clip, not a smooth
+    squashing such as ``mid + half * tanh(raw / half)``: under box bounds the minimum
+    principle's control is the unconstrained minimiser clipped to the box (a bang arc at
+    the bound, as the bounded shuttle's force), which a clipped network represents with
+    finite weights and a squashed one only in the limit of infinite ones; the clip also
+    lands exactly on the bound (``mid + half`` can round past ``h``). Its gradient is zero
+    where a control is clipped, which is the exact gradient of the clipped policy's cost.
 
 A CasADi policy
     :class:`CasadiPolicy` wraps a ``casadi.Function`` ``(t, s) -> u`` given in Python (it is
@@ -60,7 +78,9 @@ __all__ = [
     "CasadiPolicy",
     "MLP",
     "PolicyError",
+    "SATURATIONS",
     "load_mlp_policy",
+    "saturation_bounds",
     "save_mlp_policy",
 ]
 
@@ -71,7 +91,12 @@ ACTIVATIONS = ("tanh", "relu", "sigmoid", "identity")
 """Activations of the hidden layers."""
 INPUTS = ("t,state", "state")
 """What the network reads: the time and the state, or the state alone."""
-_KEYS = {"format", "version", "weights", "sha256", "input", "horizon", "layers", "activation"}
+_KEYS = {
+    "format", "version", "weights", "sha256", "input", "horizon", "layers", "activation",
+    "saturation",
+}  # fmt: skip
+SATURATIONS = ("clip",)
+"""Kinds of output saturation of the format (module notes)."""
 _NORMS = {"state_mean": "nx", "state_scale": "nx", "output_offset": "nu", "output_scale": "nu"}
 _MAX_JSON_BYTES = 1 << 20
 
@@ -134,11 +159,15 @@ class MLP:
         ``(nx,)`` input normalisation ``(s - mean) / scale``; default 0 and 1.
     output_offset, output_scale
         ``(nu,)`` output ``offset + scale * net``; default 0 and 1.
+    output_min, output_max
+        ``(nu,)`` bounds the output is clipped to (``-inf``/``inf`` or ``None``: a side
+        without a bound); both ``None`` (the default), or no finite entry: no saturation.
 
     Raises
     ------
     PolicyError
-        Shapes that do not chain, a non-finite value, an unknown activation or input.
+        Shapes that do not chain, a non-finite value, an unknown activation or input,
+        bounds that are NaN, on the wrong side (a lower bound of ``inf``) or crossed.
     """
 
     weights: tuple[np.ndarray, ...]
@@ -150,6 +179,8 @@ class MLP:
     state_scale: np.ndarray | None = None
     output_offset: np.ndarray | None = None
     output_scale: np.ndarray | None = None
+    output_min: np.ndarray | None = None
+    output_max: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
@@ -196,6 +227,14 @@ class MLP:
             object.__setattr__(self, name, _vector(getattr(self, name), n, name, default))
         if np.any(self.state_scale == 0):
             raise PolicyError("state_scale has zero entries (it divides the state)")
+        lo, hi = saturation_bounds(self.output_min, self.output_max, nu)
+        object.__setattr__(self, "output_min", lo)
+        object.__setattr__(self, "output_max", hi)
+
+    @property
+    def saturated(self) -> bool:
+        """Whether the output is clipped to bounds (``output_min``/``output_max`` set)."""
+        return self.output_min is not None
 
     @property
     def nx(self) -> int:
@@ -230,6 +269,8 @@ class MLP:
             if k < last:
                 z = _activation_np(self.activation, z)
         u = self.output_offset + self.output_scale * z
+        if self.output_min is not None:
+            u = np.minimum(np.maximum(u, self.output_min), self.output_max)
         return u[0] if single else u
 
     def parameters(self) -> np.ndarray:
@@ -277,6 +318,8 @@ class MLP:
             if k < last:
                 z = _activation_ca(self.activation, z)
         u = ca.DM(self.output_offset) + ca.DM(self.output_scale) * z
+        if self.output_min is not None:
+            u = _clip_ca(u, self.output_min, self.output_max)
         args = [t, s] if p is None else [t, s, p]
         names = ["t", "s"] if p is None else ["t", "s", "p"]
         return ca.Function("policy", args, [u], names, ["u"])
@@ -311,6 +354,7 @@ class MLP:
             self.nx, self.nu, hidden=hidden.pop() if hidden else 1,
             layers=len(self.weights) - 1, horizon=self.horizon, s_mean=self.state_mean,
             s_scale=self.state_scale, u_offset=self.output_offset, u_scale=self.output_scale,
+            u_min=self.output_min, u_max=self.output_max,
             generator=torch.Generator(),  # its random start is overwritten: leave torch's own
         )  # fmt: skip
         linears = [m for m in module.net if isinstance(m, torch.nn.Linear)]
@@ -321,16 +365,99 @@ class MLP:
         return module
 
     def description(self) -> dict[str, Any]:
-        """The JSON entries of the format that describe the architecture."""
-        return {
+        """The JSON entries of the format that describe the architecture (``saturation``
+        only when the output is clipped, so that an unsaturated policy is described as
+        before)."""
+        spec: dict[str, Any] = {
             "input": self.input,
             "horizon": self.horizon,
             "layers": self.layers,
             "activation": self.activation,
         }
+        if self.output_min is not None and self.output_max is not None:
+            # null for a side without a bound: JSON has no infinity
+            spec["saturation"] = {
+                "kind": "clip",
+                "lower": [float(x) if np.isfinite(x) else None for x in self.output_min],
+                "upper": [float(x) if np.isfinite(x) else None for x in self.output_max],
+            }
+        return spec
 
     def __repr__(self) -> str:
-        return f"MLP(layers={self.layers}, activation={self.activation!r}, input={self.input!r})"
+        sat = ", saturation='clip'" if self.saturated else ""
+        return (
+            f"MLP(layers={self.layers}, activation={self.activation!r}, input={self.input!r}{sat})"
+        )
+
+
+def saturation_bounds(
+    lower: Any, upper: Any, nu: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The output bounds of a policy with ``nu`` controls, checked.
+
+    Parameters
+    ----------
+    lower, upper
+        ``(nu,)`` bounds (``-inf``/``inf``: a side without one), or ``None`` for none.
+
+    Returns
+    -------
+    lower, upper
+        ``(nu,)`` float arrays, or ``(None, None)`` when no entry is finite (no saturation).
+
+    Raises
+    ------
+    PolicyError
+        A wrong shape, NaN, a lower bound of ``inf`` or an upper one of ``-inf``, crossed
+        bounds.
+    """
+    if lower is None and upper is None:
+        return None, None
+    out = []
+    for value, name, side in ((lower, "output_min", -np.inf), (upper, "output_max", np.inf)):
+        if value is None:
+            out.append(np.full(nu, side))
+            continue
+        arr = _float_array_inf(value, name).reshape(-1)
+        if arr.shape != (nu,):
+            raise PolicyError(f"{name} must have {nu} entries, got shape {np.shape(value)}")
+        if np.any(arr == -side):
+            raise PolicyError(f"{name} has an entry {-side}: no control could meet it")
+        out.append(arr)
+    lo, hi = out
+    if np.any(lo > hi):
+        j = int(np.flatnonzero(lo > hi)[0])
+        raise PolicyError(f"output_min[{j}] = {lo[j]!r} exceeds output_max[{j}] = {hi[j]!r}")
+    if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
+        return None, None
+    return lo, hi
+
+
+def _float_array_inf(value: Any, what: str) -> np.ndarray:
+    """Real numbers, infinities allowed (a side without a bound), NaN not."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "fiu" or arr.dtype == np.bool_:
+        raise PolicyError(f"{what} must hold real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(float)
+    if np.isnan(arr).any():
+        raise PolicyError(f"{what} has NaN entries")
+    return arr
+
+
+def _clip_ca(u: Any, lower: np.ndarray, upper: np.ndarray) -> Any:
+    """``min(max(u, lower), upper)`` per entry as CasADi SX, only on the finite sides (the
+    same numbers as :meth:`MLP.__call__`'s numpy clip: max and min are exact)."""
+    import casadi as ca
+
+    rows = []
+    for j in range(u.numel()):
+        r = u[j]
+        if np.isfinite(lower[j]):
+            r = ca.fmax(r, float(lower[j]))
+        if np.isfinite(upper[j]):
+            r = ca.fmin(r, float(upper[j]))
+        rows.append(r)
+    return ca.vertcat(*rows)
 
 
 def _float_array(value: Any, what: str) -> np.ndarray:
@@ -426,14 +553,41 @@ def load_mlp_policy(path: str | Path) -> MLP:
     horizon = spec.get("horizon")
     if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int | float)):
         raise PolicyError(f"{where}: 'horizon' must be a number or null, got {horizon!r}")
+    lower, upper = _saturation(spec.get("saturation"), layers[-1], where)
     try:
         return MLP(
             tuple(Ws), tuple(bs),
             activation=spec.get("activation", "tanh"), input=spec.get("input", "t,state"),
-            horizon=horizon, **norms,
+            horizon=horizon, output_min=lower, output_max=upper, **norms,
         )  # fmt: skip
     except PolicyError as exc:
         raise PolicyError(f"{where}: {exc}") from None
+
+
+def _saturation(entry: Any, nu: int, where: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The bounds of a ``saturation`` entry (module notes); absent or ``null``: none."""
+    if entry is None:
+        return None, None
+    form = "{'kind': 'clip', 'lower': [...], 'upper': [...]}"
+    if not isinstance(entry, dict) or set(entry) != {"kind", "lower", "upper"}:
+        raise PolicyError(f"{where}: 'saturation' must be {form} or null, got {entry!r}")
+    if entry["kind"] not in SATURATIONS:
+        raise PolicyError(
+            f"{where}: saturation kind {entry['kind']!r} is not one of {', '.join(SATURATIONS)}"
+        )
+    sides = []
+    for name, missing in (("lower", -np.inf), ("upper", np.inf)):
+        values = entry[name]
+        if not isinstance(values, list) or len(values) != nu:
+            raise PolicyError(
+                f"{where}: saturation {name!r} must list {nu} bounds (one per control, null "
+                f"for none), got {values!r}"
+            )
+        for v in values:
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
+                raise PolicyError(f"{where}: saturation {name!r} holds {v!r}, not a number")
+        sides.append(np.array([missing if v is None else float(v) for v in values]))
+    return sides[0], sides[1]
 
 
 def _weights_file(path: Path, spec: dict[str, Any], where: str) -> Path:
@@ -481,6 +635,8 @@ def save_mlp_policy(
     state_scale: Any = None,
     output_offset: Any = None,
     output_scale: Any = None,
+    output_min: Any = None,
+    output_max: Any = None,
 ) -> Path:
     """Write a policy as ``<stem>.json`` and ``<stem>.npz`` (module notes).
 
@@ -493,9 +649,10 @@ def save_mlp_policy(
         between them, described by the keywords.
     path
         ``<stem>.json`` (or a stem): the JSON file; the weights go beside it.
-    input, horizon, state_mean, state_scale, output_offset, output_scale
+    input, horizon, state_mean, state_scale, output_offset, output_scale, output_min, output_max
         For a ``Sequential`` only: what it reads (``"t,state"`` or ``"state"``, default
-        ``"state"``) and the normalisations of :class:`MLP`.
+        ``"state"``), the normalisations of :class:`MLP` and the bounds its output is
+        clipped to (the JSON's ``saturation``).
 
     Returns
     -------
@@ -510,7 +667,7 @@ def save_mlp_policy(
     extra = {
         "input": input, "horizon": horizon, "state_mean": state_mean,
         "state_scale": state_scale, "output_offset": output_offset,
-        "output_scale": output_scale,
+        "output_scale": output_scale, "output_min": output_min, "output_max": output_max,
     }  # fmt: skip
     mlp = _as_mlp(policy, extra)
     json_path = _json_path(path)
@@ -557,10 +714,13 @@ def _as_mlp(policy: Any, extra: dict[str, Any]) -> MLP:
         def arr(x: Any) -> np.ndarray:
             return x.detach().cpu().numpy().astype(float)
 
+        u_min, u_max = getattr(policy, "u_min", None), getattr(policy, "u_max", None)
         return MLP(
             Ws, bs, activation=act, input="t,state", horizon=float(policy.horizon),
             state_mean=arr(policy.s_mean), state_scale=arr(policy.s_scale),
             output_offset=arr(policy.u_offset), output_scale=arr(policy.u_scale),
+            output_min=None if u_min is None else arr(u_min),
+            output_max=None if u_max is None else arr(u_max),
         )  # fmt: skip
     if type(policy).__name__ == "Sequential":
         Ws, bs, act = _sequential_layers(policy)

@@ -15,7 +15,11 @@ the problem's own resets, up to ``max_events`` events per cell, one after the ot
 by ``mapaccum`` over the ``N`` cells and ``map``-ped over a batch of initial states, and
 compiled to C (:class:`hybridoc.solvers.codegen.Accelerated`). The policy is an :class:`MLP`
 (its weights an input of the graph, so compiled code serves every policy of the same
-architecture) or a :class:`CasadiPolicy`.
+architecture) or a :class:`CasadiPolicy`. An MLP's output saturation (the clip to the
+control bounds of its file's ``saturation`` entry) is part of the graph, as ``fmax`` and
+``fmin`` of its finite bounds, the same exact operations as the file's numpy policy
+(a control at a bound is the bound in both), and its bounds are part of the architecture
+(:func:`fingerprint`).
 
 The compiled step is not the judge
     It looks for a crossing only where a guard ends a cell (or what remains of it after an
@@ -33,7 +37,9 @@ So every rollout is certified by the judge
     policy, called as the judge calls it, returns ``u_k`` again at the judge's states, and
     (3) the compiled cost matches the judge's, each to ``rtol`` (1e-9) relative. Then the
     controls are those of the judge's closed loop up to ``rtol``, and the cost reported is
-    the judge's. A rollout whose compiled step flagged a cell it cannot resolve (a guard
+    the judge's, with its bound, path and terminal violations (the certificate's
+    evaluation: :func:`~hybridoc.workflows.policies.validate_policy` flags a rollout that
+    is not feasible). A rollout whose compiled step flagged a cell it cannot resolve (a guard
     still penetrated at the end of a cell: more events than ``max_events``, or a crossing
     missed), or that fails a check, is not certified: its caller runs the per-step judge
     (:func:`closed_loop_evaluations` does), and counts it.

@@ -95,10 +95,11 @@ class MLPPolicy(torch.nn.Module):
     """A multilayer perceptron feedback policy ``u = pi(t, s)`` with fixed normalisations.
 
     ``pi(t, s) = u_offset + u_scale * net([2 t / T - 1, (s - s_mean) / s_scale])`` with
-    ``net`` a ``tanh`` MLP. Called with ``t`` of shape ``()`` or ``(B,)`` and ``s`` of shape
-    ``(nx,)`` or ``(B, nx)``; returns ``(nu,)`` or ``(B, nu)``, so the same module runs in the
-    judge (one state at a time) and in the simulator (a batch). Rows of a batch are
-    independent.
+    ``net`` a ``tanh`` MLP, clipped to ``[u_min, u_max]`` when they are given (the
+    ``saturation`` of the policy format, :mod:`hybridoc.workflows.policy_format`). Called
+    with ``t`` of shape ``()`` or ``(B,)`` and ``s`` of shape ``(nx,)`` or ``(B, nx)``;
+    returns ``(nu,)`` or ``(B, nu)``, so the same module runs in the judge (one state at a
+    time) and in the simulator (a batch). Rows of a batch are independent.
 
     Parameters
     ----------
@@ -114,6 +115,10 @@ class MLPPolicy(torch.nn.Module):
         ``(nx,)`` state offset and scale of the input normalisation.
     u_offset, u_scale
         ``(nu,)`` output offset and scale.
+    u_min, u_max
+        ``(nu,)`` bounds the output is clipped to (``-inf``/``inf``: a side without one);
+        ``None`` (default): no saturation. Where a control is clipped its gradient is zero,
+        the exact gradient of the clipped policy.
     generator
         Random generator of the initial weights.
     """
@@ -130,6 +135,8 @@ class MLPPolicy(torch.nn.Module):
         s_scale: np.ndarray,
         u_offset: np.ndarray,
         u_scale: np.ndarray,
+        u_min: np.ndarray | None = None,
+        u_max: np.ndarray | None = None,
         generator: torch.Generator | None = None,
     ) -> None:
         super().__init__()
@@ -139,6 +146,10 @@ class MLPPolicy(torch.nn.Module):
         self.register_buffer("s_scale", torch.as_tensor(np.asarray(s_scale, float), dtype=f64))
         self.register_buffer("u_offset", torch.as_tensor(np.asarray(u_offset, float), dtype=f64))
         self.register_buffer("u_scale", torch.as_tensor(np.asarray(u_scale, float), dtype=f64))
+        lo, hi = _output_bounds(u_min, u_max, self.nu)
+        # None buffers: no saturation, and nothing in the state dict
+        self.register_buffer("u_min", None if lo is None else torch.as_tensor(lo, dtype=f64))
+        self.register_buffer("u_max", None if hi is None else torch.as_tensor(hi, dtype=f64))
         mods: list[torch.nn.Module] = []
         width = nx + 1
         for _ in range(layers):
@@ -168,7 +179,26 @@ class MLPPolicy(torch.nn.Module):
             [(2.0 * tt / self.horizon - 1.0)[:, None], (s - self.s_mean) / self.s_scale], 1
         )
         u = self.u_offset + self.u_scale * self.net(z)
+        if self.u_min is not None:
+            u = torch.clamp(u, min=self.u_min, max=self.u_max)
         return u[0] if single else u
+
+
+def _output_bounds(u_min: Any, u_max: Any, nu: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """:class:`MLPPolicy`'s clip bounds as ``(nu,)`` arrays (a missing side infinite), or
+    ``(None, None)`` for none; the policy file checks them again when it is written
+    (this module imports nothing of the policy format: the format imports it)."""
+    if u_min is None and u_max is None:
+        return None, None
+    out = []
+    for value, name, side in ((u_min, "u_min", -np.inf), (u_max, "u_max", np.inf)):
+        arr = np.full(nu, side) if value is None else np.asarray(value, dtype=float).ravel()
+        if arr.shape != (nu,) or np.isnan(arr).any():
+            raise SceneError(f"MLPPolicy: {name} must be {nu} numbers (no NaN), got {value!r}")
+        out.append(arr)
+    if np.any(out[0] > out[1]):
+        raise SceneError(f"MLPPolicy: u_min {out[0]} exceeds u_max {out[1]}")
+    return out[0], out[1]
 
 
 def mlp_policy(
@@ -178,6 +208,7 @@ def mlp_policy(
     layers: int = 2,
     seed: int = 0,
     distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None,
+    saturate: bool = True,
 ) -> MLPPolicy:
     """A small MLP feedback policy that starts near the problem's initial guess.
 
@@ -199,9 +230,10 @@ def mlp_policy(
         ``u_guess``; ``u_scale`` per control is half the bound interval where both bounds
         are finite, else the control that moves the state it drives fastest by its scale
         over the horizon, ``min_i s_scale_i / (T |df_i/du_j|)`` at ``(s_mean, u_offset)``
-        (1 for a control that drives no state there). The output is not clipped to the
-        bounds: a trained policy may leave them, which the judge reports
-        (:attr:`Evaluation.bound_violation <hybridoc.Evaluation>`).
+        (1 for a control that drives no state there). On a problem with control bounds
+        the output is clipped to them (``saturate``), so that no policy trained from it
+        leaves them (the judge's :attr:`Evaluation.bound_violation <hybridoc.Evaluation>`
+        is 0); the clip is part of the saved policy file (its ``saturation``).
 
     Parameters
     ----------
@@ -218,6 +250,9 @@ def mlp_policy(
         A callable ``(rng, M) -> (M, nx)`` of initial states for a problem that is not a
         disc scene (:attr:`HybridOCP.distribution <hybridoc.HybridOCP>`); default the
         problem's own. Not used on a disc scene.
+    saturate
+        Clip the output to the problem's control bounds (where it has any). ``False``:
+        an unclipped policy, whose controls the judge may find out of bounds.
 
     Returns
     -------
@@ -236,9 +271,11 @@ def mlp_policy(
         return _disc_mlp(disc_scene(scene), int(hidden), int(layers), gen)
     ocp = as_ocp(scene)
     s_mean, s_scale, u_offset, u_scale = _generic_scales(ocp, distribution)
+    clip = saturate and ocp.has_bounds
     return MLPPolicy(
         ocp.nx, ocp.nu, hidden=int(hidden), layers=int(layers), horizon=ocp.horizon,
-        s_mean=s_mean, s_scale=s_scale, u_offset=u_offset, u_scale=u_scale, generator=gen,
+        s_mean=s_mean, s_scale=s_scale, u_offset=u_offset, u_scale=u_scale,
+        u_min=ocp.u_min if clip else None, u_max=ocp.u_max if clip else None, generator=gen,
     )  # fmt: skip
 
 
@@ -371,6 +408,18 @@ class TrainResult:
         Empty, or why the training stopped before its last iteration (the judge could not
         simulate the closed loop of some initial state: the parameters are then the best
         ones judged).
+    infeasible
+        Engine ``"judge"``: how many training draws' closed loops under the final policy
+        violate the problem's control bounds, path or terminal constraints
+        (:attr:`Evaluation.feasible <hybridoc.Evaluation>`); the loss is the cost of
+        controls the problem does not allow when it is not 0 (the training minimises the
+        cost alone). ``None`` for the simulator (not judged).
+    feasibility
+        Engine ``"judge"``: per training draw, the judge's ``bound_violation``,
+        ``path_violation``, ``terminal_violation`` (NaN where it could not simulate the
+        closed loop) and ``feasible`` under the final policy
+        (:func:`~hybridoc.workflows.policies.violation_summary` sums them up); empty for
+        the simulator.
     """
 
     policy: torch.nn.Module
@@ -382,6 +431,14 @@ class TrainResult:
     integrator: str = "symplectic-euler"
     engine: str = "simulator"
     message: str = ""
+    infeasible: int | None = None
+    feasibility: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def feasible(self) -> bool | None:
+        """Whether the final policy's closed loops meet every constraint on the training
+        draws (``None``: not judged, the simulator's engine)."""
+        return None if self.infeasible is None else self.infeasible == 0
 
 
 def training_draws(
@@ -551,7 +608,29 @@ def train_policy(
         with torch.no_grad():
             result.final_loss = float(loss())
     result.seconds = time.perf_counter() - t_start
+    if result.engine == "judge":
+        _judge_feasibility(result, ocp, x0)
     return result
+
+
+def _judge_feasibility(result: TrainResult, ocp: HybridOCP, x0: torch.Tensor) -> None:
+    """``result.infeasible`` and ``feasibility``: the final policy judged on each training
+    draw (one more closed loop each, no adjoint)."""
+    judge_policy = _numpy_twin(result.policy)
+    rows = []
+    for row in x0.detach().numpy():
+        try:
+            ev = evaluate(ocp.replace(x0=row.copy()), policy=judge_policy, hold="zoh")
+        except EvaluationError:  # not judged: counted in neither
+            rows.append((np.nan, np.nan, np.nan, False))
+        else:
+            rows.append((ev.bound_violation, ev.path_violation, ev.terminal_violation,
+                         ev.feasible))  # fmt: skip
+    names = ("bound_violation", "path_violation", "terminal_violation", "feasible")
+    cols = {k: np.array(v, dtype=bool if k == "feasible" else float)
+            for k, v in zip(names, zip(*rows, strict=True), strict=True)}  # fmt: skip
+    result.feasibility = cols
+    result.infeasible = int(np.sum(~np.isnan(cols["bound_violation"]) & ~cols["feasible"]))
 
 
 def _judge_settings(ocp: HybridOCP, toi: str, contact: str, integrator: str) -> None:
@@ -758,6 +837,8 @@ def _numpy_twin(policy: torch.nn.Module) -> Callable[..., Any]:
     bs = [arr(m.bias) for m in layers]
     mean, scale = arr(policy.s_mean), arr(policy.s_scale)
     off, gain = arr(policy.u_offset), arr(policy.u_scale)
+    lo = None if policy.u_min is None else arr(policy.u_min)
+    hi = None if policy.u_max is None else arr(policy.u_max)
     horizon = policy.horizon
 
     def numpy_policy(t: float, state: np.ndarray) -> np.ndarray:
@@ -766,7 +847,9 @@ def _numpy_twin(policy: torch.nn.Module) -> Callable[..., Any]:
             z = W @ z + b
             if k < len(Ws) - 1:
                 z = np.tanh(z)
-        return off + gain * z
+        u = off + gain * z
+        # the same clip as MLPPolicy.forward and the policy file's (exact: max, min)
+        return u if lo is None else np.minimum(np.maximum(u, lo), hi)
 
     return numpy_policy
 

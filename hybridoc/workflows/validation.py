@@ -160,7 +160,8 @@ def validate_controls(
         ``cost``, ``terminal_cost``, ``running_cost``, ``reference_cost``,
         ``cost_gap_relative`` (``(J - J*) / J*``), ``control_error`` (``l2``, ``max``),
         ``events``, ``reference_events``, ``sequence_matches``, ``event_time_errors``,
-        ``reference_status``, ``feasible``, ``substeps``.
+        ``reference_status``, ``feasible``, ``bound_violation``, ``path_violation``,
+        ``terminal_violation`` (the judge's), ``substeps``.
     """
     from hybridoc.io import substep_problem
 
@@ -190,6 +191,9 @@ def validate_controls(
         "sequence_matches": cmp["sequence_matches"],
         "event_time_errors": cmp["time_errors"],
         "feasible": ev.feasible,
+        "bound_violation": float(ev.bound_violation),
+        "path_violation": float(ev.path_violation),
+        "terminal_violation": float(ev.terminal_violation),
         "substeps": fine.steps // ocp.steps,
     }
 
