@@ -267,12 +267,20 @@ class _PhaseCostates:
         self.path = None
         if ocp.path is not None:
             # on an arc where path rows are active the costate also carries c_s^T nu, with
-            # nu from the stationarity H_u = c_u^T nu of the active rows
+            # nu from the stationarity H_u = c_u^T nu of the active rows; a pure state row
+            # (c independent of u) is held on its boundary arc by its derivative
+            # c1 = c_s f (indirect adjoining), whose multiplier enters the same way
             c = ocp.path(s, uu)
+            held = ca.vertcat(
+                *[
+                    c[r] if ca.depends_on(c[r], uu) else ca.jtimes(c[r], s, ocp.f(s, uu))
+                    for r in range(c.numel())
+                ]
+            )
             self.path = ca.Function(
                 "path_parts",
                 [s, lam, uu],
-                [c, ca.jacobian(c, uu), ca.jacobian(c, s), ca.gradient(H, uu)],
+                [c, ca.jacobian(held, uu), ca.jacobian(held, s), ca.gradient(H, uu)],
             )
 
     def _path_term(self, s: np.ndarray, lam: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -927,8 +935,11 @@ class Solution:
         costates = None
         a = self.arrays
         if self.control_kind in ("hmp", "phase-linear") and _PHASES <= a.keys():
-            starts = np.asarray(a["phase_starts"], dtype=float)
-            rebuilt = _PhaseCostates(ev.ocp, fn, starts, a["phase_states"], a["phase_costates"])
+            # from the start of each arc where the reference stored them (junctions of path
+            # constraints: after the costate jump at a pure state constraint's entry)
+            part = "arc" if {"arc_starts", "arc_states", "arc_costates"} <= a.keys() else "phase"
+            starts = np.asarray(a[f"{part}_starts"], dtype=float)
+            rebuilt = _PhaseCostates(ev.ocp, fn, starts, a[f"{part}_states"], a[f"{part}_costates"])
             costates = rebuilt(times)
         elif self.costates is not None and self.costate_times is not None:
             costates = _right_interpolation(self.costate_times, self.costates, times)

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.ocp import HybridOCP
-from hybridoc.reference.shooting import NewtonResult, ShootingSystem
+from hybridoc.reference.shooting import NewtonResult, ShootingSystem, state_rows
 from hybridoc.reference.sources import PhaseCostates
 
 __all__ = ["GRAZE_FLAG", "ReferenceResult", "hmp_control", "make_result", "reference_control"]
@@ -49,18 +49,30 @@ def _dense_from_nodes(
     them, and each time costs one step, not a whole phase."""
     k, i, dt = _locate(levels, starts, horizon, t)
     X = np.stack([nodes[a][b] for a, b in zip(k, i, strict=True)])
-    s, lam, u = dense.map(t.size)(X.T, dt)
-    return np.asarray(s).T.copy(), np.asarray(lam).T.copy(), np.asarray(u).T.copy()
+    if not isinstance(dense, (list, tuple)):
+        s, lam, u = dense.map(t.size)(X.T, dt)
+        return np.asarray(s).T.copy(), np.asarray(lam).T.copy(), np.asarray(u).T.copy()
+    # one law per piece (pure state rows: each arc's own)
+    out = [np.zeros((t.size, 0))] * 3
+    for piece in np.unique(k):
+        rows = np.flatnonzero(k == piece)
+        parts = dense[int(piece)].map(rows.size)(X[rows].T, dt[rows])
+        if out[0].shape[1] == 0:
+            out = [np.empty((t.size, int(p.shape[0]))) for p in parts]
+        for o, p in zip(out, parts, strict=True):
+            o[rows] = np.asarray(p).T
+    return out[0], out[1], out[2]
 
 
 def _control_from_nodes(
     u_at: Any, nodes: Sequence[np.ndarray], levels: Sequence[int], starts: np.ndarray,
     horizon: float,
 ) -> Callable[[float], np.ndarray]:  # fmt: skip
-    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`; ``u_at(node, tau) -> u``) for the
-    judge, which calls it at every stage of its integrator: plain floats and one compiled
-    call per time."""
+    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`; ``u_at(node, tau) -> u``, or one
+    such function per piece) for the judge, which calls it at every stage of its
+    integrator: plain floats and one compiled call per time."""
     first = [float(a) for a in np.asarray(starts, dtype=float)]
+    laws = list(u_at) if isinstance(u_at, (list, tuple)) else [u_at] * len(first)
     ends = [*first[1:], float(horizon)]
     steps = [(b - a) / int(n) for a, b, n in zip(first, ends, levels, strict=True)]
     last = [int(n) - 1 for n in levels]
@@ -70,7 +82,7 @@ def _control_from_nodes(
         tau = t - first[k]
         dh = steps[k]
         i = min(max(int(tau // dh), 0), last[k]) if dh > 0 else 0
-        return np.asarray(u_at(nodes[k][i], tau - i * dh)).ravel()
+        return np.asarray(laws[k](nodes[k][i], tau - i * dh)).ravel()
 
     return u_generic
 
@@ -135,7 +147,12 @@ class ReferenceResult:
         start time (phase starts and junctions, in time order), ``s`` and ``lambda`` there,
         its DOP853 steps and its nodes under the constrained minimum of ``H``; ``u(t)`` is
         rebuilt per arc, so that no step of the dense output crosses a kink of ``u``
-        (``None`` otherwise: per phase).
+        (``None`` otherwise: per phase). ``arc_costates`` are after the costate jump at the
+        entry of a pure state constraint's boundary arc.
+    arc_laws
+        With pure state constraints (whose boundary arcs the pointwise minimum of ``H``
+        cannot tell): each arc's own law (:data:`~hybridoc.reference.shooting.ArcLaw`), by
+        which its nodes and ``u(t)`` are rebuilt; ``None`` otherwise.
     coverage
         What the search that chose this extremal covered (the sources, the sequences
         proposed, solved and pruned, the exhaustive length, whether the budget stopped it,
@@ -180,6 +197,15 @@ class ReferenceResult:
     arc_costates: np.ndarray | None = None
     arc_levels: tuple[int, ...] | None = None
     arc_nodes: list[np.ndarray] | None = field(default=None, repr=False)
+    arc_laws: list[tuple[tuple[float, float], ...]] | None = None
+
+    def _piece_laws(self, attr: str) -> Any:
+        """``attr`` (``"dense"``, ``"dense_u"``) of the dense output's law: one per arc with
+        pure state constraints, else the constrained minimum of ``H``."""
+        core = self.system.core
+        if self.arc_laws is not None and self.arc_nodes is not None:
+            return [getattr(core.fl.law(m), attr) for m in self.arc_laws]
+        return getattr(core.flow, attr)
 
     @property
     def horizon(self) -> float:
@@ -248,7 +274,7 @@ class ReferenceResult:
             return np.zeros((0, nx)), np.zeros((0, nx)), np.zeros((0, S.nu))
         nodes, levels, starts = self._pieces()
         s_out, l_out, u_out = _dense_from_nodes(
-            S.core.flow.dense, nodes, levels, starts, self.ocp.horizon, t
+            self._piece_laws("dense"), nodes, levels, starts, self.ocp.horizon, t
         )
         return s_out, l_out, u_out
 
@@ -272,7 +298,7 @@ class ReferenceResult:
         if C is None:
             nodes, levels, piece_starts = self._pieces()
             return _control_from_nodes(
-                self.system.core.flow.dense_u, nodes, levels, piece_starts, self.ocp.horizon
+                self._piece_laws("dense_u"), nodes, levels, piece_starts, self.ocp.horizon
             )
 
         def u(t: float) -> np.ndarray:
@@ -410,6 +436,8 @@ class ReferenceResult:
             arrays["arc_states"] = np.asarray(self.arc_states, dtype=float)
             arrays["arc_costates"] = np.asarray(self.arc_costates, dtype=float)
             arrays["arc_substeps"] = np.asarray(self.arc_levels, dtype=np.int64)
+            if self.arc_laws is not None:
+                arrays["arc_laws"] = np.asarray(self.arc_laws, dtype=float)
         if self.event_controls is not None:
             # the resets' own controls, which the judge applies at its events
             arrays["event_controls"] = np.asarray(self.event_controls, dtype=float)
@@ -549,11 +577,20 @@ def hmp_control(solution: Any, problem: Any) -> tuple[Callable[[float], np.ndarr
         # (the nodes the solve's own u(t) has)
         starts_a = np.asarray(arrays["arc_starts"], dtype=float)
         steps = tuple(int(n) for n in arrays["arc_substeps"])
+        # pure state constraints: each arc's own law (arc_laws), else the constrained
+        # minimum of H
+        laws: Any = S.core.flow
+        if "arc_laws" in arrays:
+            laws = [
+                S.core.fl.law(tuple((float(a), float(b)) for a, b in m))
+                for m in np.asarray(arrays["arc_laws"], dtype=float)
+            ]
         nodes = _arc_nodes(
-            S.core.flow, starts_a, np.asarray(arrays["arc_states"]),
+            laws, starts_a, np.asarray(arrays["arc_states"]),
             np.asarray(arrays["arc_costates"]), steps, ocp.horizon,
         )  # fmt: skip
-        u = _control_from_nodes(S.core.flow.dense_u, nodes, steps, starts_a, ocp.horizon)
+        dense_u = [law.dense_u for law in laws] if isinstance(laws, list) else laws.dense_u
+        u = _control_from_nodes(dense_u, nodes, steps, starts_a, ocp.horizon)
         return u, [float(t) for t in starts_a[1:]]
     nodes = S.nodes(starts_g, P, L0)
     u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
@@ -570,11 +607,13 @@ def _arc_nodes(
 ) -> list[np.ndarray]:
     """Per arc, the ``(n + 1, 2 nx + 1)`` nodes of its ``n`` DOP853 steps under ``flow``
     (the constrained minimum of ``H``, which is each arc's own law on a consistent
-    extremal) from the arc's start."""
+    extremal; with pure state constraints a list: each arc's own law) from the arc's
+    start."""
     ends = np.append(starts[1:], horizon)
+    laws = list(flow) if isinstance(flow, list) else [flow] * len(starts)
     return [
-        np.asarray(flow.nodes(int(n))(s, lam, float(b - a))).T.copy()
-        for a, b, s, lam, n in zip(starts, ends, states, costates, levels, strict=True)
+        np.asarray(law.nodes(int(n))(s, lam, float(b - a))).T.copy()
+        for a, b, s, lam, n, law in zip(starts, ends, states, costates, levels, laws, strict=True)
     ]
 
 
@@ -664,6 +703,7 @@ def _arc_pieces(S: ShootingSystem, z: np.ndarray, horizon: float) -> dict[str, A
     starts, s0, l0 = out[0].ravel(), out[1].T, out[2].T
     core = S.core
     switches = S.switch_times(z)
+    etas = core.eta_values(z)
     lengths = core.arc_lengths(starts, horizon, switches)
     times, states, costates = [], [], []
     i = 0
@@ -671,6 +711,8 @@ def _arc_pieces(S: ShootingSystem, z: np.ndarray, horizon: float) -> dict[str, A
         s, lam = s0[k], l0[k]
         cuts = [float(starts[k]), *switches[k]]
         for j, (t, law) in enumerate(zip(cuts, core.laws[k], strict=True)):
+            if j:
+                lam = core.entry_jump(k, j - 1, s, lam, etas[k][j - 1])
             times.append(t)
             states.append(np.asarray(s, dtype=float).ravel())
             costates.append(np.asarray(lam, dtype=float).ravel())
@@ -680,10 +722,15 @@ def _arc_pieces(S: ShootingSystem, z: np.ndarray, horizon: float) -> dict[str, A
     arc_starts = np.array(times)
     P, L = np.array(states), np.array(costates)
     levels = tuple(int(n) for n in core.arc_levels)
+    # pure state constraints: each arc's own law (the pointwise minimum of H does not know
+    # where a boundary arc is)
+    laws = [m for p in core.arcs for m in p] if state_rows(S.ocp) else None
+    flow = core.flow if laws is None else [core.fl.law(m) for m in laws]
     return {
         "arc_starts": arc_starts,
         "arc_states": P,
         "arc_costates": L,
         "arc_levels": levels,
-        "arc_nodes": _arc_nodes(core.flow, arc_starts, P, L, levels, horizon),
+        "arc_nodes": _arc_nodes(flow, arc_starts, P, L, levels, horizon),
+        "arc_laws": laws,
     }

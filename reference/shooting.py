@@ -107,6 +107,7 @@ __all__ = [
     "SATURATION_ROUNDS",
     "SATURATION_SAMPLES",
     "SATURATION_TOL",
+    "TOUCH_TOL",
     "arc_mismatch",
     "clip_mode",
     "detect_arcs",
@@ -120,6 +121,7 @@ __all__ = [
     "saturate",
     "saturation_check",
     "saturation_mismatch",
+    "state_rows",
     "DEFAULT_RTOL",
     "EVENT_CONTROL_SAMPLES",
     "MAX_SUBSTEPS",
@@ -179,10 +181,14 @@ def _built_once(cache: MutableMapping[Any, _T], key: Any, build: Callable[[], _T
 
 def is_disc_scene(ocp: HybridOCP) -> bool:
     """Whether ``ocp`` is a compiled disc scene: ``f = (v, A u)``, ``L = eps |u|^2``, without
-    terminal constraints, a free final time or path constraints (those take the generic flow,
-    whose phases are exact for the disc scenes' polynomial flow too: one DOP853 step each)."""
+    terminal constraints, a free final time, path constraints or a reset that depends on the
+    control (those take the generic flow, whose phases are exact for the disc scenes'
+    polynomial flow too: one DOP853 step each)."""
     return isinstance(ocp, DiscOCP) and not (
-        ocp.has_terminal_constraints or ocp.free_horizon or ocp.path is not None
+        ocp.has_terminal_constraints
+        or ocp.free_horizon
+        or ocp.path is not None
+        or any(g.uses_control for g in ocp.guards)
     )
 
 
@@ -318,38 +324,95 @@ def global_law(ocp: HybridOCP) -> ArcLaw:
     """The law of the pointwise constrained minimum of ``H``: ``u*`` minimises ``H`` over
     the bounds and the path constraints (``clip_mode`` with bounds only, ``free_mode``
     without constraints). Right on every arc of a consistent extremal: the dense output's
-    law."""
+    law. A pure state row (:func:`state_rows`) is ignored: where it is active is a
+    property of the arcs, not of the pointwise minimum."""
     box = clip_mode(ocp) if ocp.has_bounds else free_mode(ocp.nu)
-    return box + ((0.0, math.inf),) * path_rows(ocp)
+    pure = state_rows(ocp)
+    return box + tuple(
+        (-math.inf, math.inf) if r in pure else (0.0, math.inf) for r in range(path_rows(ocp))
+    )
 
 
 def path_check(ocp: HybridOCP) -> str | None:
-    """``None`` when the reference can take ``ocp``'s path constraints (none, or mixed
-    constraints ``c(s, u) >= 0`` whose every row depends on ``u``, affinely), else the
-    one-line reason."""
+    """``None`` when the reference can take ``ocp``'s path constraints (none; mixed rows
+    ``c_r(s, u)`` affine in ``u``; pure state rows ``c_r(s)`` of order 1, whose derivative
+    ``c_r,s f(s, u)`` depends on ``u``), else the one-line reason."""
     if ocp.path is None:
         return None
     s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
     try:
         c = ocp.path(s, u)
+        f = ocp.f(s, u)
     except RuntimeError:
         return "the reference needs the path constraints as an SX-evaluable function"
-    Cu = ca.jacobian(c, u)
-    pure = [r for r in range(c.numel()) if not ca.depends_on(c[r], u)]
-    if pure:
-        rows = ", ".join(str(r) for r in pure)
-        return (
-            f"the HMP reference does not handle pure state constraints (path constraint row(s) "
-            f"{rows} independent of u: c(s) >= 0 needs boundary arcs of higher order and a "
-            "costate jump at their entry); mixed constraints c(s, u) >= 0 and control bounds "
-            "are handled; use method 'dt'"
+    high = []
+    for r in range(c.numel()):
+        if ca.depends_on(c[r], u):
+            continue
+        order = _state_order(c[r], s, u, f)
+        if order != 1:
+            high.append((r, order))
+    if high:
+        rows = ", ".join(
+            f"row {r} of order {p}" if p <= _MAX_ORDER else f"row {r} of order > {_MAX_ORDER}"
+            for r, p in high
         )
-    if ca.depends_on(Cu, u):
+        return (
+            f"the HMP reference handles pure state constraints c(s) >= 0 of order 1 only (u "
+            f"in dc/dt = c_s f(s, u)); path constraint {rows} (u first appears in a higher "
+            "time derivative: its boundary arcs and junction conditions are not modelled); "
+            "use method 'dt'"
+        )
+    if ca.depends_on(ca.jacobian(_effective_rows(c, s, u, f), u), u):
         return (
             "the HMP reference handles path constraints c(s, u) >= 0 affine in u only (then the "
             "constrained minimum of H has a closed form on each arc); use method 'dt'"
         )
     return None
+
+
+_MAX_ORDER = 3
+"""The highest order of a pure state constraint :func:`path_check` names exactly."""
+
+
+def _state_order(c: Any, s: Any, u: Any, f: Any) -> int:
+    """The order of a pure state row ``c(s)``: the first time derivative (along
+    ``s' = f(s, u)``) that depends on ``u``; :data:`_MAX_ORDER` ``+ 1`` when none up to
+    that does (or when it never does)."""
+    d = c
+    for p in range(1, _MAX_ORDER + 1):
+        d = ca.mtimes(ca.jacobian(d, s), f)
+        if ca.depends_on(d, u):
+            return p
+    return _MAX_ORDER + 1
+
+
+def _effective_rows(c: Any, s: Any, u: Any, f: Any) -> Any:
+    """The rows the arcs hold: a mixed row as it is, a pure state row ``c_r(s)`` as its time
+    derivative ``c_r,s f(s, u)`` (indirect adjoining: on a boundary arc ``c_r = 0`` is held
+    by ``dc_r/dt = 0``, with ``c_r = 0`` at the entry)."""
+    rows = []
+    for r in range(c.numel()):
+        cr = c[r]
+        rows.append(cr if ca.depends_on(cr, u) else ca.mtimes(ca.jacobian(cr, s), f))
+    return ca.vertcat(*rows) if rows else ca.SX(0, 1)
+
+
+def state_rows(ocp: HybridOCP) -> tuple[int, ...]:
+    """The path constraint rows of ``ocp`` that do not depend on ``u`` (pure state
+    constraints ``c_r(s) >= 0``); empty without path constraints."""
+    if ocp.path is None:
+        return ()
+
+    def build() -> tuple[int, ...]:
+        s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
+        c = ocp.path(s, u)
+        return tuple(r for r in range(c.numel()) if not ca.depends_on(c[r], u))
+
+    return _built_once(_STATE_ROWS, ocp.structure, build)
+
+
+_STATE_ROWS: weakref.WeakKeyDictionary[Structure, tuple[int, ...]] = weakref.WeakKeyDictionary()
 
 
 class _Law:
@@ -465,9 +528,18 @@ class _Flow:
         # path constraints c(s, u) = a(s) + B(s) u >= 0 (path_check: affine in u) and the
         # constant control weight W = d2H/du2 (hamiltonian_check) of their closed forms
         self.m_path = path_rows(ocp)
+        # pure state rows c_r(s) (order 1, path_check) enter the arcs' laws as their time
+        # derivative c_r,s f (indirect adjoining); state_fn gives c_r(s) and its gradient
+        # for the entry conditions (0 for mixed rows)
+        self.state_rows = state_rows(ocp)
         if self.m_path:
             assert ocp.path is not None
-            c = ocp.path(s, u)
+            raw = ocp.path(s, u)
+            c = _effective_rows(raw, s, u, ocp.f(s, u))
+            pure = ca.vertcat(
+                *[raw[r] if r in self.state_rows else ca.SX(0) for r in range(self.m_path)]
+            )
+            self.state_fn = ca.Function("state_rows", [s], [pure, ca.jacobian(pure, s)])
             self.c = ca.Function("path", [s, u], [c])
             self.c_expr = c
             self.c_a = ca.substitute(c, u, ca.DM.zeros(nu))
@@ -762,6 +834,20 @@ class _CoreBase:
         self.v_comps: list[tuple[int, ...]] = [comps[j] for j in self.guard_index]
         self.n_v = sum(len(c) for c in self.v_comps)
         self.v_bounds = _reset_bounds(ocp)
+        # per phase and switch, the pure state row whose boundary arc the switch enters
+        # (-1 for any other switch): there c_r(s) = 0 and the costate jumps by
+        # eta grad c_r, with eta an unknown of its own (after the switch times)
+        pure = state_rows(ocp)
+        self.jump_rows: list[list[int]] = [
+            [
+                i - self.nu
+                if i >= self.nu and i - self.nu in pure and p[j + 1][i] == (0.0, 0.0)
+                else -1
+                for j, i, _ in w
+            ]
+            for p, w in zip(arcs, self.switches, strict=True)
+        ]
+        self.n_eta = sum(r >= 0 for w in self.jump_rows for r in w)
         self._residual_fns: tuple[Any, Any] | None = None
         self._ocp_ref = weakref.ref(ocp)
 
@@ -794,7 +880,7 @@ class _CoreBase:
         """Number of unknowns."""
         return (
             self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + self.n_switch
-            + self.n_v + int(self.free)
+            + self.n_eta + self.n_v + int(self.free)
         )  # fmt: skip
 
     def unpack_switches(self, z: Any) -> list[list[Any]]:
@@ -806,21 +892,64 @@ class _CoreBase:
             o += len(w)
         return out
 
-    def with_switches(self, z_base: np.ndarray, times: Sequence[Sequence[float]]) -> np.ndarray:
+    def unpack_etas(self, z: Any) -> list[list[Any]]:
+        """Per phase and switch, the costate jump ``eta`` at the entry of a pure state
+        row's boundary arc (0 at any other switch)."""
+        o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in + self.n_switch
+        out = []
+        for w in self.jump_rows:
+            row = []
+            for r in w:
+                if r >= 0:
+                    row.append(z[o])
+                    o += 1
+                else:
+                    row.append(0.0)
+            out.append(row)
+        return out
+
+    def with_switches(
+        self,
+        z_base: np.ndarray,
+        times: Sequence[Sequence[float]],
+        etas: Sequence[Sequence[float]] | None = None,
+    ) -> np.ndarray:
         """``z`` of this core from a point of the same sequence without saturation switches
-        (``z_base``: multipliers, costates, terminal multipliers and a free ``T``) and the
-        switch times per phase."""
+        (``z_base``: multipliers, costates, terminal multipliers and a free ``T``), the
+        switch times per phase and, per phase and switch, the costate jumps ``eta`` of the
+        entries of pure state rows' boundary arcs (default 0; other switches' are
+        ignored)."""
         z_base = np.asarray(z_base, dtype=float)
         o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
         flat = [float(t) for w in times for t in w]
         if len(flat) != self.n_switch:
             raise ValueError(f"{self.n_switch} switch times expected, got {len(flat)}")
-        return np.concatenate([z_base[:o], flat, z_base[o:]])
+        jumps = [
+            0.0 if etas is None else float(etas[k][j])
+            for k, w in enumerate(self.jump_rows)
+            for j, r in enumerate(w)
+            if r >= 0
+        ]
+        return np.concatenate([z_base[:o], flat, jumps, z_base[o:]])
 
     def strip_switches(self, z: np.ndarray) -> np.ndarray:
-        """The point without its switch times (:meth:`with_switches`'s ``z_base``)."""
+        """The point without its switch times and entry jumps (:meth:`with_switches`'s
+        ``z_base``)."""
         o = self.nx + self.K * (self.nx + 2) + self.m_eq + self.m_in
-        return np.concatenate([z[:o], z[o + self.n_switch :]])
+        return np.concatenate([z[:o], z[o + self.n_switch + self.n_eta :]])
+
+    def entry_jump(self, k: int, i: int, s: Any, lam: Any, eta: Any) -> Any:
+        """The costate after switch ``i`` of phase ``k``: ``lambda + eta grad c_r(s)`` at
+        the entry of pure state row ``r``'s boundary arc (``lambda(t1-) = lambda(t1+) -
+        eta grad c_r``, ``eta >= 0``: the measure ``-d nu`` of the direct adjoining's
+        multiplier), ``lambda`` at any other switch."""
+        r = self.jump_rows[k][i]
+        if r < 0:
+            return lam
+        grad = self.fl.state_fn(s)[1]
+        if isinstance(lam, np.ndarray):
+            return lam + float(eta) * np.asarray(grad, dtype=float)[r]
+        return lam + eta * grad[r, :].T
 
     def unpack_event_controls(self, z: Any) -> list[Any]:
         """Per event, the control its reset reads: ``v_k`` (``(nu,)``, its components from
@@ -1004,17 +1133,24 @@ class _CoreBase:
         res = []
         starts, s_starts, l_starts, costs, s_minus, l_minus, rates = [], [], [], [], [], [], []
         sig = self.unpack_switches(z)
+        etas = self.unpack_etas(z)
         switch_res: list[Any] = []
         vs = self.unpack_event_controls(z)
         v_res: list[Any] = []
 
         def arcs_of(k: int, s: Any, lam: Any, t0: Any, t1: Any) -> tuple[Any, Any, Any]:
-            # the phase's arcs, with the switching condition u_unc_i = value at each switch
+            # the phase's arcs, with the switching condition u_unc_i = value at each switch;
+            # the entry of a pure state row's boundary arc also needs c_r(s) = 0, and the
+            # costate jumps there
             ends = [t0, *sig[k], t1]
             J: Any = 0
             for j in range(len(self.arcs[k])):
                 if j:
                     switch_res.append(self.switch_condition(k, j, s, lam))
+                    r = self.jump_rows[k][j - 1]
+                    if r >= 0:
+                        switch_res.append(self.fl.state_fn(s)[0][r])
+                        lam = self.entry_jump(k, j - 1, s, lam, etas[k][j - 1])
                 s, lam, Jj = phase(k, j, s, lam, ends[j + 1] - ends[j])
                 J = Jj if j == 0 else J + Jj
             return s, lam, J
@@ -1236,6 +1372,10 @@ class _FlowCore(_CoreBase):
         """Per phase, the switch times of ``z`` as floats."""
         return [[float(t) for t in w] for w in self.unpack_switches(np.asarray(z, dtype=float))]
 
+    def eta_values(self, z: np.ndarray) -> list[list[float]]:
+        """Per phase and switch, the entry jumps ``eta`` of ``z`` as floats (0 where none)."""
+        return [[float(e) for e in w] for w in self.unpack_etas(np.asarray(z, dtype=float))]
+
     def phase_errors(
         self, z: np.ndarray, x0: np.ndarray, T: float
     ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
@@ -1252,10 +1392,13 @@ class _FlowCore(_CoreBase):
         starts, s0, l0 = out[0].ravel(), out[1], out[2]
         cost = float(out[4].item()) + float(out[5].item())
         lengths = self.arc_lengths(starts, float(out[11].item()), self.switch_values(z))
+        etas = self.eta_values(z)
         errors = np.zeros(self.n_arcs)
         for k in range(self.K + 1):
             s, lam = s0[:, k], l0[:, k]
             for j, law in enumerate(self.laws[k]):
+                if j:
+                    lam = self.entry_jump(k, j - 1, s, lam, etas[k][j - 1])
                 i = self._arc_index[k][j]
                 n, h = self.arc_levels[i], lengths[k][j]
                 a = [np.asarray(v).ravel() for v in law.phase(n)(s, lam, h)]
@@ -1272,10 +1415,12 @@ class _FlowCore(_CoreBase):
         costates: np.ndarray,
         lengths: list[list[float]],
         counts: Sequence[int],
+        etas: Sequence[Sequence[float]] | None = None,
     ) -> list[np.ndarray]:
         """Per phase, ``counts[k] + 1`` equally spaced nodes ``(s, lambda, running cost)``
         from its start state and costate through its arcs (``lengths``): the compiled map
-        on a phase of one arc, else DOP853 steps that stop at each switch."""
+        on a phase of one arc, else DOP853 steps that stop at each switch (where the
+        costate jumps by ``etas[k][j]`` at the entry of a pure state row's boundary arc)."""
         out = []
         for k in range(self.K + 1):
             n = int(counts[k])
@@ -1286,6 +1431,7 @@ class _FlowCore(_CoreBase):
                 )
                 continue
             h = sum(lengths[k]) / n
+            nx = self.nx
             cuts = np.cumsum(lengths[k])[:-1]
             x = np.concatenate([states[k], costates[k], [0.0]])
             rows = [x.copy()]
@@ -1294,6 +1440,8 @@ class _FlowCore(_CoreBase):
                 target = i * h
                 while j < len(cuts) and cuts[j] < target:
                     x = np.asarray(laws[j].step(x, cuts[j] - t)).ravel()
+                    if etas is not None:
+                        x[nx : 2 * nx] = self.entry_jump(k, j, x[:nx], x[nx : 2 * nx], etas[k][j])
                     t, j = float(cuts[j]), j + 1
                 x = np.asarray(laws[j].step(x, target - t)).ravel()
                 t = target
@@ -1549,6 +1697,7 @@ class ShootingSystem:
         (:meth:`nodes` then follows its saturation switches)."""
         out = [np.asarray(x) for x in self.core.traj(z, self.x0, self.T)]
         self._switches = self.switch_times(z)
+        self._etas = None if self.disc else self.core.eta_values(z)
         return out
 
     def phase_errors(self, z: np.ndarray) -> tuple[np.ndarray, float]:
@@ -1580,17 +1729,20 @@ class ShootingSystem:
         counts: Sequence[int],
         T: float | None = None,
         switches: Sequence[Sequence[float]] | None = None,
+        etas: Sequence[Sequence[float]] | None = None,
     ) -> list[np.ndarray]:
         """Generic problems: ``counts[k] + 1`` equally spaced nodes of each phase (as
-        :meth:`nodes`), through the saturation switches ``switches`` (default: those of the
-        last :meth:`traj`)."""
+        :meth:`nodes`), through the saturation switches ``switches`` and with the entry
+        jumps ``etas`` of pure state rows (default: those of the last :meth:`traj`)."""
         end = self.T if T is None else float(T)
         if switches is None:
             switches = getattr(self, "_switches", None)
             if switches is None or len(switches) != self.K + 1:
                 switches = [[]] * (self.K + 1)
+        if etas is None and self.core.n_eta:
+            etas = getattr(self, "_etas", None)
         lengths = self.core.arc_lengths(starts, end, switches)
-        return self.core.phase_nodes(states, costates, lengths, counts)
+        return self.core.phase_nodes(states, costates, lengths, counts, etas)
 
     @property
     def arc_levels(self) -> tuple[int, ...]:
@@ -1968,7 +2120,8 @@ def _phase_samples(
     out = S.traj(z)
     starts, s0, l0 = out[0].ravel(), out[1].T, out[2].T
     T = float(out[11].item())
-    nodes = S.sample(starts, s0, l0, [samples] * (S.K + 1), T, S.switch_times(z))
+    etas = S.core.eta_values(z) if S.core.n_eta else None
+    nodes = S.sample(starts, s0, l0, [samples] * (S.K + 1), T, S.switch_times(z), etas)
     ends = np.append(starts, T)
     times = []
     for k, X in enumerate(nodes):
@@ -2020,7 +2173,8 @@ def detect_arcs(
     switch times, interpolated linearly between ``samples + 1`` samples per phase."""
     ocp = S.ocp
     if path_rows(ocp):
-        return _detect_path_arcs(S, z, samples)
+        arcs, switches, _ = _detect_path_arcs(S, z, samples)
+        return arcs, switches
     assert ocp.u_min is not None and ocp.u_max is not None
     lo, hi = ocp.u_min, ocp.u_max
     times, U = _samples(S, z, samples)
@@ -2064,13 +2218,30 @@ def _arc_of_samples(S: ShootingSystem, z: np.ndarray, k: int, t: np.ndarray) -> 
     return np.searchsorted(np.asarray(S.switch_times(z)[k]), t, side="right")
 
 
+def _state_values(S: ShootingSystem, X: np.ndarray) -> np.ndarray:
+    """``(n, m)``: the pure state rows ``c_r(s)`` at the nodes ``X`` (0 in mixed rows)."""
+    fl = _flow(S.ocp)
+    return np.asarray(fl.state_fn.map(X.shape[0])(X[:, : S.nx].T)[0], dtype=float).T
+
+
+def _state_tol(c: np.ndarray) -> float:
+    """How far below 0 a pure state row may sample before it counts as violated (relative
+    to ``1 + max |c|``: rounding and integration error near a junction, where c is 0 to
+    second order)."""
+    return SATURATION_TOL * (1.0 + float(np.max(np.abs(c), initial=0.0)))
+
+
 def _detect_path_arcs(
     S: ShootingSystem, z: np.ndarray, samples: int
-) -> tuple[Arcs, list[list[float]]]:
+) -> tuple[Arcs, list[list[float]], list[list[float]]]:
     """:func:`detect_arcs` with path constraints: the active set of the constrained minimum
     of ``H`` (:func:`global_law`) at each sample, a junction of a row where its function
     (``nu`` where active, ``-c`` elsewhere) changes sign, interpolated linearly; a bound's
-    switch at the middle of the samples around it."""
+    switch at the middle of the samples around it. A pure state row is active where ``S``
+    already has it active (the junctions found stay where they are) and where it samples
+    below 0 (a boundary arc from where ``c_r`` crosses 0 down to where it crosses back).
+    Also per phase and switch the entry jumps ``eta`` to start from (a kept entry's own,
+    else 0)."""
     ocp = S.ocp
     nu = ocp.nu
     lo = np.full(nu, -np.inf) if ocp.u_min is None else ocp.u_min
@@ -2078,6 +2249,9 @@ def _detect_path_arcs(
     law = _flow(ocp).law(global_law(ocp))
     times, nodes = _phase_samples(S, z, samples)
     nx = S.nx
+    pure = state_rows(ocp)
+    old_sw = S.switch_times(z)
+    old_eta = S.core.eta_values(z) if pure and not S.disc else None
 
     def mode_of(cls: np.ndarray) -> ArcLaw:
         box = tuple(
@@ -2089,13 +2263,30 @@ def _detect_path_arcs(
 
     arcs: list[tuple[ArcLaw, ...]] = []
     switches: list[list[float]] = []
-    for t, X in zip(times, nodes, strict=True):
+    etas: list[list[float]] = []
+    for k, (t, X) in enumerate(zip(times, nodes, strict=True)):
         _, cls, sig = (
             np.asarray(v).T for v in law.path_law.map(X.shape[0])(X[:, :nx].T, X[:, nx : 2 * nx].T)
         )
         cls = np.rint(cls).astype(int)
+        # a kept junction of a pure state row: (time, row, class after) -> its eta
+        kept: dict[tuple[int, int], tuple[float, float, int]] = {}
+        if pure:
+            cs = _state_values(S, X)
+            j = _arc_of_samples(S, z, k, t)
+            old = S.core.arcs[k]
+            for r in pure:
+                held = np.array([old[int(a)][nu + r] == (0.0, 0.0) for a in j])
+                cls[:, nu + r] = held | (cs[:, r] < -_state_tol(cs[:, r]))
+                sig[:, r] = -cs[:, r]
+            for i, (a, b) in enumerate(zip(old[:-1], old[1:], strict=True)):
+                for r in pure:
+                    if a[nu + r] != b[nu + r]:
+                        q = int(b[nu + r] == (0.0, 0.0))
+                        e = old_eta[k][i] if old_eta is not None else 0.0
+                        kept[(i, r)] = (old_sw[k][i], e, q)
         cur = cls[0].copy()
-        modes, sw = [mode_of(cur)], []
+        modes, sw, ew = [mode_of(cur)], [], []
         for i in range(1, t.size):
             if np.array_equal(cls[i], cur):
                 continue
@@ -2103,20 +2294,26 @@ def _detect_path_arcs(
             for c in np.nonzero(cls[i] != cur)[0]:
                 a, b = int(cur[c]), int(cls[i][c])
                 path = [a, 0, b] if a * b == -1 else [a, b]
-                frac = 0.5
+                frac, eta = 0.5, 0.0
                 if c >= nu:
                     f0, f1 = sig[i - 1, c - nu], sig[i, c - nu]
                     if f0 * f1 < 0:
                         frac = f0 / (f0 - f1)
+                tt = t[i - 1] + (t[i] - t[i - 1]) * frac
+                for (_, r), (t_old, e_old, q) in kept.items():
+                    if c == nu + r and q == b and t[i - 1] <= t_old <= t[i]:
+                        tt, eta = t_old, e_old
                 for q in path[1:]:
-                    events.append((t[i - 1] + (t[i] - t[i - 1]) * frac, int(c), q))
-            for tt, c, q in sorted(events):
+                    events.append((tt, int(c), q, eta))
+            for tt, c, q, eta in sorted(events):
                 cur[c] = q
                 modes.append(mode_of(cur))
                 sw.append(float(tt))
+                ew.append(float(eta))
         arcs.append(tuple(modes))
         switches.append(sw)
-    return tuple(arcs), switches
+        etas.append(ew)
+    return tuple(arcs), switches, etas
 
 
 def arc_mismatch(S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAMPLES) -> float:
@@ -2125,28 +2322,57 @@ def arc_mismatch(S: ShootingSystem, z: np.ndarray, samples: int = SATURATION_SAM
     of the arc's control against the constrained minimum of ``H`` (relative to ``1 + max
     |u|``) and of a negative multiplier ``nu`` of an active row (relative to ``1 + max
     |nu|``): zero exactly when each arc's law is the pointwise minimum of ``H`` over the
-    constraints with ``nu >= 0``."""
+    constraints with ``nu >= 0``.
+
+    A pure state row ``c_r(s) >= 0`` (its boundary arcs held by ``dc_r/dt = 0``) adds: its
+    violation where the arc ignores it (relative to ``1 + max |c_r|``), and on its boundary
+    arcs a ``nu_r`` that grows (``-dnu_r/dt`` is the direct adjoining's multiplier, ``>= 0``)
+    and a negative entry jump ``eta`` (both relative to ``1 + max |nu|``); the arc's
+    control is compared with the constrained minimum of ``H`` with the row held as the arc
+    holds it."""
     ocp = S.ocp
     if not path_rows(ocp):
         return saturation_mismatch(S, z, samples) if ocp.has_bounds else 0.0
     fl = _flow(ocp)
-    glob = fl.law(global_law(ocp))
+    nu = ocp.nu
+    pure = state_rows(ocp)
+    glob_mode = global_law(ocp)
+
+    def reference(mode: ArcLaw) -> _Law:
+        # the pointwise minimum with each pure state row held as the arc holds it
+        return fl.law(
+            tuple(mode[i] if i >= nu and i - nu in pure else m for i, m in enumerate(glob_mode))
+        )
+
     times, nodes = _phase_samples(S, z, samples)
     nx = S.nx
-    du, neg, u_max, nu_max = 0.0, 0.0, 0.0, 0.0
+    du, neg, u_max, nu_max, c_neg, grow = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for k, (t, X) in enumerate(zip(times, nodes, strict=True)):
         j = _arc_of_samples(S, z, k, t)
+        cs = _state_values(S, X) if pure else None
+        prev: np.ndarray | None = None
         for i in range(t.size):
             s, lam = X[i, :nx], X[i, nx : 2 * nx]
             law = S.core.laws[k][int(j[i])]
             ua = np.asarray(law.u_star(s, lam)).ravel()
-            ug = np.asarray(glob.u_star(s, lam)).ravel()
+            ug = np.asarray(reference(law.mode).u_star(s, lam)).ravel()
             nus = np.asarray(law.path_law(s, lam)[0]).ravel()
             du = max(du, float(np.max(np.abs(ua - ug))))
             u_max = max(u_max, float(np.max(np.abs(ug))))
             nu_max = max(nu_max, float(np.max(np.abs(nus), initial=0.0)))
             neg = max(neg, float(np.max(-nus, initial=0.0)))
-    return max(du / (1.0 + u_max), neg / (1.0 + nu_max))
+            if cs is None:
+                continue
+            for r in pure:
+                if law.mode[nu + r] != (0.0, 0.0):
+                    c_neg = max(c_neg, -float(cs[i, r]) / (1.0 + float(np.abs(cs[:, r]).max())))
+                elif prev is not None and j[i] == j[i - 1]:
+                    grow = max(grow, float(nus[r] - prev[r]))
+            prev = nus
+    eta_neg = 0.0
+    if pure:
+        eta_neg = max((-e for w in S.core.eta_values(z) for e in w), default=0.0)
+    return max(du / (1.0 + u_max), (max(neg, grow, eta_neg)) / (1.0 + nu_max), c_neg)
 
 
 def path_multipliers(
@@ -2200,15 +2426,22 @@ def saturate(
         if not nr.converged:
             return S, nr, f"Newton with the clipped control: residual {nr.residual:.2e}"
     seen: set[Arcs] = set()
+    pure = bool(state_rows(ocp))
     for _ in range(SATURATION_ROUNDS):
-        arcs, switches = detect_arcs(S, nr.z)
+        etas = None
+        if path_rows(ocp):
+            arcs, switches, etas = _detect_path_arcs(S, nr.z, SATURATION_SAMPLES)
+        else:
+            arcs, switches = detect_arcs(S, nr.z)
         if arcs == S.core.arcs:
-            return S, nr, ""
+            # a pure state row's arcs are kept as they are: their signs decide
+            why = _state_signs(S, nr.z) if pure else ""
+            return S, nr, why
         if arcs in seen:
             return S, nr, "the arcs cycle between patterns"
         seen.add(arcs)
         new = S.with_arcs(arcs)
-        z0 = new.core.with_switches(S.core.strip_switches(nr.z), switches)
+        z0 = new.core.with_switches(S.core.strip_switches(nr.z), switches, etas)
         if verbose:
             print(f"  saturation {S.sequence}: arcs {_arcs_text(arcs, ocp.nu)}", file=sys.stderr)
         nr_new = newton(new, z0, tol=tol, verbose=verbose)
@@ -2216,15 +2449,95 @@ def saturate(
             return (
                 new,
                 nr_new,
-                f"Newton on the arcs {_arcs_text(arcs, ocp.nu)}: residual {nr_new.residual:.2e}",
+                f"Newton on the arcs {_arcs_text(arcs, ocp.nu)}: residual {nr_new.residual:.2e}"
+                + _touch_hint(new, nr_new.z),
             )
-        bad = _switch_order(new, nr_new.z)
+        bad = _touch_point(new, nr_new.z) or _switch_order(new, nr_new.z)
         if bad:
             return new, nr_new, bad
         S, nr = new, nr_new
         if arc_mismatch(S, nr.z) <= SATURATION_TOL:
             return S, nr, ""
     return S, nr, f"no consistent arcs after {SATURATION_ROUNDS} rounds"
+
+
+TOUCH_TOL = 1e-6
+"""A boundary arc of a pure state row shorter than this fraction of the horizon is a touch
+point (the constraint met at one instant), which the reference does not model."""
+
+
+def _boundary_arcs(S: ShootingSystem, z: np.ndarray) -> list[tuple[int, int, float, float]]:
+    """``(phase, row, entry, exit)`` of every boundary arc of a pure state row at ``z`` (its
+    phase's start or end where it has no junction there)."""
+    pure = state_rows(S.ocp)
+    if not pure or S.disc:
+        return []
+    nu = S.nu
+    starts = S.traj(z)[0].ravel()
+    ends = np.append(starts, S.horizon_of(z))
+    out = []
+    for k, (p, w) in enumerate(zip(S.core.arcs, S.switch_times(z), strict=True)):
+        cuts = [float(ends[k]), *w, float(ends[k + 1])]
+        for r in pure:
+            j = 0
+            while j < len(p):
+                if p[j][nu + r] != (0.0, 0.0):
+                    j += 1
+                    continue
+                first = j
+                while j < len(p) and p[j][nu + r] == (0.0, 0.0):
+                    j += 1
+                out.append((k, r, cuts[first], cuts[j]))
+    return out
+
+
+def _touch_point(S: ShootingSystem, z: np.ndarray) -> str:
+    """The reason a converged point is a touch point rather than an arc (a pure state
+    row's boundary arc shorter than :data:`TOUCH_TOL` of the horizon, or turned around:
+    its exit before its entry, as where the row is met only at an event), else empty."""
+    T = S.horizon_of(z)
+    for _, r, a, b in _boundary_arcs(S, z):
+        if b - a < 0:
+            where = f"between t = {b:.6g} and {a:.6g}"
+            return _touch_text(r, where, "its boundary arc's exit comes before its entry")
+        if b - a < TOUCH_TOL * T:
+            return _touch_text(r, f"at t = {a:.6g}", f"its boundary arc shrinks to {b - a:.2g}")
+    return ""
+
+
+def _touch_hint(S: ShootingSystem, z: np.ndarray) -> str:
+    """Where Newton failed on arcs with a pure state row's boundary arc whose exit came
+    before its entry (a touch point rather than an arc), the words that say so."""
+    for _, r, a, b in _boundary_arcs(S, z):
+        if np.isfinite(a) and np.isfinite(b) and b < a:
+            return (
+                f"; pure state row {r}'s boundary arc turned around (exit {b:.6g} before "
+                f"entry {a:.6g}): the constraint may be touched at one instant only, a touch "
+                "point, which the reference does not model; use method 'dt'"
+            )
+    return ""
+
+
+def _touch_text(r: int, where: str, how: str) -> str:
+    return (
+        f"pure state constraint row {r} is touched at one instant {where} ({how}): a touch "
+        "point, not a boundary arc; the reference does not model touch points (a costate "
+        "jump without an arc); use method 'dt'"
+    )
+
+
+def _state_signs(S: ShootingSystem, z: np.ndarray) -> str:
+    """Empty when the pure state rows' boundary arcs have the multipliers' signs of a
+    minimum (``nu >= 0`` and not growing on the arc, ``eta >= 0`` at its entry) and the
+    rows hold off them; else which does not (:func:`arc_mismatch`)."""
+    bad = arc_mismatch(S, z)
+    if bad <= SATURATION_TOL:
+        return ""
+    return (
+        f"the boundary arcs of the pure state constraints do not have the multipliers of a "
+        f"minimum (nu >= 0 non-increasing on each arc, eta >= 0 at its entry, c >= 0 off it): "
+        f"mismatch {bad:.2e} relative"
+    )
 
 
 def _switch_order(S: ShootingSystem, z: np.ndarray) -> str:

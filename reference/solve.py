@@ -176,8 +176,9 @@ def _events(k: int) -> str:
 
 def reference_supports(ocp: HybridOCP) -> str | None:
     """``None`` when the reference can solve ``ocp``, else the one-line reason (pure state
-    constraints, path constraints not affine in ``u``, a Hamiltonian not quadratic in
-    ``u``, bounds with a coupled control weight, a reset affine in an unbounded control)."""
+    constraints of order 2 or more, path constraints not affine in ``u``, a Hamiltonian not
+    quadratic in ``u``, bounds with a coupled control weight, a reset affine in an unbounded
+    control)."""
     return (
         reset_control_check(ocp)
         or hamiltonian_check(ocp)
@@ -960,6 +961,9 @@ def _solve_given(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> Refer
         grad=guess.grad, guess_ev=ev,
     )  # fmt: skip
     best = book.results.get(tuple(seq))
+    touch = _touch_reason(book.reasons.get(tuple(seq)))
+    if best is None and touch:
+        raise ConvergenceError(f"no HMP extremal with the sequence {seq}: {touch}; use method 'dt'")
     if best is None:
         raise ConvergenceError(
             f"no HMP extremal with the sequence {seq}: {book.reasons.get(tuple(seq))}. "
@@ -1087,6 +1091,16 @@ def _take(ocp: HybridOCP, book: _Book, guess: _Guess, p: Proposal) -> None:
         label = p.label or f"the source {p.source!r}"
         controls = np.asarray(p.controls, dtype=float)
         feasible = _feasible(ocp, p.evaluation)
+        if (
+            feasible
+            and ocp.path is not None
+            and p.evaluation is not None
+            and cost != float(p.evaluation.cost)
+        ):
+            # the cost is another control's than the one judged (the transcription's
+            # continuous u(t), judged as its grid control): between its nodes it may break
+            # the path constraints, so it bounds nothing
+            feasible = False
         book.known.append(_Known(label, cost, seq, controls, p.evaluation, feasible))
     if not p.solve or seq is None:
         return
@@ -1239,7 +1253,33 @@ def _verdict(
             "was found (the constraints may be infeasible from x0, or active on arcs the "
             "reference did not find); use method 'dt'"
         )
+    touch = _touch_note(book) if status in (Status.NOT_OPTIMAL, Status.INFEASIBLE) else ""
+    if touch:
+        # the extremal that would have answered lies outside what the reference models:
+        # say so instead of returning a worse one
+        raise ConvergenceError(f"{touch}; the reference's best answer otherwise: {message}")
     return status, message, cheapest, landscape
+
+
+def _touch_note(book: _Book) -> str:
+    """Where a sequence failed at a touch point of a pure state constraint (the constraint
+    met at one instant, which the reference does not model): the words that say so; else
+    empty."""
+    for key, why in book.reasons.items():
+        text = _touch_reason(why)
+        if text:
+            return f"{text} (with the events {list(key)}); use method 'dt'"
+    return ""
+
+
+def _touch_reason(why: str | None) -> str:
+    """The touch point a sequence's failure reasons name (its first), without the advice
+    to use dt; else empty."""
+    at = -1 if why is None else why.find("pure state constraint row")
+    if why is None or at < 0 or "touch point" not in why:
+        return ""
+    end = why.find("use method 'dt'", at)
+    return why[at : end if end >= 0 else len(why)].rstrip("; ")
 
 
 def _extremal_path_violation(ocp: HybridOCP, best: ReferenceResult) -> float:

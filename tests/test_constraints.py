@@ -66,8 +66,11 @@ def test_reference_saturates_active_bounds() -> None:
     assert u.max() <= 2.0 + 1e-12 and u.max() > 2.0 - 1e-6  # the bound is reached
 
 
-def test_reference_says_it_cannot_handle_path_constraints() -> None:
-    with pytest.raises(hybridoc.SceneError, match="path"):
+def test_reference_refuses_a_height_ceiling_of_order_2() -> None:
+    """h <= 2 is a pure state constraint of order 2 (h' = v, v' = u - 9.81): the reference
+    handles order 1 only (tests/test_reference_state_constraints.py) and says so, naming
+    the order and dt."""
+    with pytest.raises(hybridoc.SceneError, match="row 0 of order 2.*'dt'"):
         hybridoc.solve(ball(path=True), "reference")
 
 

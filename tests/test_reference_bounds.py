@@ -182,15 +182,16 @@ def test_inactive_bounds_change_nothing() -> None:
     assert loose.reference.system.core.n_switch == 0
 
 
-def test_pure_state_constraints_stay_unsupported_with_a_precise_message() -> None:
-    """A path constraint independent of u (x <= 1.2) is a pure state constraint: refused,
-    naming it and dt (mixed constraints c(s, u) are solved: tests/test_reference_path.py)."""
+def test_pure_state_constraints_of_order_2_stay_unsupported_with_a_precise_message() -> None:
+    """x <= 1.2 on a double integrator is a pure state constraint of order 2: refused,
+    naming it, its order and dt (mixed constraints c(s, u): tests/test_reference_path.py;
+    pure state constraints of order 1: tests/test_reference_state_constraints.py)."""
     s, u = ca.SX.sym("s", 2), ca.SX.sym("u")
     ocp = HybridOCP.from_expressions(
         s, u, f=ca.vertcat(s[1], u), L=0.01 * u**2, phi=(s[0] - 2.0) ** 2, guards=[],
         x0=[0.0, 0.0], horizon=1.0, steps=50, path=1.2 - s[0], name="ceiling",
     )  # fmt: skip
-    with pytest.raises(hybridoc.SceneError, match="pure state constraints.*independent of u.*'dt'"):
+    with pytest.raises(hybridoc.SceneError, match="pure state constraints.*order 2.*'dt'"):
         hybridoc.solve(ocp, "reference")
 
 

@@ -6,7 +6,8 @@ each junction is an unknown time with ``c_r(s, u*) = 0`` under the law without t
 (``reference/shooting.py``). Checked against a closed form derived here (a scalar
 integrator under ``u <= 1 - x``, its control simulated by SciPy), against dt on a fine mesh
 (a bouncing ball with two mixed rows, one active before the bounce and one after), through
-the judge and a save/load round trip, and for the refusal of pure state constraints.
+the judge and a save/load round trip, and for the refusal of pure state constraints of
+order 2 (order 1: tests/test_reference_state_constraints.py).
 """
 
 from __future__ import annotations
@@ -198,9 +199,11 @@ def test_bouncing_ball_with_mixed_constraints_agrees_with_dt() -> None:
     assert errors[0] > 8 * errors[1]
 
 
-def test_pure_state_constraint_is_refused_with_exit_2(tmp_path, capsys) -> None:
-    """x <= 1.2 does not involve u: refused with a one-line reason that names pure state
-    constraints and dt; the CLI exits 2."""
+def test_pure_state_constraint_of_order_2_is_refused_with_exit_2(tmp_path, capsys) -> None:
+    """x <= 1.2 on a double integrator is a pure state constraint of order 2 (u first
+    appears in its second derivative; order 1 is handled, tests/
+    test_reference_state_constraints.py): refused with a one-line reason that names the
+    order and dt; the CLI exits 2."""
     file = tmp_path / "ceiling.py"
     file.write_text(
         "import casadi as ca\n"
@@ -216,7 +219,7 @@ def test_pure_state_constraint_is_refused_with_exit_2(tmp_path, capsys) -> None:
     err = capsys.readouterr().err
     assert rc == 2
     assert len(err.strip().splitlines()) == 1
-    assert "pure state constraints" in err and "row(s) 0 independent of u" in err
+    assert "pure state constraints" in err and "row 0 of order 2" in err
     assert "'dt'" in err
 
 

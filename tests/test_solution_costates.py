@@ -100,3 +100,20 @@ def test_the_costate_on_an_active_path_arc_carries_the_multiplier() -> None:
     got = sol.sample(ts).costates[:, 0]
     tau = np.maximum(ts - cf["t1"], 0.0)
     np.testing.assert_allclose(got, -cf["k"] * np.cosh(tau), rtol=0, atol=1e-8)
+
+
+def test_the_costate_jumps_at_a_state_constraints_entry() -> None:
+    """The plateau of test_reference_state_constraints (x' = u, min int u^2/2 - x, x(T) = 0,
+    x <= a): lambda' = 1 everywhere (the boundary arc holds c1 = -u = 0, whose c1_x = 0), so
+    lambda = t - t1 before the entry, where u = -lambda reaches 0, and t - t2 after it: the
+    entry jump lambda(t1+) - lambda(t1-) = eta grad c = -(t2 - t1)."""
+    from test_reference_state_constraints import plateau, plateau_closed_form
+
+    cf = plateau_closed_form()
+    sol = hybridoc.solve(plateau(), "reference")
+    assert sol.success, sol.message
+    ts = np.linspace(0.0, 2.0, 31) + 0.011
+    ts[-1] = 2.0
+    got = sol.sample(ts).costates[:, 0]
+    exact = np.where(ts < cf["t1"], ts - cf["t1"], ts - cf["t2"])
+    np.testing.assert_allclose(got, exact, rtol=0, atol=1e-8)
