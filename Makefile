@@ -8,7 +8,7 @@ STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
 PKG_DIRS := hybridoc hybridoc/cli hybridoc/workflows reference solvers solvers/contacts problems problems/library problems/scenes
 
-.PHONY: run test test-all fuzz lint format docs docs-check screenshots bench install clean
+.PHONY: run test test-all fuzz lint format docs docs-check screenshots bench bench-summary install clean
 
 # The main job: cross-validation of reference, transcription and gradient descent on both
 # of the paper's problems; tables on stdout, figures and JSON reports in ./out.
@@ -73,7 +73,12 @@ screenshots:
 	done
 
 bench: $(STAMP)
-	@set -e; for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f; done
+	@set -e; for f in benchmarks/bench_*.py; do \
+		[ "$$f" = benchmarks/bench_all.py ] && continue; echo "== $$f"; $(BIN)/python $$f; done
+
+# Issue #18's one table: every speed target beside its measured value, in one run.
+bench-summary: $(STAMP)
+	$(BIN)/python benchmarks/bench_all.py
 
 install: $(STAMP)
 
