@@ -28,11 +28,13 @@ Resets that depend on the control
     impact. On the N-grid (the judge of piecewise-constant controls, gradient descent) the
     reset reads the control of the grid cell in which the event happens, and the judge's
     adjoint adds ``lambda(gamma+)^T dg/du`` to that cell's gradient. In continuous time
-    (the transcription) the reset's control at each event is a decision of its own, ``v_k``
-    in the control bounds: a single instant carries no running cost, so ``v_k`` minimises
-    ``lambda(gamma+)^T g(s(gamma-), v)`` (a linear dependence needs bounds for a minimum to
-    exist). Such a Solution stores the ``v_k`` (``arrays["event_controls"]``) and the judge
-    applies them at its events. The HMP reference does not solve these problems yet.
+    (the transcription, the reference) the reset's control at each event is a decision of
+    its own, ``v_k`` in the control bounds: a single instant carries no running cost, so
+    ``v_k`` minimises ``lambda(gamma+)^T g(s(gamma-), v)`` (a linear dependence needs bounds
+    for a minimum to exist). Such a Solution stores the ``v_k``
+    (``arrays["event_controls"]``) and the judge
+    applies them at its events. The transcription and the HMP reference (where ``v_k`` are
+    shooting unknowns with their own stationarity condition) solve these problems.
 
 Terminal constraints and a free final time
     ``terminal_eq`` (``h(s(T)) = 0``) and ``terminal_ineq`` (``h(s(T)) >= 0``) are hard
