@@ -776,7 +776,10 @@ def policy_figures(report: PolicyReport, labels: list[str], title: str) -> dict[
         ax.legend()
     ax.set_xlabel("relative cost gap to the reference [%]")
     ax.set_ylabel("draws")
-    ax.set_title(f"{title}: gap over {int(ok.sum())} draws", fontsize=10)
+    n_bad = int(np.sum(c["status"] == "infeasible"))
+    # the feasible draws only: an infeasible policy's gap is not its gap
+    extra = f" ({n_bad} with the policy infeasible: not compared)" if n_bad else ""
+    ax.set_title(f"{title}: gap over {int(ok.sum())} draws{extra}", fontsize=10)
     hist = fig
 
     fig = Figure(figsize=(6.4, 5.2), layout="tight")
