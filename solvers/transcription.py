@@ -28,6 +28,7 @@ reference to round-off.
 
 from __future__ import annotations
 
+import bisect
 import math
 import sys
 import time
@@ -666,8 +667,14 @@ class DTResult:
     the sequence depends on the control."""
 
     def control_function(self) -> Callable[[float], np.ndarray]:
-        """The continuous-time control: per element, the polynomial through the Radau points."""
-        return lambda t: self.control_at(np.array([t]))[0]
+        """The continuous-time control: per element, the polynomial through the Radau points
+        (:meth:`control_at` at one time, bit for bit, for the judge's calls one at a time)."""
+        nlp = self._nlp
+        U_all = np.concatenate(self.controls, axis=1)
+        vals = U_all.reshape(nlp.ocp.nu, -1, nlp.d)
+        return _pieces_at_one_time(
+            self.element_bounds, nlp.rad.tau[1:], vals, nlp.ocp.u_min, nlp.ocp.u_max
+        )
 
     def control_at(self, t: np.ndarray) -> np.ndarray:
         """The control at the times ``t`` (vectorised), shape ``(len(t), nu)``."""
@@ -1662,6 +1669,52 @@ def _cell_averages(
     return out / np.diff(grid)[:, None]
 
 
+def _pieces_at_one_time(
+    bounds: np.ndarray,
+    nodes: np.ndarray,
+    values: np.ndarray,
+    lo: np.ndarray | float,
+    hi: np.ndarray | float,
+) -> Callable[[float], np.ndarray]:
+    """``t -> lagrange_pieces([t], bounds, nodes, values, lo, hi)[0]``, bit for bit.
+
+    The judge calls a continuous control at every stage of its integrator, one time at a
+    time (6000 to 10000 calls per transcription on the hopper), where
+    :func:`~hybridoc.solution.lagrange_pieces`'s dozen array operations on one-element
+    arrays cost about 40 us a call idle. Here the element and the Lagrange basis are plain
+    floats, computed by the same operations in the same order (so the same roundings), and
+    the weighted sum and the clip are the very ``einsum`` and ``clip`` calls of
+    ``lagrange_pieces`` on arrays of the same shapes and layouts: the einsum's summation
+    order depends on its SIMD kernel (two lanes here, not left to right), which only the
+    same call reproduces on every machine.
+    """
+    b = np.asarray(bounds, dtype=float).tolist()
+    last = len(b) - 2
+    nd = np.asarray(nodes, dtype=float).tolist()
+    d = len(nd)
+    den = [[nd[j] - nd[m] for m in range(d)] for j in range(d)]
+    V = np.asarray(values, dtype=float)
+    # each element's values as lagrange_pieces indexes them (values[:, idx, :], idx an array)
+    per = [V[:, np.array([e]), :] for e in range(V.shape[1])]
+    others = [[m for m in range(d) if m != j] for j in range(d)]
+
+    def u(t: float) -> np.ndarray:
+        t = float(t)
+        e = min(max(bisect.bisect_right(b, t) - 1, 0), last)
+        a = b[e]
+        s = (t - a) / (b[e + 1] - a)
+        basis = []
+        for j in range(d):
+            w = 1.0
+            dj = den[j]
+            for m in others[j]:
+                w *= (s - nd[m]) / dj[m]
+            basis.append(w)
+        return np.clip(np.einsum("nj,unj->nu", np.array([basis]), per[e]), lo, hi)[0]
+
+    return u
+
+
 def control_function(solution: Any) -> Callable[[float], np.ndarray]:
     """The continuous-time control ``u(t)`` of a Solution returned by :func:`solve_dt`.
 
@@ -1669,7 +1722,7 @@ def control_function(solution: Any) -> Callable[[float], np.ndarray]:
     collocation degree, so it also works for a saved and reloaded solution.
     """
     pp = _PiecewisePolynomial(solution)
-    return lambda t: pp.at(np.array([t]))[0]
+    return _pieces_at_one_time(pp.eb, pp.rad.tau[1:], pp.vals, pp.lo, pp.hi)
 
 
 def resample_controls(solution: Any, grid: np.ndarray) -> np.ndarray:
