@@ -960,25 +960,82 @@ def _solve_given(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> Refer
         seq, guess_times(ocp, seq, ev), guess.controls, "given", estimate=guess.estimate,
         grad=guess.grad, guess_ev=ev,
     )  # fmt: skip
-    best = book.results.get(tuple(seq))
-    touch = _touch_reason(book.reasons.get(tuple(seq)))
+    key = tuple(seq)
+    best = book.results.get(key)
+    touch = _touch_reason(book.reasons.get(key))
     if best is None and touch:
         raise ConvergenceError(f"no HMP extremal with the sequence {seq}: {touch}; use method 'dt'")
-    if best is None:
-        raise ConvergenceError(
-            f"no HMP extremal with the sequence {seq}: {book.reasons.get(tuple(seq))}. "
-            "hint: start from a control with these events (--initial) or check that the "
-            "sequence is feasible"
-        )
-    if run.verify and not book.verify(tuple(seq)):
-        raise ConvergenceError(
-            f"the extremal of {seq} does not re-simulate to its own events: "
-            f"{book.verdicts[tuple(seq)][1]}"
-        )
+    if best is None or (run.verify and not book.verify(key)):
+        found = None
+        if _discovery_may_find(ocp, seq, book.reasons.get(key)):
+            found = _given_by_discovery(ocp, run, book, guess)
+        if found is not None:
+            best = found
+        elif best is None:
+            raise ConvergenceError(
+                f"no HMP extremal with the sequence {seq}: {book.reasons.get(key)}; nor did "
+                "the discovery without the sequence find one. hint: start from a control "
+                "with these events (--initial) or check that the sequence is feasible"
+            )
+        else:
+            raise ConvergenceError(
+                f"the extremal of {seq} does not re-simulate to its own events: "
+                f"{book.verdicts[key][1]}; nor did the discovery without the sequence find "
+                "one that does"
+            )
     # the only optimality claim of a given sequence is within it: a cheaper control with the
     # same events means Newton stopped at a worse stationary point
     _check_simultaneous(book, best)
     return best
+
+
+def _discovery_may_find(ocp: HybridOCP, seq: list[str], why: str | None) -> bool:
+    """Whether the discovery may find the extremal of a given sequence that Newton from the
+    guess did not: not on a disc scene (its sequences start from the NLP over the sequence
+    as well), not for a sequence no control has (an infinite lower bound), nor where Newton
+    converged and the integration could not reach ``rtol`` (refine's reasons name it;
+    every other start meets the same limit)."""
+    if is_disc_scene(ocp) or math.isinf(lower_bound(ocp, seq)):
+        return False
+    return why is None or ("(rtol " not in why and "for rtol " not in why)
+
+
+def _given_by_discovery(
+    ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess
+) -> ReferenceResult | None:
+    """The given sequence's extremal as the discovery finds it, where Newton from the guess
+    (and the known controls) found none or one that does not re-simulate to its own events:
+    coulomb-block's ``['reverse']`` from the guess converges to a worse extremal (cost 1.41)
+    whose re-simulation chatters between the two friction guards, while the multi-start's
+    control starts the optimum (0.639); friction-patch-free-time's ``['enter-rough']`` is
+    found only from the costates of the no-event extremal cut at its re-simulated event.
+
+    The discovery (the sources, the enumeration, the sequences of re-simulations) runs on a
+    book of its own, so that the given sequence's answer stays about that sequence (an
+    ill-posed cheaper sequence met on the way does not turn it into an error); its verified
+    extremal of the sequence, if any, moves into ``book``, and so do the controls it met
+    (the rivals that can make the answer ``not-optimal``) and the sources it ran."""
+    key = tuple(run.seq or ())
+    book.say(f"{list(key)}: not found from the guess; the discovery without the sequence")
+    book.progress.stage("the discovery without the given sequence")
+    sub = _Book(
+        ocp, run.tol, run.verbose, book.starters, run.rtol, progress=book.progress,
+        deadline=book.deadline,
+    )  # fmt: skip
+    sub.known = list(book.known)
+    _discover(ocp, run, sub, guess)
+    book.verify_time += sub.verify_time
+    book.known = sub.known
+    book.sources += sub.sources
+    res = sub.results.get(key)
+    if res is None or not sub.verify(key):
+        return None
+    book.results[key] = sub.results[key]
+    book.verdicts[key] = sub.verdicts[key]
+    book.reasons.pop(key, None)
+    book.origins[key] = f"the discovery ({sub.origins.get(key, '')})"
+    book.times[key] = book.times.get(key, 0.0) + sub.times.get(key, 0.0)
+    return book.results[key]
 
 
 def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:

@@ -125,3 +125,30 @@ def test_reference_control_is_the_judged_control_and_thread_safe(bouncing_ball):
         th.join()
     for k in range(4):
         assert _same_bits(got[k], want)
+
+
+@pytest.mark.parametrize(
+    ("name", "sequence"),
+    [
+        ("coulomb-block", ["reverse"]),
+        # about 5 s (two discoveries on a free final time)
+        pytest.param("friction-patch-free-time", ["enter-rough"], marks=pytest.mark.slow),
+    ],
+)
+def test_a_given_sequence_newton_misses_from_the_guess_is_found_by_the_discovery(name, sequence):
+    # coulomb-block: Newton from the guess converges to a worse extremal (1.41) whose
+    # re-simulation chatters between the friction guards; friction-patch-free-time: Newton
+    # from the guess does not converge. Both failed with the sequence given, while the
+    # default solve finds that very sequence's extremal: the given sequence now gets the
+    # same extremal, reported as an extremal of that sequence
+    ocp = load_problem(name)
+    found = solve_reference(ocp)
+    assert found.info["sequence"] == sequence and found.status.value == "success"
+    given = solve_reference(ocp, sequence=sequence)
+    assert given.status.value == "extremal"
+    assert given.info["sequence"] == sequence
+    # the same extremal: the steps per phase a structure remembers from its last solve
+    # move the last digit of a second solve
+    assert abs(given.cost - found.cost) <= 1e-12 * abs(found.cost)
+    np.testing.assert_allclose(given.info["event_times"], found.info["event_times"], rtol=1e-9)
+    assert any("discovery" in c["origin"] for c in given.info["candidates"])
