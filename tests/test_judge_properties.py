@@ -41,6 +41,17 @@ oracle = pytest.importorskip("oracle")
 
 
 # ------------------------------------------------------------------ random scenes
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _virtual_machine() -> Any:
+    """No C compilation here: every random example is a new structure, which the background
+    compiler would build once each for nothing (the suite turns compilation on)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HYBRIDOC_CODEGEN", "0")
+        yield
+
+
 @st.composite
 def scenes(draw: Any, *, max_discs: int = 6, max_walls: int = 4, elastic: bool = False) -> Any:
     """A valid random disc scene and random controls (see the module notes)."""

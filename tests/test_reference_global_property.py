@@ -61,6 +61,17 @@ COVERAGE_FIELDS = {
 
 
 # ------------------------------------------------------------------ random small scenes
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _virtual_machine() -> Any:
+    """No C compilation here: every random example is a new structure, which the background
+    compiler would build once each for nothing (the suite turns compilation on)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HYBRIDOC_CODEGEN", "0")
+        yield
+
+
 def _clear(p: np.ndarray, r: float, discs: list[Disc], gap: float) -> bool:
     return all(np.hypot(*(p - np.array(d.position))) >= r + d.radius + gap for d in discs)
 
