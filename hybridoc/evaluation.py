@@ -156,6 +156,25 @@ class Evaluation:
             and self.terminal_violation <= TERMINAL_TOL
         )
 
+    def infeasibility(self) -> str:
+        """What the control violates, in words (``""`` when :attr:`feasible`): the bounds,
+        the path constraints, the terminal constraints or the required final mode, each
+        with its largest violation."""
+        parts = []
+        if self.bound_violation > 1e-9:
+            parts.append(f"the control bounds by {self.bound_violation:.3g}")
+        if self.path_violation > 1e-9:
+            parts.append(f"the path constraints by {self.path_violation:.3g}")
+        if self.terminal_violation > TERMINAL_TOL:
+            required = self.ocp.final_mode
+            if required is not None and self.final_mode != required:
+                parts.append(
+                    f"the required final mode {required!r} (it ends in {self.final_mode!r})"
+                )
+            else:
+                parts.append(f"the terminal constraints by {self.terminal_violation:.3g}")
+        return "" if not parts else "the controls violate " + " and ".join(parts)
+
     def sample(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
         """States at any times in ``[0, T]``, after any jump at exactly that time.
 

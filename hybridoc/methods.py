@@ -514,4 +514,20 @@ def solve(
     t0 = time.perf_counter()
     sol = m.function()(ocp, initial=initial, progress=progress, **options)
     sol.timings.setdefault("wall_time_s", time.perf_counter() - t0)
+    _check_final_mode(ocp, sol)
     return sol
+
+
+def _check_final_mode(ocp: HybridOCP, sol: Solution) -> None:
+    """A successful Solution that ends outside the problem's required final mode is
+    infeasible, whatever the method (its events are the judge's)."""
+    if ocp.final_mode is None or not sol.success:
+        return
+    visited = sol.modes
+    last = ocp.initial_mode if not visited else visited[-1]
+    if last != ocp.final_mode:
+        sol.set_status(
+            "infeasible",
+            f"the control ends in mode {last!r}, not in the required final mode "
+            f"{ocp.final_mode!r} (judged)",
+        )

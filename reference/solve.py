@@ -397,8 +397,9 @@ def path_violation(
 
 def _feasible(ocp: HybridOCP, ev: Evaluation | None) -> bool:
     """Whether a judged control is feasible for ``ocp``'s path constraints (between the grid
-    times too, :func:`path_violation`), terminal constraints and final-time bounds (always,
-    without them): an infeasible control's cost bounds nothing."""
+    times too, :func:`path_violation`), required final mode, terminal constraints and
+    final-time bounds (always, without them): an infeasible control's cost bounds
+    nothing."""
     if ocp.path is not None:
         if ev is None:
             return False
@@ -406,6 +407,9 @@ def _feasible(ocp: HybridOCP, ev: Evaluation | None) -> bool:
             if path_violation(ocp, ev) > PATH_TOL:
                 return False
         except HybridocError:
+            return False
+    if ocp.final_mode is not None:
+        if ev is None or ev.final_mode != ocp.final_mode:
             return False
     if not (ocp.has_terminal_constraints or ocp.free_horizon):
         return True

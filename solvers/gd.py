@@ -747,10 +747,7 @@ def _descend(
 
 
 def _infeasible(ev: Evaluation) -> str:
-    return (
-        f"the controls violate the bounds by {ev.bound_violation:.3g} and the path "
-        f"constraints by {ev.path_violation:.3g}"
-    )
+    return ev.infeasibility() or "the judge finds the controls infeasible"
 
 
 def _status(

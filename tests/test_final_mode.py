@@ -44,6 +44,8 @@ def _laps(**kwargs) -> HybridOCP:
         name="laps",
     )
     args.update(kwargs)
+    if callable(args["phi"]):  # a terminal cost written in the problem's own symbol
+        args["phi"] = args["phi"](s)
     return HybridOCP.from_modes(s, u, **args)
 
 
@@ -102,3 +104,17 @@ def test_the_reference_and_dt_meet_the_closed_form_in_the_required_mode() -> Non
     assert dt.cost == pytest.approx(9 * math.pi**2, rel=1e-7)
     with pytest.raises(SceneError, match="requires the final mode 'odd'"):
         hybridoc.solve(p, method="dt", sequence=[])
+
+
+def test_a_method_that_ends_in_another_mode_is_infeasible_whatever_it_is() -> None:
+    """Only a final mode, no terminal constraint (a penalty pulls theta towards pi): gd from
+    zero never laps and says so instead of a success; the reference laps once (its cost
+    from the judge, c^2 + 10 (c - 3 pi)^2 at c = 30 pi / 11)."""
+    p = _laps(terminal_eq=None, phi=lambda s: 10 * (s - math.pi) ** 2, final_mode="odd")
+    gd = hybridoc.solve(p, "gd", iters=30)
+    assert gd.status == "infeasible" and not gd.success
+    assert "the required final mode 'odd' (it ends in 'even')" in gd.message
+    ref = hybridoc.solve(p, "reference")
+    assert ref.success and ref.modes[-1] == "odd"
+    c = 30 * math.pi / 11
+    assert ref.cost == pytest.approx(c**2 + 10 * (c - 3 * math.pi) ** 2, rel=1e-9)
