@@ -816,12 +816,26 @@ def expected_table() -> dict[str, dict[str, Any]]:
 #     Without a reversal the block never moves left, so ``x(T) >= 0`` and ``J >= w_x
 #     x_target^2`` (the defaults' target lies behind the start); two reversals: the relaxed
 #     lower bound.
+# two_tanks
+#     Every mode is affine, ``s' = A_q s + b u + d_q``, the cost ``eps u^2`` plus a quadratic
+#     of ``s(T)``: the HMP's ``u = -lambda_1 / (2 eps)`` makes state and costate one linear
+#     system per mode, ``z = (s, lambda, 1)``, ``z' = M_q z``, solved by a matrix exponential
+#     (:func:`small_expm`, Taylor series with scaling and squaring).
+#     For fixed event times the unknowns ``(lambda(0), pi_1, ..., pi_K)`` (the costate jumps
+#     ``lambda(gamma+) = lambda(gamma-) - pi grad psi``) enter every condition linearly (the
+#     guards at the event times, ``lambda(T) = grad phi``): one linear solve gives the
+#     minimum of the convex problem with those times imposed, its cost exactly by Van Loan's
+#     integral of ``lambda_1^2`` (again an exponential). Minimised over the event times
+#     (grid, Nelder-Mead), then polished to Hamiltonian continuity at every event (``root``).
+#     Sequences that end apart or spilling leave ``h2(T) < p``: ``J >= w (r - p)^2``; one
+#     more event (``backflow``): the relaxed lower bound (:func:`tanks_alternatives`).
 
 
 #: configuration name -> (problem function, keyword arguments) of the problems with modes
 MODE_CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
     "hopper": ("hopper", {}),
     "coulomb_block": ("coulomb_block", {}),
+    "two_tanks": ("two_tanks", {}),
 }
 
 
@@ -1177,10 +1191,228 @@ def _coulomb_optimum(name: str) -> dict[str, Any]:
     }
 
 
+def small_expm(M: np.ndarray) -> np.ndarray:
+    """``exp(M)`` of a small matrix: scaling and squaring of the Taylor series to rounding
+    (scipy's Pade code on 5 x 5 matrices is ~100x slower when BLAS threads are oversubscribed;
+    here the norms stay below ~20)."""
+    s = max(0, math.ceil(math.log2(max(np.max(np.sum(np.abs(M), axis=1)), 1e-300) / 0.25)))
+    A = M / 2.0**s
+    out, term = np.eye(M.shape[0]), np.eye(M.shape[0])
+    for k in range(1, 19):  # 0.25^19 / 19! ~ 1e-29
+        term = term @ A / k
+        out = out + term
+    for _ in range(s):
+        out = out @ out
+    return out
+
+
+@dataclass
+class TankModel:
+    """The two tanks restated by hand from their parameters: per mode ``(A, b, d)`` of
+    ``s' = A s + b u + d``, per guard ``(source, target, n, offset)`` with
+    ``psi = n . s + offset``."""
+
+    P: dict[str, Any]
+    modes: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(init=False)
+    guards: dict[str, tuple[str, str, np.ndarray, float]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        a, c, p = self.P["pipe_conductance"], self.P["outflow"], self.P["pipe_height"]
+        b = np.array([1.0, 0.0])
+        self.modes = {
+            "apart": (np.array([[0.0, 0.0], [0.0, -c]]), b, np.zeros(2)),
+            "spilling": (np.array([[-a, 0.0], [a, -c]]), b, np.array([a * p, -a * p])),
+            "connected": (np.array([[-a, a], [a, -a - c]]), b, np.zeros(2)),
+            "backflowing": (np.array([[0.0, a], [0.0, -a - c]]), b, np.array([-a * p, a * p])),
+        }
+        e1, e2 = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+        self.guards = {
+            "spill": ("apart", "spilling", -e1, p),
+            "spill-stops": ("spilling", "apart", e1, -p),
+            "connect": ("spilling", "connected", -e2, p),
+            "disconnect": ("connected", "spilling", e2, -p),
+            "backflow": ("connected", "backflowing", e1, -p),
+            "reconnect": ("backflowing", "connected", -e1, p),
+            "backflow-stops": ("backflowing", "apart", e2, -p),
+        }
+
+    def f(self, mode: str, s: np.ndarray, u: float) -> np.ndarray:
+        A, b, d = self.modes[mode]
+        return A @ s + b * u + d
+
+    def modes_along(self, seq: list[str]) -> list[str]:
+        out = ["apart"]
+        for g in seq:
+            src, dst, _, _ = self.guards[g]
+            assert src == out[-1], (seq, g)
+            out.append(dst)
+        return out
+
+    def hamiltonian_matrix(self, mode: str) -> np.ndarray:
+        """``M`` of ``z' = M z``, ``z = (s, lambda, 1)``, under ``u = -lambda_1 / (2 eps)``."""
+        A, b, d = self.modes[mode]
+        M = np.zeros((5, 5))
+        M[:2, :2] = A
+        M[:2, 2:4] = -np.outer(b, b) / (2 * self.P["eps"])
+        M[:2, 4] = d
+        M[2:4, 2:4] = -A.T
+        return M
+
+
+def tanks_solve(
+    tm: TankModel, seq: list[str], gammas: Any
+) -> tuple[float, list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """The minimum of the sequence-fixed problem with the event times ``gammas`` imposed.
+
+    Returns the cost, ``z`` at the start of each phase (after the jump), ``z`` at each event
+    before the jump, and the multipliers ``pi``."""
+    P = tm.P
+    K, T, eps = len(seq), P["horizon"], P["eps"]
+    bounds = [0.0, *map(float, gammas), T]
+    modes = tm.modes_along(seq)
+    # z = Z @ (lambda_0 (2), pi_1..pi_K, 1): affine in the unknowns; each condition is a
+    # row over the same vector that must vanish
+    n = 2 + K + 1
+    one = np.eye(n)[-1]
+    Z = np.zeros((5, n))
+    Z[:2, -1] = P["initial_levels"]
+    Z[2:4, :2] = np.eye(2)
+    Z[4, -1] = 1.0
+    conditions, starts_Z, minus_Z = [], [], []
+    for k in range(K + 1):
+        starts_Z.append(Z)
+        Z = small_expm(tm.hamiltonian_matrix(modes[k]) * (bounds[k + 1] - bounds[k])) @ Z
+        if k < K:
+            minus_Z.append(Z)
+            _, _, nrm, off = tm.guards[seq[k]]
+            conditions.append(nrm @ Z[:2] + off * one)  # psi(s(gamma_k-)) = 0
+            Z = Z.copy()
+            Z[2:4, 2 + k] -= nrm  # lambda(gamma+) = lambda(gamma-) - pi_k n
+    w, r = P["weight"], P["target_level"]
+    # lambda(T) = grad phi = (0, 2 w (h2(T) - r))
+    conditions.append(Z[2])
+    conditions.append(Z[3] - 2 * w * (Z[1] - r * one))
+    C = np.array(conditions)
+    x = np.append(np.linalg.solve(C[:, :-1], -C[:, -1]), 1.0)
+    zs = [S @ x for S in starts_Z]
+    zm = [S @ x for S in minus_Z]
+    cost = w * ((Z @ x)[1] - r) ** 2
+    Q = np.zeros((5, 5))
+    Q[2, 2] = 1.0 / (4 * eps)  # eps u^2 = lambda_1^2 / (4 eps)
+    for k in range(K + 1):
+        M = tm.hamiltonian_matrix(modes[k])
+        big = np.block([[-M.T, Q], [np.zeros((5, 5)), M]])
+        F = small_expm(big * (bounds[k + 1] - bounds[k]))
+        gram = F[5:, 5:].T @ F[:5, 5:]  # Van Loan: int_0^tau exp(M^T t) Q exp(M t) dt
+        cost += zs[k] @ gram @ zs[k]
+    return float(cost), zs, zm, x[2 : 2 + K]
+
+
+def tanks_hamiltonian_jumps(tm: TankModel, seq: list[str], gammas: Any) -> np.ndarray:
+    """``H(gamma+) - H(gamma-)`` at each event of the imposed-times optimum."""
+    _, zs, zm, _ = tanks_solve(tm, seq, gammas)
+    modes, eps = tm.modes_along(seq), tm.P["eps"]
+
+    def ham(mode: str, z: np.ndarray) -> float:
+        u = -z[2] / (2 * eps)
+        return eps * u * u + z[2:4] @ tm.f(mode, z[:2], u)
+
+    return np.array([ham(modes[k + 1], zs[k + 1]) - ham(modes[k], zm[k]) for k in range(len(seq))])
+
+
+def tanks_state(
+    tm: TankModel, seq: list[str], gammas: list[float], zs: list[np.ndarray], t: float
+) -> tuple[str, np.ndarray]:
+    """The mode and ``z = (s, lambda, 1)`` at time ``t`` of an imposed-times optimum."""
+    bounds = [0.0, *gammas, tm.P["horizon"]]
+    k = int(np.clip(np.searchsorted(bounds, t, side="right") - 1, 0, len(seq)))
+    mode = tm.modes_along(seq)[k]
+    return mode, small_expm(tm.hamiltonian_matrix(mode) * (t - bounds[k])) @ zs[k]
+
+
+def _tanks_minimum(
+    tm: TankModel, seq: list[str], grid: int = 12, xatol: float = 1e-6
+) -> tuple[float, np.ndarray]:
+    """``min V`` over ordered event times: the best of a grid, Nelder-Mead from it."""
+    T = tm.P["horizon"]
+    pts = np.linspace(0.0, T, grid + 2)[1:-1]
+
+    def value(g: np.ndarray) -> float:
+        if np.any(np.diff(np.concatenate([[0.0], g, [T]])) <= 1e-6):
+            return math.inf
+        try:
+            return tanks_solve(tm, seq, g)[0]
+        except np.linalg.LinAlgError:
+            return math.inf
+
+    start = min(itertools.combinations(pts, len(seq)), key=lambda g: value(np.array(g)))
+    res = so.minimize(
+        value, np.array(start), method="Nelder-Mead",
+        options={"xatol": xatol, "fatol": 1e-13, "maxfev": 1000},
+    )  # fmt: skip
+    return float(res.fun), np.asarray(res.x)
+
+
+def _tanks_optimum(name: str) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    ocp = build_mode_problem(name)
+    tm = TankModel(ocp.meta["params"])
+    P = tm.P
+    seq = ["spill", "connect"]
+    v_nm, g_nm = _tanks_minimum(tm, seq)
+    sol = so.root(lambda g: tanks_hamiltonian_jumps(tm, seq, g), g_nm, options={"xtol": 1e-15})
+    gammas = [float(g) for g in sol.x]
+    cost, zs, zm, pis = tanks_solve(tm, seq, gammas)
+    eps = P["eps"]
+
+    def u(t: float) -> np.ndarray:
+        return np.array([-tanks_state(tm, seq, gammas, zs, t)[1][2] / (2 * eps)])
+
+    bound = P["weight"] * (P["target_level"] - P["pipe_height"]) ** 2
+    return {
+        "name": name,
+        "ocp": ocp,
+        "model": tm,
+        "cost": cost,
+        "sequence": seq,
+        "modes": tm.modes_along(seq),
+        "event_times": gammas,
+        "control_callable": u,
+        "breakpoints": gammas,
+        "phase_starts": zs,
+        # what ends apart or spilling has h2(T) < p <= r; more: tanks_alternatives
+        "alternatives": {"ends below the pipe (any number of events)": bound},
+        "hmp": {
+            "hamiltonian_jumps": tanks_hamiltonian_jumps(tm, seq, gammas),
+            "multipliers": pis,
+            "costate0": zs[0][2:4],
+            "nelder_mead": (v_nm, g_nm),
+        },
+        "method": (
+            "exact sequence-fixed optimum: the linear state-costate system per mode by expm, "
+            "one linear solve for the costate and jump multipliers at fixed event times, "
+            "Van Loan's integral for the cost; minimised over the event times (grid, "
+            "Nelder-Mead), polished to Hamiltonian continuity (root)"
+        ),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def tanks_alternatives(name: str = "two_tanks") -> dict[str, float]:
+    """The relaxed lower bound of one more event after the optimum's (``backflow``: tank 1
+    drains below the pipe while tank 2 is above it), minimised over its event times."""
+    tm = TankModel(build_mode_problem(name).meta["params"])
+    seq = ["spill", "connect", "backflow"]
+    return {", ".join(seq): _tanks_minimum(tm, seq, grid=10, xatol=1e-6)[0]}
+
+
 @functools.cache
 def mode_optimum(name: str) -> dict[str, Any]:
     """The independent optimum of a configuration of :data:`MODE_CONFIGS` (cached); keys as
     :func:`independent_optimum`'s, with ``"modes"`` (the modes visited)."""
-    if MODE_CONFIGS[name][0] == "hopper":
+    fn = MODE_CONFIGS[name][0]
+    if fn == "hopper":
         return _hopper_optimum(name)
+    if fn == "two_tanks":
+        return _tanks_optimum(name)
     return _coulomb_optimum(name)

@@ -104,6 +104,7 @@ def test_library_api() -> None:
         "friction-patch",
         "friction-patch-free-time",
         "bounded-shuttle",
+        "two-tanks",
     }
     assert all(lib.describe(name) for name in lib.LIBRARY)
     for fn in lib.LIBRARY.values():
