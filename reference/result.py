@@ -90,7 +90,25 @@ def _control_from_nodes(
         i = min(max(int(tau // dh), 0), last[k]) if dh > 0 else 0
         return laws[k](nodes[k][i], tau - i * dh)
 
+    # what this u(t) is a function of (ReferenceResult._judged_as_saved compares them)
+    u_generic.pieces = (  # type: ignore[attr-defined]
+        given, [np.asarray(n) for n in nodes], tuple(int(n) for n in levels),
+        np.asarray(starts, dtype=float), float(horizon),
+    )  # fmt: skip
     return u_generic
+
+
+def _same_arrays(a: Sequence[Any], b: Sequence[Any]) -> bool:
+    """Whether two lists of float arrays hold the same shapes and the same bits."""
+    if len(a) != len(b):
+        return False
+    for x, y in zip(a, b, strict=True):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        if x.shape != y.shape or not np.array_equal(
+            np.ascontiguousarray(x).view(np.int64), np.ascontiguousarray(y).view(np.int64)
+        ):
+            return False
+    return True
 
 
 def _buffer_call(fn: Any) -> Callable[[np.ndarray, float], np.ndarray]:
@@ -190,6 +208,11 @@ class ReferenceResult:
         the best cost of each number of events), set by
         :func:`~hybridoc.reference.solve.solve_reference` on the extremal it returns and
         copied to ``info["coverage"]``; ``None`` for an extremal solved on its own.
+    judged
+        The judge's re-simulation of :meth:`control_function` that verified this extremal
+        (:func:`~hybridoc.reference.sequence.judged_reference`; ``None`` before, or where it
+        did not verify). :meth:`to_solution` takes the judge's cost from it when the
+        Solution's ``u(t)``, rebuilt from its arrays, is provably the same function.
     """
 
     ocp: HybridOCP
@@ -223,6 +246,7 @@ class ReferenceResult:
     judged_terminal_violation: float | None = None
     event_controls: np.ndarray | None = None
     coverage: dict[str, Any] | None = field(default=None, repr=False)
+    judged: Any = field(default=None, repr=False, compare=False)
     arc_starts: np.ndarray | None = None
     arc_states: np.ndarray | None = None
     arc_costates: np.ndarray | None = None
@@ -518,8 +542,65 @@ class ReferenceResult:
         # the cost is the judge's, of the control the Solution carries (rebuilt from its
         # arrays, as after a save and a load): the shooting's own stays in info
         sol.info["shooting_cost"] = float(self.cost)
-        sol.bind(self.ocp).judge()
+        sol.bind(self.ocp)
+        ev = self._judged_as_saved(sol)
+        if ev is None:
+            sol.judge()
+        else:
+            sol.cost = float(ev.cost)
+            sol.terminal_cost = float(ev.terminal_cost)
+            sol.running_cost = float(ev.running_cost)
         return sol
+
+    def _judged_as_saved(self, sol: Any) -> Any:
+        """The verification's evaluation (:attr:`judged`) where it is, bit for bit, what the
+        judge gives for the Solution ``sol`` (``hybridoc.evaluate(problem, sol)``), else
+        ``None``: the Solution's ``u(t)``, rebuilt from its arrays, evaluates the same law
+        (the same CasADi functions) from the same nodes, steps and start times (generic
+        problems), or the same phase-linear coefficients (disc scenes), with the same
+        breakpoints and event controls, on the problem at the same final time. Judging it
+        again (an integration of the whole horizon, 0.1 to 0.2 s on pendulum-wall and the
+        hopper) would repeat the verification's integration step for step."""
+        ev = self.judged
+        if ev is None:
+            return None
+        try:
+            cf = sol.control_function(self.ocp)
+        except (ValueError, KeyError, AttributeError):
+            return None
+        mine, bps = reference_control(self)
+        if (
+            float(cf.horizon) != float(self.ocp.horizon)
+            or not _same_arrays([cf.breakpoints], [np.asarray(bps, dtype=float)])
+            or (cf.event_controls is None) != (self.event_controls is None)
+            or (
+                self.event_controls is not None
+                and not _same_arrays([cf.event_controls], [self.event_controls])
+            )
+        ):
+            return None
+        C = self.control_coefficients()
+        if C is not None:
+            # disc scenes: the Solution's phase-linear law of its stored coefficients
+            # (Solution.control_function) is this result's u(t) formula
+            a = sol.arrays
+            same = cf.kind == "phase-linear" and _same_arrays(
+                [a["control_coefficients"], a["phase_starts"]], [C, self.phase_starts]
+            )
+            return ev if same else None
+        theirs = getattr(cf.fn, "pieces", None)
+        ours = getattr(mine, "pieces", None)
+        if cf.kind != "hmp" or theirs is None or ours is None:
+            return None
+        (f1, n1, l1, s1, h1), (f2, n2, l2, s2, h2) = theirs, ours
+        same = (
+            len(f1) == len(f2)
+            and all(a is b for a, b in zip(f1, f2, strict=True))
+            and tuple(l1) == tuple(l2)
+            and h1 == h2
+            and _same_arrays([*n1, s1], [*n2, s2])
+        )
+        return ev if same else None
 
 
 def reference_control(

@@ -526,6 +526,8 @@ def judged_reference(
         ok, sim, msg, rel, same = _compare(res, rtol)
         if sim is not None:
             res.judged_terminal_violation = judged_violation(res.ocp, sim)
+        if ok:
+            res.judged = sim  # the judge's cost of the Solution (ReferenceResult.to_solution)
         if ok or not same or res.system.disc:
             if rel is not None and not ok:  # a disc scene's costs disagree: a real error
                 assert sim is not None

@@ -152,3 +152,53 @@ def test_a_given_sequence_newton_misses_from_the_guess_is_found_by_the_discovery
     assert abs(given.cost - found.cost) <= 1e-12 * abs(found.cost)
     np.testing.assert_allclose(given.info["event_times"], found.info["event_times"], rtol=1e-9)
     assert any("discovery" in c["origin"] for c in given.info["candidates"])
+
+
+def _no_resimulation(monkeypatch):
+    import hybridoc.callable_eval as ce
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the Solution was judged again")
+
+    monkeypatch.setattr(ce, "evaluate_callable", refuse)
+    monkeypatch.setattr("hybridoc.evaluator.evaluate_callable", refuse)
+
+
+@pytest.mark.parametrize(
+    ("name", "sequence"), [("bouncing-ball", ["floor"]), ("single-collision", ["ball1|ball2"])]
+)
+def test_to_solution_takes_the_verifications_judged_cost_bit_for_bit(name, sequence, monkeypatch):
+    # a generic problem (the HMP law from nodes) and a disc scene (phase-linear): the
+    # verification's re-simulation is the judge's evaluation of the saved Solution
+    import hybridoc
+
+    ocp = load_problem(name)
+    res = solve_reference(ocp, sequence=sequence).reference
+    assert res.judged is not None
+    with monkeypatch.context() as m:
+        _no_resimulation(m)
+        sol = res.to_solution()
+    ev = hybridoc.evaluate(ocp, sol)
+    assert (sol.cost, sol.terminal_cost, sol.running_cost) == (
+        ev.cost,
+        ev.terminal_cost,
+        ev.running_cost,
+    )
+
+
+def test_to_solution_judges_again_where_the_control_is_not_provably_the_same():
+    import dataclasses
+
+    import hybridoc
+
+    ocp = load_problem("bouncing-ball")
+    res = solve_reference(ocp, sequence=["floor"]).reference
+    assert res.judged is not None
+    # nodes that the Solution's arrays do not rebuild: its u(t) is another function, so the
+    # verification's cost is not its judged cost
+    other = dataclasses.replace(res, nodes=[n * (1 + 1e-9) for n in res.nodes])
+    fake = dataclasses.replace(res.judged, cost=res.judged.cost + 1.0)
+    other.judged = fake
+    sol = other.to_solution()
+    assert sol.cost != fake.cost
+    assert sol.cost == hybridoc.evaluate(ocp, sol).cost
