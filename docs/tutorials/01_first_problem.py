@@ -22,9 +22,19 @@ In this tutorial we
 # A problem is a :class:`~hybridoc.ocp.HybridOCP`: a flow :math:`\dot s = f(s, u)`, a
 # running cost :math:`L`, a terminal cost :math:`\phi`, and guards :math:`\psi_k` with
 # their reset maps :math:`g_k`. Every entry point also takes a built-in name.
+import os
+
 import hybridoc
 from hybridoc.plotting import plot_scene
 from hybridoc.workflows.validation import crossval_figures
+
+# ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite) runs a smaller version of this
+# page: the reference searches without its multi-start, gradient descent takes 50
+# iterations from one start. The documentation gives every method its defaults.
+QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
+options = (
+    {"reference": {"multistart": 0}, "gd": {"iters": 50, "starts": 1}} if QUICK else {}
+)
 
 ocp = hybridoc.as_ocp("single-collision")
 print(ocp.name, "| horizon", ocp.horizon, "| grid of", ocp.steps, "control intervals")
@@ -66,7 +76,7 @@ fig.set_size_inches(7.0, 5.0)
 #    time-of-impact corrections (tutorial 3).
 solutions = {}
 for method in ("reference", "dt", "gd"):
-    sol = hybridoc.solve("single-collision", method)
+    sol = hybridoc.solve("single-collision", method, **options.get(method, {}))
     solutions[method] = sol
     times = ", ".join(f"{e['time']:.6f}" for e in sol.events)
     print(
@@ -89,7 +99,7 @@ for method, sol in solutions.items():
 # :func:`hybridoc.crossval` does the above in one call and decides whether the methods
 # agree: each method's cost must be within its tolerance of the reference's, and nothing
 # may beat the reference. It is what ``make run`` prints for both paper problems.
-report, sols = hybridoc.crossval("single-collision")
+report, sols = hybridoc.crossval("single-collision", options=options)
 print("agree:", report["agree"], report["reasons"])
 for method in ("reference", "dt", "gd"):
     entry = report[method]

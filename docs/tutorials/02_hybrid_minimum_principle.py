@@ -43,14 +43,21 @@ is constant and the velocity costate linear between events. Minimising
 # as ``sol.reference`` (a :class:`~hybridoc.reference.result.ReferenceResult`): event
 # times, multipliers, the states and costates on both sides of each event, and the final
 # state and costate.
+import os
+
 import casadi as ca
 import numpy as np
 from scipy.optimize import minimize
 
 import hybridoc
 
+# ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite): the reference searches without
+# its multi-start (the same extremal, sooner)
+QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
 np.set_printoptions(linewidth=88, suppress=True)
-sol = hybridoc.solve("single-collision", "reference")
+sol = hybridoc.solve(
+    "single-collision", "reference", **({"multistart": 0} if QUICK else {})
+)
 ext = sol.reference
 ocp = hybridoc.as_ocp("single-collision")
 eps = 0.01  # the scene's control_weight

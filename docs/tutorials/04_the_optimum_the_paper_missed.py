@@ -13,8 +13,9 @@ The task is that of tutorial 1 with a wall at :math:`y = 1`: push ``ball1`` so t
 """
 
 # %%
-# ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite) searches shorter sequences and
-# the documentation runs the full version.
+# ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite) runs a smaller version: shorter
+# sequences searched, fewer starts in the reference's multi-start, fewer starts and
+# iterations of gradient descent; the documentation runs the full version.
 import os
 
 from matplotlib.figure import Figure
@@ -40,7 +41,9 @@ print(f"two events:   cost {two.cost:.12f}  {two.sequence}")
 # extremal that the judge confirms by re-simulating its control:
 # (``HYBRIDOC_TUTORIAL_QUICK=1``, set by the test suite, asks for the short search of the
 # next section here instead, and reuses it there: one search instead of two.)
-best = hybridoc.solve(problem, "reference", **({"search": 2} if QUICK else {}))
+best = hybridoc.solve(
+    problem, "reference", **({"search": 2, "multistart": 1} if QUICK else {})
+)
 print(f"the optimum:  cost {best.cost:.12f}  {best.sequence}  ({best.status})")
 print(f"{(two.cost - best.cost) / two.cost:.1%} below the two-event extremal")
 for e in best.events:
@@ -101,8 +104,9 @@ for row in failed[:3]:
 # exact gradients (tutorial 3) it still ends in the basin it starts in. A batched
 # multi-start, many perturbed starts descending together, is what finds the better basin;
 # it is what ``hybridoc crossval`` runs.
-single = hybridoc.solve(problem, "gd")
-multi = hybridoc.solve(problem, "gd", starts=8 if QUICK else 32)
+quick = {"iters": 50} if QUICK else {}  # the test suite: fewer iterations
+single = hybridoc.solve(problem, "gd", **quick)
+multi = hybridoc.solve(problem, "gd", starts=4 if QUICK else 32, **quick)
 for label, sol in (
     ("one start", single),
     (f"{multi.settings.get('starts', '')} starts", multi),

@@ -35,6 +35,7 @@ The model is described in :doc:`/scenes` ("The model: HybridOCP").
 # horizon and ask for 0.3 higher: a task that needs a push, and that the library's
 # :func:`~hybridoc.problems.library.bouncing_ball` poses with its defaults.
 import math
+import os
 import time
 
 import casadi as ca
@@ -43,6 +44,15 @@ import hybridoc
 from hybridoc import Guard, HybridOCP
 from hybridoc.problems.library import bouncing_ball, juggling_paddle
 from hybridoc.workflows.validation import crossval_figures
+
+# ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite) runs a smaller version of this
+# page: the reference searches without its multi-start, gradient descent runs from one
+# start for at most 100 iterations, and the judge is timed over fewer repeats.
+QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
+options = (
+    {"reference": {"multistart": 0}, "gd": {"starts": 1, "iters": 100}} if QUICK else {}
+)
+repeats = 3 if QUICK else 20
 
 g, e, eps, h0 = 9.81, 0.8, 0.01, 1.0
 t1 = math.sqrt(2 * h0 / g)  # the first bounce of the free drop
@@ -102,8 +112,8 @@ print(
     "| claimed optimal sequence:",
     library_ball.meta["claimed_sequence"],
 )
-mine = hybridoc.solve(my_ball, "reference")
-theirs = hybridoc.solve(library_ball, "reference")
+mine = hybridoc.solve(my_ball, "reference", **options.get("reference", {}))
+theirs = hybridoc.solve(library_ball, "reference", **options.get("reference", {}))
 for label, sol in (("mine", mine), ("library", theirs)):
     print(
         f"{label:8s} {sol.status}  cost {sol.cost:.12f}  bounce at"
@@ -127,10 +137,11 @@ my_ball = my_ball.replace(flow_map=flow_map)
 costs = {}
 for label, problem in (("integrated", integrated), ("closed form", my_ball)):
     start = time.perf_counter()
-    for _ in range(20):
+    for _ in range(repeats):
         costs[label] = hybridoc.evaluate(problem, mine.controls).cost
     print(
-        f"{label:11s} {(time.perf_counter() - start) / 20 * 1e3:5.1f} ms per judgement"
+        f"{label:11s} {(time.perf_counter() - start) / repeats * 1e3:5.1f} ms"
+        " per judgement"
     )
 print(f"the two costs differ by {abs(costs['integrated'] - costs['closed form']):.1e}")
 
@@ -142,7 +153,7 @@ print(f"the two costs differ by {abs(costs['integrated'] - costs['closed form'])
 # ------------------------------
 # :func:`hybridoc.crossval` runs the reference, the direct transcription and gradient
 # descent on our problem, exactly as on the paper's scenes in tutorial 1:
-report, sols = hybridoc.crossval(my_ball)
+report, sols = hybridoc.crossval(my_ball, options=options)
 print("agree:", report["agree"], report["reasons"])
 for method in ("reference", "dt", "gd"):
     entry = report[method]
@@ -196,7 +207,7 @@ print("claimed optimal sequence:", paddle.meta["claimed_sequence"])
 # %%
 # The whole problem is written like ours (read ``problems/library/juggling_paddle.py``):
 # four states, one guard, one reset. All three methods:
-report, sols = hybridoc.crossval(paddle)
+report, sols = hybridoc.crossval(paddle, options=options)
 print("agree:", report["agree"], report["reasons"])
 for method in ("reference", "dt", "gd"):
     sol = sols[method]
