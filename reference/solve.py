@@ -164,6 +164,11 @@ bounds nothing, an extremal beyond it is ``infeasible``."""
 PATH_SAMPLES = 8
 """Times per grid cell at which :func:`path_violation` checks the path constraints besides
 the judge's own."""
+# why a sequence with an infinite lower bound (candidates.lower_bound) is not solved,
+# wherever it comes from
+_IMPOSSIBLE = (
+    "pruned: no control has these events (two bodies that cannot move themselves never meet)"
+)
 DEFAULT_BUDGET = 30.0
 """Seconds the default reference (without ``sequence``) may spend: its sources get what is
 left of it, and the enumeration stops when it is spent (``budget``)."""
@@ -506,6 +511,16 @@ class _Book:
         if key in self.results and not retry:
             return self.results[key]
         if self.skip_long(key, origin) or (key in self.reasons and not retry):
+            return None
+        if key not in self.results and math.isinf(lower_bound(self.ocp, key)):
+            # no control has these events (the guess's candidates drop events, so a passive
+            # body may be asked to move first): Newton, the NLP and the transcription's
+            # start would only fail, at up to a second each
+            self.reasons[key] = _IMPOSSIBLE
+            self.pruned.add(key)
+            self.origins.setdefault(key, origin)
+            self.times.setdefault(key, 0.0)
+            self.say(f"{list(key)} ({origin}): {_IMPOSSIBLE}")
             return None
         self.progress.stage(f"shooting on a {len(key)}-event sequence ({origin})")
         t0 = time.perf_counter()
@@ -970,22 +985,23 @@ def _solve_given(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> Refer
     if best is None and touch:
         raise ConvergenceError(f"no HMP extremal with the sequence {seq}: {touch}; use method 'dt'")
     if best is None or (run.verify and not book.verify(key)):
-        found = None
-        if _discovery_may_find(ocp, seq, book.reasons.get(key)):
+        found, tried = None, _discovery_may_find(ocp, seq, book.reasons.get(key))
+        if tried:
             found = _given_by_discovery(ocp, run, book, guess)
+        nor = "; nor did the discovery without the sequence find one" if tried else ""
         if found is not None:
             best = found
         elif best is None:
+            why = str(book.reasons.get(key)).removeprefix("pruned: ")
             raise ConvergenceError(
-                f"no HMP extremal with the sequence {seq}: {book.reasons.get(key)}; nor did "
-                "the discovery without the sequence find one. hint: start from a control "
-                "with these events (--initial) or check that the sequence is feasible"
+                f"no HMP extremal with the sequence {seq}: {why}{nor}. "
+                "hint: start from a control with these events (--initial) or check that the "
+                "sequence is feasible"
             )
         else:
             raise ConvergenceError(
                 f"the extremal of {seq} does not re-simulate to its own events: "
-                f"{book.verdicts[key][1]}; nor did the discovery without the sequence find "
-                "one that does"
+                f"{book.verdicts[key][1]}{nor + ' that does' if nor else ''}"
             )
     # the only optimality claim of a given sequence is within it: a cheaper control with the
     # same events means Newton stopped at a worse stationary point
@@ -1764,8 +1780,7 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
             if lb >= best:
                 book.pruned.add(key)
                 book.reasons[key] = (
-                    "pruned: no control has these events (two bodies that cannot move "
-                    "themselves never meet)"
+                    _IMPOSSIBLE
                     if math.isinf(lb)
                     else f"pruned: its cost is at least {lb:.6g} >= {best:.6g}"
                 )

@@ -202,3 +202,15 @@ def test_to_solution_judges_again_where_the_control_is_not_provably_the_same():
     sol = other.to_solution()
     assert sol.cost != fake.cost
     assert sol.cost == hybridoc.evaluate(ocp, sol).cost
+
+
+def test_a_sequence_no_control_has_is_pruned_not_solved():
+    # ball2 is passive and at rest: nothing can send it into the wall first (an infinite
+    # lower bound); the given sequence says so without Newton, the NLP or a transcription
+    import hybridoc
+    from hybridoc.errors import ConvergenceError
+
+    scene = hybridoc.load_scene("multiple-collision")
+    with pytest.raises(ConvergenceError, match="no control has these events") as info:
+        solve_reference(scene, sequence=["ball2|wall"])
+    assert "hint" in str(info.value) and "Newton" not in str(info.value)
