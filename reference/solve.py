@@ -1070,6 +1070,26 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         cands = [[]]
     else:
         cands = guess_candidates(ocp, ev)
+    early = _EarlyScreens.start(ocp, run, book, guess)
+    try:
+        _discover_with(ocp, run, book, guess, cands, t0, early)
+    finally:
+        if early is not None:
+            early.close()
+
+
+def _discover_with(
+    ocp: HybridOCP,
+    run: _Run,
+    book: _Book,
+    guess: _Guess,
+    cands: list[list[tuple[str, float]]],
+    t0: float,
+    early: _EarlyScreens | None,
+) -> None:
+    """:func:`_discover` once the guess's candidates are known (and the search's screens
+    started, ``early``)."""
+    ev = guess.evaluation
     book.progress.stage(
         f"discovering sequences: {len(cands)} from the initial guess ({_events(len(ev.events))})"
     )
@@ -1102,7 +1122,7 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
     # every sequence of up to the scene's depth (or the search's) too, by lower bound: a
     # guess that never comes near a guard (a cart at rest before a wall) proposes no event
     # at all, and neither may the sources reach a sequence that starts with a bounce
-    _enumerate(ocp, run, book, guess)
+    _enumerate(ocp, run, book, guess, early)
     book.best_verified()
     book.follow_resimulations()
 
@@ -1712,6 +1732,102 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 _SEARCH_STATE: dict[str, Any] = {}
 
 
+# the niceness the early screens' workers add to their own (os.nice): idle CPU only
+_EARLY_NICE = 10
+
+
+def _lower_priority() -> None:
+    import os
+
+    try:
+        os.nice(_EARLY_NICE)
+    except OSError:  # a platform or a policy that refuses it: the screens run as they are
+        pass
+
+
+class _EarlyScreens:
+    """The screens of an explicit ``search`` (disc scenes, whose screens run in worker
+    processes) started in one worker fewer than the enumeration's before the discovery's
+    guess candidates and sources, so that a core otherwise idle works while those run one
+    after the other (multiple-collision, ``--search 5``: 3.4 s of CPU in the parent, then
+    7.2 s of screens over two workers). The parent keeps a core of its own and the early
+    workers run at a lower priority (niceness + 10), so that they take CPU no one
+    else wants and the sources' time budgets are not cut on a busy machine.
+
+    A screen's outcome (:func:`_search_one`) depends on the problem, the guess, ``tol``,
+    ``rtol`` and the warm-start sources alone, never on what the discovery has found, so
+    :func:`_enumerate` takes it as it is, in its own order and with its own pruning and
+    skipping: the landscape is the one the screens started later would give. Screened
+    early, in the enumeration's order: every sequence of up to ``search`` events it would
+    list, less those with an infinite lower bound (pruned anyway); when the enumeration
+    starts, the screens not yet started are withdrawn (:meth:`withdraw`) and run as
+    before. The screen of a sequence the discovery solves first, or the bound prunes, is
+    wasted (on multiple-collision at most 10 of 150)."""
+
+    def __init__(self, pool: Any, futures: dict[tuple[str, ...], Any]) -> None:
+        self.pool = pool
+        self.futures = futures
+
+    @classmethod
+    def start(cls, ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> _EarlyScreens | None:
+        """Submit the screens (or ``None``: no explicit search, not a disc scene, fewer
+        than two usable cores, no ``fork``, or only a handful of sequences)."""
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        workers = min(usable_cores(), MAX_WORKERS) - 1
+        if (
+            not run.search
+            or not is_disc_scene(ocp)
+            or workers < 1
+            or "fork" not in mp.get_all_start_methods()
+        ):
+            return None
+        by_length: list[list[tuple[float, list[str]]]] = [[] for _ in range(run.search + 1)]
+        for seq in enumerate_sequences(ocp, run.search):
+            lb = lower_bound(ocp, seq)
+            if not math.isinf(lb):
+                by_length[len(seq)].append((lb, seq))
+        # the enumeration's order: length by length, by lower bound within one
+        todo = [seq for rows in by_length for _, seq in sorted(rows, key=lambda r: r[0])]
+        if len(todo) <= 4:
+            return None
+        # the screening NLPs built before the workers fork (each would compile its own)
+        prepare(ocp, {len(seq) for seq in todo}, max_iter=SCREEN_NLP_ITER)
+        _SEARCH_STATE.update(
+            ocp=ocp, u0=guess.controls, ev=guess.evaluation, tol=book.tol, rtol=book.rtol,
+            starters=book.starters,
+        )  # fmt: skip
+        pool = ProcessPoolExecutor(
+            workers, mp_context=mp.get_context("fork"), initializer=_lower_priority
+        )
+        try:
+            # the workers fork at the first submission, with the state above
+            futures = {tuple(seq): pool.submit(_search_one, seq) for seq in todo}
+        finally:
+            _SEARCH_STATE.clear()
+        book.say(f"enumeration: {len(todo)} screens started before the sources")
+        return cls(pool, futures)
+
+    def withdraw(self) -> None:
+        """Cancel the screens not yet started (the enumeration runs them as before); those
+        started or done stay."""
+        for key, f in list(self.futures.items()):
+            if f.cancel():
+                del self.futures[key]
+        self.pool.shutdown(wait=False)
+
+    def has(self, seq: Sequence[str]) -> bool:
+        return tuple(seq) in self.futures
+
+    def outcome(self, seq: Sequence[str]) -> _Outcome:
+        return self.futures[tuple(seq)].result()
+
+    def close(self) -> None:
+        """Cancel what is left and wait for the running screens."""
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
 # (sequence, point, (steps per arc, arcs) of its system, reason, seconds, final time)
 _Outcome = tuple[list[str], np.ndarray | None, tuple[Any, Any] | None, str, float, float]
 
@@ -1737,7 +1853,9 @@ def _search_one(seq: list[str]) -> _Outcome:
     return seq, res.z, res.system.spec, why, time.perf_counter() - t0, res.horizon
 
 
-def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
+def _enumerate(
+    ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess, early: _EarlyScreens | None = None
+) -> None:
     """Every feasible sequence, length by length, up to the scene's depth
     (:func:`~hybridoc.reference.candidates.default_depth`) or ``search`` if longer: within
     one length in the order of the lower bound, each skipped where the bound is not below
@@ -1746,6 +1864,8 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
     ``search`` stop when the budget is spent; ``book.exhaustive`` is the longest length
     completed."""
     t0 = time.perf_counter()
+    if early is not None:
+        early.withdraw()
     explicit = run.search or 0
     depth = max(explicit, default_depth(ocp))
     book.depth = depth
@@ -1794,7 +1914,7 @@ def _enumerate(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         book.progress.stage(f"enumeration of {_events(length)}: {len(todo)} to solve")
         outcomes = _search_outcomes(
             ocp, book, [seq for _, seq in todo], guess.controls, guess.evaluation,
-            deadline=book.deadline if bounded else None,
+            deadline=book.deadline if bounded else None, early=early,
         )  # fmt: skip
         solved += len(outcomes)
         for seq, z, levels, why, took, horizon in outcomes:
@@ -1862,12 +1982,32 @@ def _search_outcomes(
     ev: Evaluation,
     *,
     deadline: float | None = None,
+    early: _EarlyScreens | None = None,
 ) -> list[_Outcome]:
     """:func:`_search_one` on the sequences of ``todo`` in order, counted on
     ``book.progress``; with a ``deadline`` (``time.perf_counter()``), no sequence starts
-    after it (the outcomes then stop short of ``todo``)."""
+    after it (the outcomes then stop short of ``todo``). The outcomes of the ``early``
+    screens are taken as they are (the same call on the same arguments)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
+
+    if early is not None and any(early.has(seq) for seq in todo):
+        # the early screens' outcomes, the others' run as below, merged in todo's order (an
+        # explicit length: no deadline)
+        rest = iter(
+            _search_outcomes(
+                ocp, book, [seq for seq in todo if not early.has(seq)], u0, ev,
+                deadline=deadline,
+            )
+        )  # fmt: skip
+        merged = []
+        for seq in todo:
+            item = early.outcome(seq) if early.has(seq) else next(rest, None)
+            if item is None:
+                break  # the deadline stopped the others
+            merged.append(item)
+            book.progress.count(len(merged), len(todo), "sequences")
+        return merged
 
     def spent() -> bool:
         return deadline is not None and time.perf_counter() >= deadline

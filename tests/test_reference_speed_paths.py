@@ -214,3 +214,37 @@ def test_a_sequence_no_control_has_is_pruned_not_solved():
     with pytest.raises(ConvergenceError, match="no control has these events") as info:
         solve_reference(scene, sequence=["ball2|wall"])
     assert "hint" in str(info.value) and "Newton" not in str(info.value)
+
+
+def test_early_screens_leave_the_search_as_it_was(monkeypatch):
+    # the screens of an explicit search start before the guess's candidates (one worker,
+    # at a lower priority); the enumeration takes their outcomes as its own: the same
+    # landscape, verdicts, origins and coverage as with every screen started in order
+    import hybridoc
+    import hybridoc.reference.solve as rsolve
+
+    scene = hybridoc.load_scene("multiple-collision")
+    started = []
+    real_start = rsolve._EarlyScreens.start
+
+    def spy(*args, **kwargs):
+        early = real_start(*args, **kwargs)
+        started.append(early)
+        return early
+
+    monkeypatch.setattr(rsolve._EarlyScreens, "start", spy)
+    kwargs = dict(search=2, multistart=0, transcription=False)
+    with_early = solve_reference(scene, **kwargs)
+    if started[0] is None:
+        pytest.skip("no second usable core or no fork: the screens run in order anyway")
+    assert started[0].futures  # some screens were taken from the early workers
+    monkeypatch.setattr(rsolve._EarlyScreens, "start", lambda *a, **k: None)
+    in_order = solve_reference(scene, **kwargs)
+
+    def rows(sol):
+        keys = ("sequence", "cost", "verdict", "origin")
+        return [tuple(r[k] for k in keys) for r in sol.info["landscape"]]
+
+    assert rows(with_early) == rows(in_order)
+    assert with_early.cost == in_order.cost
+    assert with_early.info["coverage"] == in_order.info["coverage"]
