@@ -44,7 +44,7 @@ def _affine_flow(name: str, s: ca.SX, u: ca.SX, f: ca.SX, L: ca.SX) -> ca.Functi
         raise ValueError(f"mode {name!r}: the flow must be affine, the cost free of the state")
     A = np.array(ca.evalf(jac), dtype=float).reshape(2, 2)
     rest = ca.substitute(f, s, ca.DM.zeros(2))  # b u + d
-    tr, det = float(np.trace(A)), float(np.linalg.det(A))
+    tr, det = A[0, 0] + A[1, 1], A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
     disc = tr * tr / 4 - det
     if not disc > 0:
         raise ValueError(
@@ -57,8 +57,9 @@ def _affine_flow(name: str, s: ca.SX, u: ca.SX, f: ca.SX, L: ca.SX) -> ca.Functi
     for li, lj in (lam, lam[::-1]):
         P = ca.DM((A - lj * np.eye(2)) / (li - lj))
         E += ca.exp(li * h) * P
-        # expm1: exact to rounding over the short steps of event location; l = 0 exactly
-        # where a tank has no outlet (the trace and determinant are then exact)
+        # expm1: exact to rounding over the short steps of event location, and for an l
+        # that rounding left tiny instead of 0 (apart and backflowing have l = 0: tank 1
+        # has no outlet)
         G += (h if li == 0.0 else ca.expm1(li * h) / li) * P
     end = ca.mtimes(E, s) + ca.mtimes(G, rest)
     return ca.Function(f"flow_{name}", [s, u, h], [end, L * h])
