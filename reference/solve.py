@@ -428,6 +428,49 @@ def _feasible(ocp: HybridOCP, ev: Evaluation | None) -> bool:
     return judged_violation(ocp, ev) <= TERMINAL_TOL
 
 
+@dataclass(frozen=True)
+class _Start:
+    """What :func:`~hybridoc.reference.sequence.solve_sequence` starts a sequence from,
+    besides what a book holds fixed (the problem, ``tol``, ``rtol``, the warm-start
+    sources): the control's and the event times' bits, whether Newton starts from the
+    control's adjoint costate (which the judge computes from the control, so its presence
+    is all that counts), and the trajectory and warm start passed (by identity: kept alive
+    here, so that an identity is never reused)."""
+
+    controls: bytes
+    times: bytes
+    estimate: bool
+    adjoint: bool
+    evaluation: Any
+    warm_start: Any
+
+    @staticmethod
+    def of(
+        controls: Any, times: Any, estimate: bool, grad: Any, evaluation: Any, warm_start: Any
+    ) -> _Start:
+        return _Start(
+            np.ascontiguousarray(controls, dtype=float).tobytes(),
+            np.ascontiguousarray(times, dtype=float).tobytes(),
+            bool(estimate), grad is not None and grad is not False, evaluation, warm_start,
+        )  # fmt: skip
+
+    def same(self, other: _Start) -> bool:
+        return (
+            self.controls == other.controls
+            and self.times == other.times
+            and self.estimate == other.estimate
+            and self.adjoint == other.adjoint
+            and self.evaluation is other.evaluation
+            and self.warm_start is other.warm_start
+        )
+
+
+def _adjoint_used(ocp: HybridOCP) -> bool:
+    """Whether a costate estimate reads the judge's adjoint (generic problems; a disc scene
+    fits its phase controls instead, :func:`_adjoint` gives ``None``)."""
+    return not is_disc_scene(ocp)
+
+
 @dataclass
 class _Book:
     """Everything one reference solve tried."""
@@ -459,6 +502,13 @@ class _Book:
     known_tried: dict[tuple[str, ...], set[int]] = field(default_factory=dict)
     # (extremal, re-simulated sequence) pairs whose neighbour start was tried
     neighbours_tried: set[tuple[tuple[str, ...], tuple[str, ...]]] = field(default_factory=set)
+    # the starts each sequence was solved from (_Start): the same start again gives the
+    # same outcome
+    starts: dict[tuple[str, ...], list[_Start]] = field(default_factory=dict)
+
+    def tried(self, key: tuple[str, ...], start: _Start) -> bool:
+        """Whether ``key`` was already solved from ``start``."""
+        return any(start.same(s) for s in self.starts.get(key, ()))
 
     def left(self) -> float:
         """Seconds of the budget left (0 when spent)."""
@@ -522,11 +572,18 @@ class _Book:
             self.times.setdefault(key, 0.0)
             self.say(f"{list(key)} ({origin}): {_IMPOSSIBLE}")
             return None
-        self.progress.stage(f"shooting on a {len(key)}-event sequence ({origin})")
-        t0 = time.perf_counter()
         if np.size(gamma0) != len(key):
             self.say(f"{list(key)} ({origin}): event times of another length, guessed anew")
             gamma0 = guess_times(self.ocp, key, guess_ev)
+        start = _Start.of(u_guess, gamma0, estimate, grad, guess_ev, warm_start)
+        if self.tried(key, start):
+            # solve_sequence is a function of its start: the known control of the guess is
+            # the guess (friction-patch-free-time: its failed starts, 0.4 s, were repeated)
+            self.say(f"{list(key)} ({origin}): the same start as before, not solved again")
+            return self.results.get(key)
+        self.starts.setdefault(key, []).append(start)
+        self.progress.stage(f"shooting on a {len(key)}-event sequence ({origin})")
+        t0 = time.perf_counter()
         try:
             res, why = solve_sequence(
                 self.ocp, list(key), gamma0, u_guess, estimate=estimate, grad=grad,
@@ -559,9 +616,13 @@ class _Book:
             if id(k) in tried:
                 continue
             tried.add(id(k))
+            times = guess_times(self.ocp, key, k.evaluation)
+            if _adjoint_used(self.ocp) and self.tried(
+                key, _Start.of(k.controls, times, True, True, k.evaluation, None)
+            ):
+                continue  # its adjoint, then the same solve: nothing new
             res = self.attempt(
-                key, guess_times(self.ocp, key, k.evaluation), k.controls,
-                f"the known control of {k.source}", estimate=True,
+                key, times, k.controls, f"the known control of {k.source}", estimate=True,
                 grad=_adjoint(self.ocp, k.controls), guess_ev=k.evaluation, retry=True,
                 fallback=False,
             )  # fmt: skip

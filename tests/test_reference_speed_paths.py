@@ -248,3 +248,31 @@ def test_early_screens_leave_the_search_as_it_was(monkeypatch):
     assert rows(with_early) == rows(in_order)
     assert with_early.cost == in_order.cost
     assert with_early.info["coverage"] == in_order.info["coverage"]
+
+
+def test_no_sequence_is_solved_twice_from_the_same_start(monkeypatch):
+    # friction-patch-free-time: the guess's own sequence fails from the guess, and the
+    # known control of the guess (the guess itself) used to start the very same solve again
+    import hybridoc.reference.solve as rsolve
+
+    calls = []
+    real = rsolve.solve_sequence
+
+    def spy(ocp, sequence, gamma0, u_guess, **kw):
+        calls.append(
+            (
+                tuple(sequence),
+                np.asarray(u_guess, dtype=float).tobytes(),
+                np.asarray(gamma0, dtype=float).tobytes(),
+                bool(kw.get("estimate")),
+                kw.get("grad") is not None,
+                id(kw.get("guess_ev")),
+                id(kw.get("warm_start")),
+            )
+        )
+        return real(ocp, sequence, gamma0, u_guess, **kw)
+
+    monkeypatch.setattr(rsolve, "solve_sequence", spy)
+    sol = solve_reference(load_problem("friction-patch-free-time"))
+    assert sol.status.value == "success" and sol.info["sequence"] == ["enter-rough"]
+    assert len(calls) == len(set(calls)), "a sequence was solved twice from one start"
