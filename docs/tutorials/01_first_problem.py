@@ -29,11 +29,11 @@ from hybridoc.plotting import plot_scene
 from hybridoc.workflows.validation import crossval_figures
 
 # ``HYBRIDOC_TUTORIAL_QUICK=1`` (set by the test suite) runs a smaller version of this
-# page: the reference searches without its multi-start, gradient descent takes 50
+# page: the reference searches without its multi-start, gradient descent takes 100
 # iterations from one start. The documentation gives every method its defaults.
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
 options = (
-    {"reference": {"multistart": 0}, "gd": {"iters": 50, "starts": 1}} if QUICK else {}
+    {"reference": {"multistart": 0}, "gd": {"iters": 100, "starts": 1}} if QUICK else {}
 )
 
 ocp = hybridoc.as_ocp("single-collision")

@@ -37,13 +37,15 @@ from hybridoc.problems.scene import DiscSpread, Distribution, Spread
 from hybridoc.workflows.datasets import make_dataset
 from hybridoc.workflows.policies import policy_figures, validate_policy
 
-# the test suite runs a smaller version (``HYBRIDOC_TUTORIAL_QUICK=1``): 26 draws, still
-# two chunks (of 25 and 1), and the nominal optimum of the policy below found without
-# the reference's multi-start
+# the test suite runs a smaller version (``HYBRIDOC_TUTORIAL_QUICK=1``): a grid of 120
+# steps instead of 480, 26 draws, still two chunks (of 25 and 1), and the nominal
+# optimum of the policy below found without the reference's multi-start
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
 M = 26 if QUICK else 50  # draws
 
 nominal = load_scene("single-collision")
+if QUICK:
+    nominal = nominal.with_steps(120)
 spread = DiscSpread("ball2", position=Spread("uniform", (0.2, 0.2)))
 scene = dataclasses.replace(nominal, distribution=Distribution(discs=(spread,), seed=0))
 print("\n".join(scene.distribution.toml_lines()))
