@@ -120,13 +120,13 @@ ax.legend(fontsize=8, ncols=5, loc="upper center", bbox_to_anchor=(0.5, -0.2))
 # vertical push of the initial guess at every step, which moves the collision earlier or
 # later. The simulator is batched, so all points are one rollout per model; the judge gives
 # the true cost and its exact slope.
-alphas = np.linspace(-0.3, 0.3, 21 if QUICK else 241)
+alphas = np.linspace(-0.3, 0.3, 41 if QUICK else 241)
 direction = np.zeros_like(scene.initial_controls())
 direction[:, 1] = 1.0
 batch = np.stack([scene.initial_controls() + a * direction for a in alphas])
 
 true_cost = np.array([hybridoc.evaluate(scene, u).cost for u in batch])
-every = 5 if QUICK else 12
+every = 4 if QUICK else 12
 true_slope = np.array(
     [np.sum(hybridoc.gradient(scene, u).d_controls * direction) for u in batch[::every]]
 )
