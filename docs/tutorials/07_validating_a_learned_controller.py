@@ -44,9 +44,9 @@ from hybridoc.workflows.training import mlp_policy, train_policy
 
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
 STEPS = 60  # control intervals, fewer than the paper's
-N_TRAIN = 4 if QUICK else 16  # training draws
+N_TRAIN = 8 if QUICK else 16  # training draws
 N_VAL = 4 if QUICK else 25  # validation draws
-ITERS = 15 if QUICK else 200  # Adam iterations
+ITERS = 20 if QUICK else 200  # Adam iterations
 SNAPSHOTS = (0, 3, 6, 12)  # iterations at which we look at the gradients
 
 # %%
