@@ -512,13 +512,7 @@ class _Flow:
     def __init__(self, ocp: HybridOCP) -> None:
         nx, nu = ocp.nx, ocp.nu
         self.nx, self.nu = nx, nu
-        s = ca.SX.sym("s", nx)
-        lam = ca.SX.sym("lam", nx)
-        u = ca.SX.sym("u", nu)
-        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
-        Hu = ca.gradient(H, u)
-        Huu = ca.hessian(H, u)[0]
-        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+        s, lam, u, H, Huu, u_star = _argmin_hamiltonian(ocp)
         self.s_sym, self.lam_sym, self.u_sym, self.H_expr = s, lam, u, H
         self.u_unc_expr = u_star
         self.u_unc = ca.Function("u_unc", [s, lam], [u_star])
@@ -717,6 +711,20 @@ def terminal_sizes(ocp: HybridOCP) -> tuple[int, int]:
 def fischer_burmeister(a: Any, b: Any) -> Any:
     """``a + b - sqrt(a^2 + b^2)``: zero exactly when ``a >= 0``, ``b >= 0`` and ``a b = 0``."""
     return a + b - ca.sqrt(a**2 + b**2)
+
+
+def _argmin_hamiltonian(ocp: HybridOCP) -> tuple[Any, Any, Any, Any, Any, Any]:
+    """Symbols ``s``, ``lambda``, ``u``, the Hamiltonian ``H = L + lambda^T f``, its control
+    weight ``d2H/du2`` and its unconstrained minimiser in ``u`` (exact for the
+    quadratic-in-u ``H`` that :func:`hamiltonian_check` admits)."""
+    s = ca.SX.sym("s", ocp.nx)
+    lam = ca.SX.sym("lam", ocp.nx)
+    u = ca.SX.sym("u", ocp.nu)
+    H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
+    Hu = ca.gradient(H, u)
+    Huu = ca.hessian(H, u)[0]
+    u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(ocp.nu)))
+    return s, lam, u, H, Huu, u_star
 
 
 def _flow(ocp: HybridOCP) -> _Flow:
@@ -1244,14 +1252,8 @@ class _DiscPieces:
     ``phi``, ``A`` and ``eps``), built once."""
 
     def __init__(self, ocp: HybridOCP) -> None:
-        nx, nu = ocp.nx, ocp.nu
-        s = ca.SX.sym("s", nx)
-        lam = ca.SX.sym("lam", nx)
-        u = ca.SX.sym("u", nu)
-        H = ocp.L(s, u) + ca.dot(lam, ocp.f(s, u))
-        Hu = ca.gradient(H, u)
-        Huu = ca.hessian(H, u)[0]
-        u_star = -ca.solve(Huu, ca.substitute(Hu, u, ca.DM.zeros(nu)))
+        nx = ocp.nx
+        s, lam, u, H, _, u_star = _argmin_hamiltonian(ocp)
         self.u_star = ca.Function("u_star", [s, lam], [u_star])
         self.H = ca.Function("H", [s, lam, u], [H])
         self.H_star = ca.Function("H_star", [s, lam], [ca.substitute(H, u, u_star)])
