@@ -857,7 +857,9 @@ class Solution:
             judged cost, events and trajectory, bound to ``problem.replace(steps=N)`` (which
             ``hybridoc.evaluate`` needs when ``N`` is not the problem's); ``info``
             ``"projected_from"`` names the control kind and ``"projected_cost"`` the cost of
-            the control projected. The best a piecewise-constant method can reach on that
+            the control projected, and on a problem with terminal constraints or a final
+            mode ``"terminal_violation"`` the judged violation of the averages (they do not
+            keep the constraints). The best a piecewise-constant method can reach on that
             grid is at most this cost.
         """
         ocp = self._ocp(problem)
@@ -880,6 +882,9 @@ class Solution:
         if ocp.free_horizon:
             info["horizon"] = self.horizon
         ev = _hook(JUDGE)(grid_ocp, averages)
+        if ocp.has_terminal_constraints or ocp.final_mode is not None:
+            # the averages do not keep the constraints: say by how much they miss them
+            info["terminal_violation"] = float(ev.terminal_violation)
         out = Solution.from_evaluation(ev, method=self.method, scene=self.scene, info=info)
         out.time_grid = np.array(grid)
         out.settings = dict(self.settings)

@@ -477,12 +477,13 @@ def representable(
 
 
 def _terminal_violation(ocp: HybridOCP, sol: Solution) -> float | None:
-    """The judged terminal violation of ``sol`` on a problem with terminal constraints or a
-    final mode (the grid projection of ``J*`` does not keep them: a method that meets them
-    may cost more than it, so a gap to it is no finding), else ``None``."""
+    """The judged terminal violation of ``sol`` (a :meth:`Solution.to_grid` projection) on a
+    problem with terminal constraints or a final mode (the grid projection of ``J*`` does
+    not keep them: a method that meets them may cost more than it, so a gap to it is no
+    finding), else ``None``."""
     if not (ocp.has_terminal_constraints or ocp.final_mode is not None):
         return None
-    return float(sol.evaluation(ocp).terminal_violation)
+    return float(sol.info["terminal_violation"])  # Solution.to_grid's judged violation
 
 
 def _no_representable(what: str, why: str) -> dict[str, Any]:
