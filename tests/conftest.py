@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -52,6 +53,16 @@ settings.load_profile("fuzz" if FUZZ else "ci")
 def examples(n: int) -> int:
     """The number of examples of a property test: ``n`` at CI size, 100 ``n`` when fuzzing."""
     return n * FUZZ_FACTOR if FUZZ else n
+
+
+@pytest.fixture(scope="module")
+def virtual_machine() -> Iterator[None]:
+    """No background C compilation for a module (``pytestmark =
+    pytest.mark.usefixtures("virtual_machine")``): where nearly every call is a new
+    structure (random examples), each would be compiled once for nothing."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HYBRIDOC_CODEGEN", "0")
+        yield
 
 
 @pytest.fixture

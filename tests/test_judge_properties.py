@@ -43,13 +43,8 @@ oracle = pytest.importorskip("oracle")
 # ------------------------------------------------------------------ random scenes
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _virtual_machine() -> Any:
-    """No C compilation here: every random example is a new structure, which the background
-    compiler would build once each for nothing (the suite turns compilation on)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HYBRIDOC_CODEGEN", "0")
-        yield
+# every hypothesis example is a new structure: compiling each to C would be work for nothing
+pytestmark = pytest.mark.usefixtures("virtual_machine")
 
 
 @st.composite
