@@ -82,11 +82,13 @@ __all__ = [
     "compiler",
     "enabled",
     "evict",
+    "wait_for_compilations",
 ]
 
 _QUEUE_LOCK = threading.Lock()  # one compilation at a time: two cores are often all there is
 HOT_CALLS = 50
 """Calls after which a function is compiled (see :class:`Accelerated`)."""
+_BUILDS: list[threading.Thread] = []  # background compilations started, finished ones pruned
 DEFAULT_MAX_MB = 500.0
 """Default bound of the cache's size in megabytes (``HYBRIDOC_CACHE_MAX_MB``)."""
 _FLAGS = ["-O1", "-ffp-contract=off", "-fPIC", "-shared"]
@@ -674,6 +676,27 @@ def _as_tuple(out: Any) -> tuple[Any, ...]:
     return out if isinstance(out, tuple) else (out,)
 
 
+def wait_for_compilations(timeout: float | None = None) -> bool:
+    """Wait for the background compilations in flight, at most ``timeout`` seconds in all.
+
+    A compilation runs in a daemon thread, so a process that exits before it ends loses it
+    (no library is written) and its next run starts on the virtual machine again. A
+    command about to exit calls this, after its output, so that the next run loads the
+    library at once.
+
+    Returns
+    -------
+    bool
+        Whether no compilation is left running.
+    """
+    deadline = None if timeout is None else time.monotonic() + timeout
+    for thread in list(_BUILDS):
+        left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+        thread.join(left)
+    _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
+    return not _BUILDS
+
+
 class Accelerated:
     """A CasADi Function that switches to compiled C code once it is available.
 
@@ -750,7 +773,10 @@ class Accelerated:
 
     def _start(self) -> None:
         self._calls_left = -1
-        threading.Thread(target=self._build, daemon=True).start()
+        thread = threading.Thread(target=self._build, daemon=True)
+        _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
+        _BUILDS.append(thread)
+        thread.start()
 
     def _load(self, dfd: int) -> bool:
         """Load the library if the folder ``dfd`` holds a verified one."""

@@ -188,3 +188,48 @@ def test_a_compiled_path_solve_imports_no_torch() -> None:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "no torch" in out.stdout
+
+
+def _two_loop(steps, dirs, ro, h_diag, g):
+    """The two-loop recursion as torch.optim.LBFGS writes it, out of place."""
+    al = [0.0] * len(dirs)
+    q = -g
+    for i in range(len(dirs) - 1, -1, -1):
+        al[i] = float(steps[i] @ q) * ro[i]
+        q = q - al[i] * dirs[i]
+    r = q * h_diag
+    for i in range(len(dirs)):
+        be = float(dirs[i] @ r) * ro[i]
+        r = r + (al[i] - be) * steps[i]
+    return r
+
+
+def test_lbfgs_direction_is_the_two_loop_recursion_and_the_bfgs_inverse() -> None:
+    # direction() computes the recursion in place: the same arithmetic, so the same bits as
+    # torch's out-of-place form, and -H g for the BFGS inverse Hessian H built from the
+    # same pairs (dense, independently)
+    rng = np.random.default_rng(3)
+    n, m = 40, 7
+    opt = LBFGS(1.0, history_size=m)
+    A = rng.standard_normal((n, n))
+    A = A @ A.T + n * np.eye(n)
+    x, g = rng.standard_normal(n), None
+    for _ in range(m + 3):  # more pairs than the history holds: the oldest are dropped
+        g = A @ x
+        opt.n_iter += 1
+        d = opt.direction(g)
+        opt.d, opt.prev_g, opt.t = d, g.copy(), 0.5
+        x = x + 0.5 * d
+    g = A @ x
+    opt.n_iter += 1
+    d = opt.direction(g)
+    # the pairs direction() recursed over, the last step's appended
+    steps, dirs, ro, h = opt.steps, opt.dirs, opt.ro, opt.h_diag
+    assert len(steps) == m
+    np.testing.assert_array_equal(d, _two_loop(steps, dirs, ro, h, g))
+    H = h * np.eye(n)
+    for s, y in zip(steps, dirs, strict=True):
+        rho = 1.0 / float(y @ s)
+        V = np.eye(n) - rho * np.outer(y, s)
+        H = V.T @ H @ V + rho * np.outer(s, s)
+    np.testing.assert_allclose(d, -H @ g, rtol=1e-9, atol=1e-12 * np.abs(H @ g).max())

@@ -108,11 +108,38 @@ def cmd_solve(args: argparse.Namespace) -> int:
             written.append(save(fig, f"{stem}_learning_curve.png"))
     if args.json:
         emit_json(solution_payload(sol, files=[str(p) for p in written]))
-        return exit_code(sol.status, sol.message)
-    print_solution(args, sol, ocp, method.summary_lines(sol))
-    for p in written:
-        say(args, f"wrote {p}")
-    return exit_code(sol.status, sol.message)
+    else:
+        print_solution(args, sol, ocp, method.summary_lines(sol))
+        for p in written:
+            say(args, f"wrote {p}")
+    code = exit_code(sol.status, sol.message)  # says why on stderr: before the wait
+    _finish_compilations()
+    return code
+
+
+#: how long ``hybridoc solve`` waits, after its output, for a C compilation still running
+COMPILATION_WAIT_S = 120.0
+
+
+def _finish_compilations() -> None:
+    """Let the C compilations the solve started finish before the process exits.
+
+    A solve that ends before the compilation of its loss (it starts after a few dozen calls
+    and takes seconds) would otherwise lose it, and every later run would start on CasADi's
+    virtual machine again, about fifty times slower per call.
+    """
+    import sys
+
+    from hybridoc.compiled import wait_for_compilations
+
+    if not wait_for_compilations(0.0):
+        print(
+            "hybridoc: finishing the C compilation for the next runs (HYBRIDOC_CODEGEN=0 "
+            "turns it off)",
+            file=sys.stderr,
+            flush=True,
+        )
+        wait_for_compilations(COMPILATION_WAIT_S)
 
 
 def cmd_ablation(args: argparse.Namespace) -> int:
