@@ -2,37 +2,54 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 
 from hybridoc.errors import SceneError
 from hybridoc.solvers import threads
 
 
-def _torch_threads_after_simulator(env: dict[str, str], preset: int | None = None) -> int:
-    code = (
-        "import torch\n"
-        + (f"torch.set_num_threads({preset})\n" if preset else "")
-        + "from hybridoc.solvers.simulator import Simulator\n"
-        "Simulator('head-on')\n"
-        "print(torch.get_num_threads())\n"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
-    )
-    return int(out.stdout.strip())
+def _torch_threads_after_simulator(
+    monkeypatch: pytest.MonkeyPatch, setting: str | None, preset: int
+) -> int:
+    """torch's thread count once a Simulator is built, as in a fresh process whose program
+    set ``preset`` threads: hybridoc's apply-once flag is cleared (torch's setting is global
+    to the process, so it is also restored after the test by ``_restore_torch_threads``)."""
+    import torch
+
+    from hybridoc.solvers.simulator import Simulator
+
+    if setting is None:
+        monkeypatch.delenv("HYBRIDOC_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("HYBRIDOC_THREADS", setting)
+    monkeypatch.setattr(threads, "_APPLIED", None)
+    torch.set_num_threads(preset)
+    Simulator("head-on")
+    return torch.get_num_threads()
 
 
-def test_torch_defaults_to_one_thread_and_obeys_the_setting(monkeypatch) -> None:
-    import os
+@pytest.fixture
+def _restore_torch_threads():
+    import torch
 
-    base = {k: v for k, v in os.environ.items() if k != "HYBRIDOC_THREADS"}
-    assert _torch_threads_after_simulator(base) == 1
-    assert _torch_threads_after_simulator({**base, "HYBRIDOC_THREADS": "2"}) == 2
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.usefixtures("_restore_torch_threads")
+def test_torch_defaults_to_one_thread_and_obeys_the_setting(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # in process rather than three fresh interpreters (each paid `import torch`, 5-20 s under
+    # load); a preset of 3 threads makes every expected count a change or a kept setting
+    assert _torch_threads_after_simulator(monkeypatch, None, preset=3) == 1
+    assert _torch_threads_after_simulator(monkeypatch, "2", preset=3) == 2
     # 0: the program's own setting is kept
-    assert _torch_threads_after_simulator({**base, "HYBRIDOC_THREADS": "0"}, preset=3) == 3
+    assert _torch_threads_after_simulator(monkeypatch, "0", preset=3) == 3
+    # applied once: a later setting does not change it
+    monkeypatch.setenv("HYBRIDOC_THREADS", "2")
+    assert threads.torch_threads() == 3
 
 
 def test_casadi_threads(monkeypatch) -> None:
