@@ -1131,7 +1131,7 @@ def _discover(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> None:
         cands = [[]]
     else:
         cands = guess_candidates(ocp, ev)
-    early = _EarlyScreens.start(ocp, run, book, guess)
+    early = _EarlyScreens.start(ocp, run, book, guess, cands)
     try:
         _discover_with(ocp, run, book, guess, cands, t0, early)
     finally:
@@ -1792,49 +1792,82 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 
 _SEARCH_STATE: dict[str, Any] = {}
 
+# a screen's claim (one signed byte per screen, shared with the worker processes): free,
+# this process's, or the number of the worker that runs it (1, 2, ...)
+_FREE, _PARENT = 0, -1
 
-# the niceness the early screens' workers add to their own (os.nice): idle CPU only
-_EARLY_NICE = 10
 
-
-def _lower_priority() -> None:
-    import os
-
-    try:
-        os.nice(_EARLY_NICE)
-    except OSError:  # a platform or a policy that refuses it: the screens run as they are
-        pass
+def _screen_worker(
+    number: int, tasks: list[list[str]], claims: Any, lock: Any, results: Any
+) -> None:
+    """Worker ``number`` of :class:`_EarlyScreens`: the first screen nobody has claimed,
+    until none is left; each outcome goes to ``results`` as ``(index, outcome)``, ``(index,
+    None)`` where :func:`_search_one` raised (the parent runs it again and meets the error
+    itself)."""
+    # the screening NLPs built here, while the parent solves the guess's candidates (it
+    # builds those of the lengths it screens itself when it joins)
+    prepare(_SEARCH_STATE["ocp"], {len(seq) for seq in tasks}, max_iter=SCREEN_NLP_ITER)
+    first = 0  # claims only ever leave _FREE: the first free screen moves forward
+    while True:
+        with lock:
+            while first < len(tasks) and claims[first] != _FREE:
+                first += 1
+            if first == len(tasks):
+                break
+            i = first
+            claims[i] = number
+        try:
+            out: _Outcome | None = _search_one(tasks[i])
+        except Exception:
+            out = None
+        results.put((i, out))
 
 
 class _EarlyScreens:
-    """The screens of an explicit ``search`` (disc scenes, whose screens run in worker
-    processes) started in one worker fewer than the enumeration's before the discovery's
-    guess candidates and sources, so that a core otherwise idle works while those run one
-    after the other (multiple-collision, ``--search 5``: 3.4 s of CPU in the parent, then
-    7.2 s of screens over two workers). The parent keeps a core of its own and the early
-    workers run at a lower priority (niceness + 10), so that they take CPU no one
-    else wants and the sources' time budgets are not cut on a busy machine.
+    """The screens of an explicit ``search`` on a disc scene, started before the guess's
+    candidates and the sources in worker processes (one per usable core but this one's, at
+    most :data:`MAX_WORKERS` - 1), and shared with this process once the enumeration needs
+    their outcomes: on two cores the worker screens while the sources run here, then both
+    screen (multiple-collision, ``--search 5``: about 3 s of CPU here for the guess's
+    candidates and the sources, 5.5 s of screens).
 
     A screen's outcome (:func:`_search_one`) depends on the problem, the guess, ``tol``,
-    ``rtol`` and the warm-start sources alone, never on what the discovery has found, so
-    :func:`_enumerate` takes it as it is, in its own order and with its own pruning and
-    skipping: the landscape is the one the screens started later would give. Screened
-    early, in the enumeration's order: every sequence of up to ``search`` events it would
-    list, less those with an infinite lower bound (pruned anyway); when the enumeration
-    starts, the screens not yet started are withdrawn (:meth:`withdraw`) and run as
-    before. The screen of a sequence the discovery solves first, or the bound prunes, is
-    wasted (on multiple-collision at most 10 of 150)."""
+    ``rtol`` and the warm-start sources alone, never on what the discovery has found or on
+    the process that runs it, so :func:`_enumerate` takes it as it is, in its own order and
+    with its own pruning and skipping: the landscape is the one the screens run in order
+    would give. Screened: every sequence of up to ``search`` events the enumeration lists
+    whose lower bound is below the best cost known at the start (the bound it prunes with
+    only falls), in the enumeration's order, the guess's candidates last (solved here
+    first, they need no screen unless they fail). Each screen is claimed once, by a worker
+    or by this process (:meth:`outcomes`); a screen the enumeration skips is wasted (on
+    multiple-collision a few of 146: the sequences the sources solve first)."""
 
-    def __init__(self, pool: Any, futures: dict[tuple[str, ...], Any]) -> None:
-        self.pool = pool
-        self.futures = futures
+    def __init__(
+        self,
+        tasks: list[list[str]],
+        claims: Any,
+        lock: Any,
+        results: Any,
+        workers: list[Any],
+    ) -> None:
+        self.tasks = tasks
+        self.index = {tuple(seq): i for i, seq in enumerate(tasks)}
+        self.claims, self.lock, self.results, self.workers = claims, lock, results, workers
+        self.done: dict[int, _Outcome] = {}
+        self.by_worker = 0  # outcomes the workers gave
 
     @classmethod
-    def start(cls, ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> _EarlyScreens | None:
-        """Submit the screens (or ``None``: no explicit search, not a disc scene, fewer
-        than two usable cores, no ``fork``, or only a handful of sequences)."""
+    def start(
+        cls,
+        ocp: HybridOCP,
+        run: _Run,
+        book: _Book,
+        guess: _Guess,
+        cands: Sequence[Sequence[tuple[str, float]]] = (),
+    ) -> _EarlyScreens | None:
+        """Start the workers (or ``None``: no explicit search, not a disc scene, one usable
+        core, no ``fork``, or only a handful of sequences)."""
         import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
 
         workers = min(usable_cores(), MAX_WORKERS) - 1
         if (
@@ -1844,49 +1877,147 @@ class _EarlyScreens:
             or "fork" not in mp.get_all_start_methods()
         ):
             return None
+        best = book.best_bound()
+        later = {tuple(n for n, _ in c) for c in cands}
         by_length: list[list[tuple[float, list[str]]]] = [[] for _ in range(run.search + 1)]
         for seq in enumerate_sequences(ocp, run.search):
             lb = lower_bound(ocp, seq)
-            if not math.isinf(lb):
+            if lb < best:  # the enumeration prunes the others (an infinite bound too)
                 by_length[len(seq)].append((lb, seq))
         # the enumeration's order: length by length, by lower bound within one
-        todo = [seq for rows in by_length for _, seq in sorted(rows, key=lambda r: r[0])]
-        if len(todo) <= 4:
+        order = [seq for rows in by_length for _, seq in sorted(rows, key=lambda r: r[0])]
+        # the guess's candidates last (stable: the order kept otherwise)
+        tasks = sorted(order, key=lambda q: tuple(q) in later)
+        if len(tasks) <= 4:
             return None
-        # the screening NLPs built before the workers fork (each would compile its own)
-        prepare(ocp, {len(seq) for seq in todo}, max_iter=SCREEN_NLP_ITER)
+        ctx = mp.get_context("fork")
+        claims = ctx.RawArray("b", len(tasks))
+        lock = ctx.Lock()
+        results = ctx.Queue()
         _SEARCH_STATE.update(
             ocp=ocp, u0=guess.controls, ev=guess.evaluation, tol=book.tol, rtol=book.rtol,
             starters=book.starters,
         )  # fmt: skip
-        pool = ProcessPoolExecutor(
-            workers, mp_context=mp.get_context("fork"), initializer=_lower_priority
-        )
+        procs = []
         try:
-            # the workers fork at the first submission, with the state above
-            futures = {tuple(seq): pool.submit(_search_one, seq) for seq in todo}
+            for number in range(1, workers + 1):
+                p = ctx.Process(
+                    target=_screen_worker,
+                    args=(number, tasks, claims, lock, results),
+                    daemon=True,
+                )
+                p.start()  # forks with the state above
+                procs.append(p)
         finally:
             _SEARCH_STATE.clear()
-        book.say(f"enumeration: {len(todo)} screens started before the sources")
-        return cls(pool, futures)
+        book.say(f"enumeration: {len(tasks)} screens started before the sources")
+        return cls(tasks, claims, lock, results, procs)
 
-    def withdraw(self) -> None:
-        """Cancel the screens not yet started (the enumeration runs them as before); those
-        started or done stay."""
-        for key, f in list(self.futures.items()):
-            if f.cancel():
-                del self.futures[key]
-        self.pool.shutdown(wait=False)
+    def withdraw(self, keys: Any) -> None:
+        """The screens of these sequences are not wanted (solved before the enumeration):
+        no worker starts them."""
+        with self.lock:
+            for key in keys:
+                i = self.index.get(tuple(key))
+                if i is not None and self.claims[i] == _FREE:
+                    self.claims[i] = _PARENT
 
-    def has(self, seq: Sequence[str]) -> bool:
-        return tuple(seq) in self.futures
+    def _claim(self, i: int) -> bool:
+        with self.lock:
+            if self.claims[i] != _FREE:
+                return False
+            self.claims[i] = _PARENT
+            return True
 
-    def outcome(self, seq: Sequence[str]) -> _Outcome:
-        return self.futures[tuple(seq)].result()
+    def _receive(self, timeout: float | None) -> bool:
+        """Take one outcome from the workers (waiting at most ``timeout`` seconds; ``None``:
+        do not wait); ``False`` when none came."""
+        import queue
+
+        try:
+            if timeout is None:
+                i, out = self.results.get_nowait()
+            else:
+                i, out = self.results.get(timeout=timeout)
+        except queue.Empty:
+            return False
+        if out is None:
+            # _search_one raised in the worker: run here when wanted (_get), where the error
+            # surfaces
+            with self.lock:
+                self.claims[i] = _PARENT
+        else:
+            self.by_worker += 1
+            self.done[i] = out
+        return True
+
+    def _lost(self) -> None:
+        """The screens of a worker that died without giving their outcomes: run here (one
+        that ran out of screens has given all of its own and exited with code 0)."""
+        dead = {n for n, p in enumerate(self.workers, 1) if p.exitcode not in (None, 0)}
+        if not dead:
+            return
+        while self._receive(None):
+            pass
+        for i in range(len(self.tasks)):
+            if self.claims[i] in dead and i not in self.done:
+                self.claims[i] = _PARENT  # run here when wanted (_get)
+
+    def _get(self, i: int, ahead: list[int]) -> _Outcome:
+        """Screen ``i``'s outcome: a worker's, or run here when no worker has started it;
+        while a worker runs it, this process runs the free screens of ``ahead`` (the
+        enumeration's next ones), then of the others in order."""
+        while i not in self.done:
+            while self._receive(None):
+                pass
+            if i in self.done:
+                break
+            # claimed here and not done: withdrawn, or lost by a worker
+            if self._claim(i) or self.claims[i] == _PARENT:
+                self.done[i] = _search_one(self.tasks[i])
+                break
+            nxt = next((j for j in [*ahead, *range(len(self.tasks))] if self._claim(j)), None)
+            if nxt is not None:
+                self.done[nxt] = _search_one(self.tasks[nxt])
+            elif not self._receive(1.0):
+                self._lost()
+        return self.done.pop(i)
+
+    def outcomes(
+        self, ocp: HybridOCP, book: _Book, guess: _Guess, todo: list[list[str]]
+    ) -> list[_Outcome]:
+        """:func:`_search_one` of each sequence of ``todo``, in its order (:meth:`_get`)."""
+        _SEARCH_STATE.update(
+            ocp=ocp, u0=guess.controls, ev=guess.evaluation, tol=book.tol, rtol=book.rtol,
+            starters=book.starters,
+        )  # fmt: skip
+        idx = [self.index.get(tuple(seq)) for seq in todo]
+        out: list[_Outcome] = []
+        try:
+            for pos, (seq, i) in enumerate(zip(todo, idx, strict=True)):
+                if i is None:
+                    out.append(_search_one(seq))
+                else:
+                    ahead = [j for j in idx[pos + 1 :] if j is not None]
+                    out.append(self._get(i, ahead))
+                book.progress.count(len(out), len(todo), "sequences")
+        finally:
+            _SEARCH_STATE.clear()
+        return out
 
     def close(self) -> None:
-        """Cancel what is left and wait for the running screens."""
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        """Withdraw the screens nobody has claimed and end the workers (a screen one of them
+        still runs is not wanted)."""
+        with self.lock:
+            for i in range(len(self.tasks)):
+                if self.claims[i] == _FREE:
+                    self.claims[i] = _PARENT
+        for p in self.workers:
+            if p.is_alive():
+                p.terminate()
+            p.join()
+        self.results.close()
+        self.results.cancel_join_thread()
 
 
 # (sequence, point, (steps per arc, arcs) of its system, reason, seconds, final time)
@@ -1926,7 +2057,7 @@ def _enumerate(
     completed."""
     t0 = time.perf_counter()
     if early is not None:
-        early.withdraw()
+        early.withdraw(book.results)
     explicit = run.search or 0
     depth = max(explicit, default_depth(ocp))
     book.depth = depth
@@ -1973,10 +2104,14 @@ def _enumerate(
         if not todo:
             continue
         book.progress.stage(f"enumeration of {_events(length)}: {len(todo)} to solve")
-        outcomes = _search_outcomes(
-            ocp, book, [seq for _, seq in todo], guess.controls, guess.evaluation,
-            deadline=book.deadline if bounded else None, early=early,
-        )  # fmt: skip
+        seqs_todo = [seq for _, seq in todo]
+        if early is not None and not bounded:
+            outcomes = early.outcomes(ocp, book, guess, seqs_todo)
+        else:
+            outcomes = _search_outcomes(
+                ocp, book, seqs_todo, guess.controls, guess.evaluation,
+                deadline=book.deadline if bounded else None,
+            )  # fmt: skip
         solved += len(outcomes)
         for seq, z, levels, why, took, horizon in outcomes:
             _record(ocp, book, seq, z, levels, why, took, horizon)
@@ -2043,32 +2178,12 @@ def _search_outcomes(
     ev: Evaluation,
     *,
     deadline: float | None = None,
-    early: _EarlyScreens | None = None,
 ) -> list[_Outcome]:
     """:func:`_search_one` on the sequences of ``todo`` in order, counted on
     ``book.progress``; with a ``deadline`` (``time.perf_counter()``), no sequence starts
-    after it (the outcomes then stop short of ``todo``). The outcomes of the ``early``
-    screens are taken as they are (the same call on the same arguments)."""
+    after it (the outcomes then stop short of ``todo``)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
-
-    if early is not None and any(early.has(seq) for seq in todo):
-        # the early screens' outcomes, the others' run as below, merged in todo's order (an
-        # explicit length: no deadline)
-        rest = iter(
-            _search_outcomes(
-                ocp, book, [seq for seq in todo if not early.has(seq)], u0, ev,
-                deadline=deadline,
-            )
-        )  # fmt: skip
-        merged = []
-        for seq in todo:
-            item = early.outcome(seq) if early.has(seq) else next(rest, None)
-            if item is None:
-                break  # the deadline stopped the others
-            merged.append(item)
-            book.progress.count(len(merged), len(todo), "sequences")
-        return merged
 
     def spent() -> bool:
         return deadline is not None and time.perf_counter() >= deadline

@@ -217,8 +217,8 @@ def test_a_sequence_no_control_has_is_pruned_not_solved():
 
 
 def test_early_screens_leave_the_search_as_it_was(monkeypatch):
-    # the screens of an explicit search start before the guess's candidates (one worker,
-    # at a lower priority); the enumeration takes their outcomes as its own: the same
+    # the screens of an explicit search start before the guess's candidates (in worker
+    # processes); the enumeration takes their outcomes as its own: the same
     # landscape, verdicts, origins and coverage as with every screen started in order
     import hybridoc
     import hybridoc.reference.solve as rsolve
@@ -237,7 +237,7 @@ def test_early_screens_leave_the_search_as_it_was(monkeypatch):
     with_early = solve_reference(scene, **kwargs)
     if started[0] is None:
         pytest.skip("no second usable core or no fork: the screens run in order anyway")
-    assert started[0].futures  # some screens were taken from the early workers
+    assert started[0].workers  # the screens started in worker processes
     monkeypatch.setattr(rsolve._EarlyScreens, "start", lambda *a, **k: None)
     in_order = solve_reference(scene, **kwargs)
 
