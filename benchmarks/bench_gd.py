@@ -539,9 +539,11 @@ def print_solves(rows: list[dict[str, Any]], repeats: int) -> None:
         )
     )
     print(
-        "solve s: the solver's own solve_time_s (warm), without interpreter start-up and "
-        "imports; gap: cost / HMP optimum - 1; torch: whether the solve imports torch (one "
-        "more run under python -X importtime); peak MB: the process's ru_maxrss (max over runs)"
+        "cold s: includes compiling hybridoc's bytecode and the C code (hybridoc solve waits "
+        "for its compilations after its output, so that the warm runs find them); solve s: the "
+        "solver's own solve_time_s (warm), without interpreter start-up and imports; gap: "
+        "cost / HMP optimum - 1; torch: whether the solve imports torch (one more run under "
+        "python -X importtime); peak MB: the process's ru_maxrss (max over runs)"
     )
     for r in rows:
         print(
