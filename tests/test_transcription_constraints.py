@@ -285,9 +285,14 @@ def _bvls_tracking(n: int) -> float:
     A = np.vstack([np.sqrt(wq)[:, None] * Cq, VT, np.sqrt(EPS * h) * np.eye(n)])
     A = A @ np.linalg.inv(E)
     b = np.concatenate([np.sqrt(wq), [0.0], np.zeros(n)])
-    res = lsq_linear(A, b, bounds=(-np.inf, XMAX), method="bvls", tol=1e-15, max_iter=10000)
+    # the same problem with n rows instead of 4n + 1 (|Ax - b|^2 = |Rx - Q'b|^2 + |b_perp|^2):
+    # every BVLS iteration is a least squares on the free columns, 10x faster here
+    Q, R = np.linalg.qr(A)
+    c = Q.T @ b
+    b_perp = b - Q @ c
+    res = lsq_linear(R, c, bounds=(-np.inf, XMAX), method="bvls", tol=1e-15, max_iter=10000)
     assert res.status > 0
-    return 2.0 * float(res.cost)
+    return 2.0 * float(res.cost) + float(b_perp @ b_perp)
 
 
 def test_path_constraint_matches_state_constrained_least_squares():
