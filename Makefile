@@ -8,6 +8,11 @@ STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
 PKG_DIRS := hybridoc hybridoc/cli hybridoc/workflows reference solvers solvers/contacts problems problems/library problems/scenes
 
+# Python writes the bytecode of what it imports (__pycache__) even where the environment
+# says not to: with the install's --no-compile (below), a process that cannot write it would
+# compile torch's modules again at every start.
+unexport PYTHONDONTWRITEBYTECODE
+
 .PHONY: run test test-all fuzz lint format docs docs-check screenshots bench bench-summary install clean
 
 # The main job: cross-validation of reference, transcription and gradient descent on both
@@ -86,11 +91,13 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 # torch: the CPU build 2.13.0 on disk first, so the dependency range is already satisfied
-# and pip never fetches the multi-gigabyte CUDA build.
+# and pip never fetches the multi-gigabyte CUDA build. --no-compile: pip's byte-compilation
+# of every installed module (torch and sympy alone are ~5000) took 80 of the install's 107 s
+# on 2 busy cores; Python compiles what is imported instead, once (below).
+PIP := $(BIN)/python -m pip install --quiet --disable-pip-version-check --no-compile
 $(STAMP): $(BIN)/python pyproject.toml $(PKG_DIRS)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check torch==2.13.0
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check \
-		-e ".[dev]" --config-settings editable_mode=strict
+	$(PIP) torch==2.13.0
+	$(PIP) -e ".[dev]" --config-settings editable_mode=strict
 	touch $(STAMP)
 
 clean:
