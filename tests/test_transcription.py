@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -172,16 +169,14 @@ def test_generic_ocp_bouncing_ball():
     np.testing.assert_allclose(sol.costates[-1][0], 2 * (sol.states[-1][0] - 1.0), atol=1e-9)
 
 
-def test_cli_solve_dt_json():
-    exe = Path(sys.executable).with_name("hybridoc")
-    out = subprocess.run(
-        [str(exe), "solve", "single-collision", "--method", "dt", "--json"],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd="/",
-    )
-    data = json.loads(out.stdout)
+def test_cli_solve_dt_json(capsys, monkeypatch, tmp_path):
+    # in this process: tests/test_conventions.py runs `solve --method dt --json` as a real
+    # process (a subprocess here paid ~3 s of imports again)
+    from hybridoc.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["solve", "single-collision", "--method", "dt", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
     for key in ("cost", "terminal_cost", "running_cost", "events", "status", "timings"):
         assert key in data
     assert data["status"] == "success" and data["timings"]["solve_time_s"] > 0
