@@ -1792,6 +1792,10 @@ def _adjoint(ocp: HybridOCP, controls: Any) -> Any:
 
 _SEARCH_STATE: dict[str, Any] = {}
 
+SCREEN_WAIT = 60.0
+"""Seconds the search waits for a worker's screen with nothing else to do before it runs the
+screen itself (a screen takes well under a second; a worker process forked from threads
+could hang)."""
 # a screen's claim (one signed byte per screen, shared with the worker processes): free,
 # this process's, or the number of the worker that runs it (1, 2, ...)
 _FREE, _PARENT = 0, -1
@@ -1966,8 +1970,14 @@ class _EarlyScreens:
     def _get(self, i: int, ahead: list[int]) -> _Outcome:
         """Screen ``i``'s outcome: a worker's, or run here when no worker has started it;
         while a worker runs it, this process runs the free screens of ``ahead`` (the
-        enumeration's next ones), then of the others in order."""
+        enumeration's next ones), then of the others in order. A worker that gives no
+        outcome for :data:`SCREEN_WAIT` seconds while nothing else is left to do here is
+        taken for stuck: the screen is run here (the same outcome)."""
+        waited = 0.0
         while i not in self.done:
+            if waited >= SCREEN_WAIT:
+                with self.lock:
+                    self.claims[i] = _PARENT
             while self._receive(None):
                 pass
             if i in self.done:
@@ -1980,6 +1990,7 @@ class _EarlyScreens:
             if nxt is not None:
                 self.done[nxt] = _search_one(self.tasks[nxt])
             elif not self._receive(1.0):
+                waited += 1.0
                 self._lost()
         return self.done.pop(i)
 

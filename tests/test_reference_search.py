@@ -119,6 +119,30 @@ def test_the_screens_of_a_worker_that_died_are_run_here(scene, in_order, monkeyp
     _same(sol, in_order)
 
 
+def test_the_screen_of_a_stuck_worker_is_run_here(scene, in_order, monkeypatch):
+    # a worker that hangs in its first screen (as a process forked from threads might) gives
+    # no outcome: after SCREEN_WAIT seconds with nothing else to do the parent runs it
+    import time
+
+    parent = os.getpid()
+    real = rsolve._search_one
+
+    def stuck(seq):
+        if os.getpid() != parent:
+            time.sleep(3600)
+        return real(seq)
+
+    monkeypatch.setattr(rsolve, "_search_one", stuck)
+    monkeypatch.setattr(rsolve, "SCREEN_WAIT", 1.0)
+    started = _spy_start(monkeypatch)
+    sol = solve_reference(scene, **KWARGS)
+    if started[0] is None:
+        pytest.skip("no second usable core or no fork: the screens run in order anyway")
+    assert started[0].by_worker == 0
+    assert not any(p.is_alive() for p in started[0].workers)  # ended with the search
+    _same(sol, in_order)
+
+
 def test_the_screened_sequences_are_the_enumeration_s_in_its_order(scene, monkeypatch):
     # screened: every sequence of up to K events whose lower bound is below the best cost
     # known at the start, in the enumeration's order (length, then bound), the guess's
