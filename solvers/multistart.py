@@ -13,22 +13,25 @@ pairs and its own backtracking step.
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 
-from hybridoc.ocp import HybridOCP
+from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
     "EXPLORE_SMOOTHING",
     "batched_lbfgs",
+    "cached_exploration_loss",
     "distinct_basins",
     "diverse_controls",
     "diverse_starts",
     "exploration_loss",
     "explore",
+    "mode_slots",
     "resample",
     "smooth_noise",
     "starting_controls",
@@ -378,6 +381,7 @@ def batched_lbfgs(
     lower: np.ndarray | None = None,
     upper: np.ndarray | None = None,
     deadline: float | None = None,
+    some: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """L-BFGS with backtracking on a batch of starts, one batched call per trial point.
 
@@ -396,11 +400,19 @@ def batched_lbfgs(
     deadline
         A :func:`time.perf_counter` time after which no further iteration starts (the
         points reached so far are returned).
+    some
+        The same function as ``value_and_grad`` for a few of the starts, ``(b, n...) ->
+        (values (b,), gradients (b, n...))``, row for row bit for bit. Where given, a trial
+        point at which at most half the starts still search (the others accepted their step,
+        converged or stopped) is evaluated at those starts only: on pendulum-wall and the
+        two tanks about half the batched calls of the descent were backtracking steps of one
+        or two starts, whose batch evaluated every start and used one or two values. The
+        iterates are the same.
 
     Returns
     -------
     X, values, evaluations
-        The final points, their values and the number of batched calls.
+        The final points, their values and the number of calls (batched or of ``some``).
     """
     shape = U0.shape
     B = shape[0]
@@ -409,6 +421,18 @@ def batched_lbfgs(
     def vg(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         v, g = value_and_grad(Y.reshape(shape))
         return np.asarray(v, dtype=float), np.asarray(g, dtype=float).reshape(B, -1)
+
+    def vg_at(Y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Values and gradients at the ``rows`` of ``Y`` (elsewhere NaN and zero)."""
+        n = int(rows.sum())
+        if some is None or n > B // 2 or not np.isfinite(Y[rows]).all():
+            return vg(Y)
+        v_all, g_all = np.full(B, np.nan), np.zeros_like(Y)
+        if n:
+            v, g = some(Y[rows].reshape(n, *shape[1:]))
+            v_all[rows] = np.asarray(v, dtype=float)
+            g_all[rows] = np.asarray(g, dtype=float).reshape(n, -1)
+        return v_all, g_all
 
     def project(Y: np.ndarray) -> np.ndarray:
         if lower is None and upper is None:
@@ -433,7 +457,7 @@ def batched_lbfgs(
         Xn, fn, gn = X.copy(), f.copy(), g.copy()
         for _ls in range(10):  # one batch, one pace: a failing start retries next iteration
             trial = project(X + step[:, None] * d)
-            ft, gt = vg(trial)
+            ft, gt = vg_at(trial, active & ~accepted)
             calls += 1
             ok = np.isfinite(ft) & (ft <= f + 1e-4 * step * slope) & ~accepted & active
             Xn[ok], fn[ok], gn[ok] = trial[ok], ft[ok], gt[ok]
@@ -475,12 +499,101 @@ def exploration_loss(coarse: HybridOCP) -> Any:
     contact ``direct`` with TOI ``both`` (disc scenes), or the generic time-of-impact
     simulation, with the default path-constraint weight (a new
     :class:`~hybridoc.solvers.compiled.CompiledLoss`; gradient descent passes its cached one,
-    the same function)."""
+    the same function). A problem with modes is simulated through :func:`mode_slots`: the
+    same step in fewer operations."""
     from hybridoc.solvers.compiled import CompiledLoss
     from hybridoc.solvers.contacts import contact_model
 
     integrator = "exact" if isinstance(coarse, DiscOCP) else None
-    return CompiledLoss(coarse, contact_model("direct", toi="both"), integrator=integrator)
+    return CompiledLoss(
+        mode_slots(coarse), contact_model("direct", toi="both"), integrator=integrator
+    )
+
+
+_LOSSES: weakref.WeakKeyDictionary[Structure, dict[tuple[Any, ...], Any]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def cached_exploration_loss(coarse: HybridOCP) -> Any:
+    """:func:`exploration_loss`, built once per problem structure, grid, horizon and initial
+    state and kept (weakly, per :class:`~hybridoc.ocp.Structure`): the reference's
+    multi-start source asks for it on every solve (datasets solve one draw after another)."""
+    key = (coarse.steps, coarse.horizon, tuple(coarse.x0.tolist()))
+    cache = _LOSSES.setdefault(coarse.structure, {})
+    loss = cache.get(key)
+    if loss is None:
+        if len(cache) > 8:
+            cache.clear()
+        loss = cache[key] = exploration_loss(coarse)
+    return loss
+
+
+def mode_slots(ocp: HybridOCP) -> HybridOCP:
+    """The same problem with one guard per *slot* instead of one per transition, or ``ocp``.
+
+    In a problem with modes (:meth:`~hybridoc.HybridOCP.from_modes`) a transition's guard is
+    a constant (no crossing) outside its source mode, yet the time-of-impact step
+    (:func:`~hybridoc.solvers.toi_sim.toi_step`) locates every guard's event, by Newton's
+    method through the flow map, in every step. Slot ``k`` is the ``k``-th transition out of
+    the current mode (selected by the mode index, the last state coordinate; the masked
+    constant where the mode has fewer), so a step locates as many events as the busiest mode
+    has transitions: two for the two tanks instead of seven (17461 -> 8145 operations per
+    step). The step is the same function: the same guard fires at the same located time (the
+    transitions of a mode keep their order, so ties break alike) with the same reset, and
+    ``if_else`` passes its branch's value unchanged, so the loss is bit for bit that of
+    ``ocp``; so is its gradient on the two tanks, while on the hopper the adjoint adds a few
+    terms in another order (an ulp here and there; tests/test_candidates.py). ``ocp``
+    itself where it has no
+    modes, where slots would not save a guard, or where a guard is not constant outside its
+    source mode."""
+    import casadi as ca
+
+    from hybridoc.ocp import Guard
+
+    modes, guards = ocp.modes, ocp.guards
+    if modes is None or not guards or any(g.source not in modes for g in guards):
+        return ocp
+    out = {m: [g for g in guards if g.source == m] for m in modes}
+    K = max(len(v) for v in out.values())
+    if K >= len(guards):
+        return ocp
+    x, u = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu)
+    q = x[ocp.nx - 1]
+    masked: set[float] = set()
+    for g in guards:
+        for fn in (g.psi, g.detector or g.psi):
+            expr = fn(x)
+            for k, m in enumerate(modes):
+                if m == g.source:
+                    continue
+                other = ca.substitute(expr, q, ca.SX(float(k)))
+                if not other.is_constant():
+                    return ocp  # a guard that is not masked outside its mode
+                masked.add(float(ca.evalf(other)))
+    if len(masked) != 1:
+        return ocp
+    rest = masked.pop()
+    slots = []
+    for k in range(K):
+        psi, det, after = ca.SX(rest), ca.SX(rest), x
+        for m, gs in out.items():
+            if len(gs) <= k:
+                continue
+            g = gs[k]
+            here = ca.fabs(q - modes.index(m)) < 0.5
+            psi = ca.if_else(here, g.psi(x), psi)
+            det = ca.if_else(here, (g.detector or g.psi)(x), det)
+            after = ca.if_else(here, g.reset_at(x, u), after)
+        slots.append(
+            Guard(
+                f"slot{k}",
+                ca.Function(f"psi_slot{k}", [x], [psi]),
+                ca.Function(f"g_slot{k}", [x, u], [after]),
+                detector=ca.Function(f"det_slot{k}", [x], [det]),
+            )
+        )
+    return ocp.replace(guards=slots)
 
 
 def explore(
@@ -548,11 +661,18 @@ def explore(
         starts = starting_controls(ocp, count, seed=seed)
     U0 = resample(np.asarray(starts, dtype=float), coarse.steps)
 
-    def make_vg(mu: float) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    def make_vg(
+        mu: float, one: bool = False
+    ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         # mu: the control-smoothness penalty that weakens the kinks of the loss (an event
-        # crossing a grid time), as in solve_gd's continuation
+        # crossing a grid time), as in solve_gd's continuation; one: start by start through
+        # the loss's own compiled function (a few starts: batched_lbfgs's ``some``)
         def vg(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            J, gU, _ = loss.value_and_grad_batch(U)
+            if one:
+                rows = [loss.value_and_grad(u) for u in U]
+                J, gU = np.array([r[0] for r in rows]), np.stack([r[1] for r in rows])
+            else:
+                J, gU, _ = loss.value_and_grad_batch(U)
             if mu:
                 d = U[:, 1:] - U[:, :-1]
                 J = J + mu * (d**2).sum(axis=(1, 2)) / coarse.dt
@@ -566,12 +686,15 @@ def explore(
     lower = upper = None
     if ocp.has_bounds:
         lower, upper = ocp.u_min, ocp.u_max
+    single = hasattr(loss, "value_and_grad")
     X, f, _ = batched_lbfgs(
-        make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper, deadline=deadline
-    )
+        make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper, deadline=deadline,
+        some=make_vg(EXPLORE_SMOOTHING, one=True) if single else None,
+    )  # fmt: skip
     X, f, _ = batched_lbfgs(
-        make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper, deadline=deadline
-    )
+        make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper, deadline=deadline,
+        some=make_vg(0.0, one=True) if single else None,
+    )  # fmt: skip
     picked = _distinct(f, judge)
     out, rows = _judged(ocp, X, f, picked, coarse.dt, deadline, repeats)
     if report is not None:

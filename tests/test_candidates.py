@@ -17,6 +17,7 @@ import pytest
 import hybridoc
 import hybridoc.solvers  # noqa: F401  (registers the solvers' candidate sources)
 from hybridoc.errors import ConvergenceError, SceneError
+from hybridoc.problems import load_problem
 from hybridoc.reference import (
     Proposal,
     register_source,
@@ -241,3 +242,50 @@ def test_event_times_of_another_length_are_guessed_anew(capsys) -> None:
     assert sol.success and sol.sequence == OPTIMAL_SEQUENCE
     assert sol.cost == pytest.approx(OPTIMUM, rel=1e-9)
     assert "2 event times for the 3-event sequence" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["two-tanks", "hopper"])
+def test_mode_slots_give_the_same_loss_bit_for_bit(name: str) -> None:
+    """The multi-start's loss on a problem with modes (one guard per slot of the current
+    mode's transitions) equals the loss with one guard per transition on controls that fire
+    several transitions (and on one that fires none): the values bit for bit, the gradients
+    bit for bit on the two tanks and to an ulp or so on the hopper."""
+    from hybridoc.solvers.compiled import CompiledLoss
+    from hybridoc.solvers.multistart import cached_exploration_loss, mode_slots
+
+    ocp = load_problem(name).replace(steps=30)
+    slotted = mode_slots(ocp)
+    assert len(slotted.guards) == {"two-tanks": 2, "hopper": 1}[name] < len(ocp.guards)
+    rng = np.random.default_rng(1)
+    u0 = np.asarray(ocp.u_guess, dtype=float)
+    U = np.stack([u0, 0 * u0 - 1.0, *(u0 + rng.standard_normal((4, *u0.shape)))])
+    plain, slots = CompiledLoss(ocp), CompiledLoss(slotted)
+    J, gU, gx = plain.value_and_grad_batch(U)
+    Js, gUs, gxs = slots.value_and_grad_batch(U)
+    assert np.array_equal(J, Js)
+    if name == "two-tanks":
+        assert np.array_equal(gU, gUs) and np.array_equal(gx, gxs)
+    else:  # the hopper's adjoint adds a few terms in another order: an ulp here and there
+        np.testing.assert_allclose(gU, gUs, rtol=0, atol=4 * np.finfo(float).eps * abs(gU).max())
+        np.testing.assert_allclose(gx, gxs, rtol=0, atol=4 * np.finfo(float).eps * abs(gx).max())
+    assert np.ptp(J) > 0  # the controls differ in what they do
+    assert len(hybridoc.evaluate(ocp, U[0]).events) >= 2  # the guess fires transitions
+    assert cached_exploration_loss(ocp) is cached_exploration_loss(ocp.replace(name="x"))
+
+
+def test_mode_slots_keep_problems_they_cannot_help() -> None:
+    """No modes, or a guard that is not masked outside its source mode: the problem as is."""
+    import casadi as ca
+
+    from hybridoc.ocp import Guard
+    from hybridoc.solvers.multistart import mode_slots
+
+    ball = load_problem("bouncing-ball")
+    assert mode_slots(ball) is ball
+    tanks = load_problem("two-tanks")
+    x = ca.SX.sym("x", tanks.nx)
+    g = tanks.guards[0]
+    unmasked = Guard(g.name, ca.Function("psi", [x], [0.5 - x[0]]), g.reset, source=g.source,
+                     target=g.target)  # fmt: skip
+    other = tanks.replace(guards=[unmasked, *tanks.guards[1:]])
+    assert mode_slots(other) is other

@@ -26,6 +26,7 @@ from library_optima import (
     CLAIMED_EVENTS,
     CONFIGS,
     build,
+    build_mode_problem,
     expected_table,
     independent_optimum,
     library,
@@ -258,3 +259,34 @@ def test_default_reference_finds_the_independent_optimum(name: str) -> None:
     assert sol.success
     assert sol.sequence == opt["sequence"]
     assert sol.cost == pytest.approx(opt["cost"], rel=1e-9)
+
+
+def test_hopper_transcription_solves_only_sequences_the_modes_admit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The transcription from the hopper's guess (touchdown, liftoff, touchdown, liftoff)
+    tries that sequence and those with one event dropped; three of these fire a transition
+    outside its source mode (two touchdowns in a row, ...): they are recorded, not solved
+    (their NLPs have no feasible point), and the answer is the one found when every
+    candidate is solved, bit for bit."""
+    from hybridoc.solvers import transcription
+    from hybridoc.solvers.transcription import solve_dt
+
+    ocp = build_mode_problem("hopper")
+    sol = solve_dt(ocp)
+    rows = sol.info["candidates"]
+    skipped = [r["sequence"] for r in rows if r["status"].startswith("not solved")]
+    assert skipped == [
+        ["liftoff", "touchdown", "liftoff"],
+        ["touchdown", "touchdown", "liftoff"],
+        ["touchdown", "liftoff", "liftoff"],
+    ]
+    assert not any(ocp.sequence_admissible(s) for s in skipped)
+    assert all(r["nlp_cost"] is not None for r in rows if r["sequence"] not in skipped)
+    monkeypatch.setattr(transcription, "_admissible_candidates", lambda ocp, c: (c, []))
+    every = solve_dt(ocp)
+    failed = [r["sequence"] for r in every.info["candidates"] if r["nlp_cost"] is None]
+    assert failed == skipped  # IPOPT: infeasible, each of them
+    assert sol.sequence == every.sequence == ["touchdown", "liftoff", "touchdown", "liftoff"]
+    assert sol.cost == every.cost
+    np.testing.assert_array_equal(sol.controls, every.controls)
