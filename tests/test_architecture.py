@@ -9,6 +9,7 @@ module importing only from its own layer or the layers below it.
 from __future__ import annotations
 
 import ast
+import functools
 from collections import defaultdict
 from pathlib import Path
 
@@ -93,7 +94,9 @@ def _owner(name: str) -> str | None:
     return name or None
 
 
-def _imports(module: str) -> list[tuple[str, str, int]]:
+# every test reads the same imports: each module is parsed once per test process
+@functools.cache
+def _imports(module: str) -> tuple[tuple[str, str, int], ...]:
     """``(imported module, imported name or "", line)`` of every hybridoc import in
     ``module``, at any depth (functions, methods, ``if TYPE_CHECKING`` blocks excepted)."""
     path = MODULES[module]
@@ -132,7 +135,7 @@ def _imports(module: str) -> list[tuple[str, str, int]]:
                 # nothing until a name is used: that name's module is not known here
                 if alias.name.split(".")[0] == "hybridoc" and alias.name != "hybridoc":
                     out.append((alias.name, "", node.lineno))
-    return out
+    return tuple(out)
 
 
 def _graph() -> dict[str, set[str]]:
