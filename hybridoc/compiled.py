@@ -89,6 +89,7 @@ _QUEUE_LOCK = threading.Lock()  # one compilation at a time: two cores are often
 HOT_CALLS = 50
 """Calls after which a function is compiled (see :class:`Accelerated`)."""
 _BUILDS: list[threading.Thread] = []  # background compilations started, finished ones pruned
+_BUILDS_LOCK = threading.Lock()
 DEFAULT_MAX_MB = 500.0
 """Default bound of the cache's size in megabytes (``HYBRIDOC_CACHE_MAX_MB``)."""
 _FLAGS = ["-O1", "-ffp-contract=off", "-fPIC", "-shared"]
@@ -690,11 +691,14 @@ def wait_for_compilations(timeout: float | None = None) -> bool:
         Whether no compilation is left running.
     """
     deadline = None if timeout is None else time.monotonic() + timeout
-    for thread in list(_BUILDS):
+    with _BUILDS_LOCK:
+        started = list(_BUILDS)
+    for thread in started:
         left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
         thread.join(left)
-    _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
-    return not _BUILDS
+    with _BUILDS_LOCK:
+        _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
+        return not _BUILDS
 
 
 class Accelerated:
@@ -774,9 +778,10 @@ class Accelerated:
     def _start(self) -> None:
         self._calls_left = -1
         thread = threading.Thread(target=self._build, daemon=True)
-        _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
-        _BUILDS.append(thread)
-        thread.start()
+        with _BUILDS_LOCK:  # started inside: a thread in the list can be joined
+            _BUILDS[:] = [t for t in _BUILDS if t.is_alive()]
+            thread.start()
+            _BUILDS.append(thread)
 
     def _load(self, dfd: int) -> bool:
         """Load the library if the folder ``dfd`` holds a verified one."""
