@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_here import run_here
 
 import hybridoc
 from hybridoc.workflows.validation import (
@@ -32,6 +33,8 @@ def ref():
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
+    """The installed ``hybridoc`` in a subprocess: one round trip of ``validate`` here (the
+    others run in this process, :func:`cli_here.run_here`)."""
     return subprocess.run([str(EXE), *args], capture_output=True, text=True, cwd="/")
 
 
@@ -98,7 +101,7 @@ def test_convergence_dt_only_small():
 def test_validate_cli_json_and_figures(tmp_path, ref):
     f = tmp_path / "u.npy"
     np.save(f, ref.controls)
-    res = _cli("validate", SCENE, str(f), "--json", "--out", str(tmp_path / "o"))
+    res = run_here("validate", SCENE, str(f), "--json", "--out", str(tmp_path / "o"))
     assert res.returncode == 0, res.stderr
     data = json.loads(res.stdout)
     assert data["sequence_matches"] is True
@@ -122,7 +125,7 @@ def test_validate_cli_bad_files(tmp_path, content, suffix, message):
         f.write_text(content)
     else:
         np.save(f, content)
-    res = _cli("validate", SCENE, str(f), "--json")
+    res = run_here("validate", SCENE, str(f), "--json")
     assert res.returncode == 2
     assert res.stdout == ""
     assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1
@@ -134,7 +137,7 @@ def test_validate_cli_missing_file(tmp_path):
 
 
 def test_crossval_cli_json(tmp_path):
-    res = _cli("crossval", SCENE, "--json", "--out", str(tmp_path))
+    res = run_here("crossval", SCENE, "--json", "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr
     data = json.loads(res.stdout)
     assert set(data) >= {"reference", "dt", "gd", "agree", "reasons"}
