@@ -404,10 +404,11 @@ def batched_lbfgs(
         The same function as ``value_and_grad`` for a few of the starts, ``(b, n...) ->
         (values (b,), gradients (b, n...))``, row for row bit for bit. Where given, a trial
         point at which at most half the starts still search (the others accepted their step,
-        converged or stopped) is evaluated at those starts only: on pendulum-wall and the
-        two tanks about half the batched calls of the descent were backtracking steps of one
-        or two starts, whose batch evaluated every start and used one or two values. The
-        iterates are the same.
+        converged or stopped) is evaluated at those starts only, unless ``some`` took
+        longer for that many starts than the latest batched call for all (measured as it
+        runs): on pendulum-wall and the two tanks about half the batched calls of the
+        descent were backtracking steps of one or two starts, whose batch evaluated every
+        start and used one or two values. The iterates are the same either way.
 
     Returns
     -------
@@ -422,16 +423,31 @@ def batched_lbfgs(
         v, g = value_and_grad(Y.reshape(shape))
         return np.asarray(v, dtype=float), np.asarray(g, dtype=float).reshape(B, -1)
 
+    # the latest seconds of a batched call and of ``some`` per start: where ``some`` runs in
+    # CasADi's virtual machine while the batch is compiled C (the first run of a problem),
+    # one start costs as much as the whole batch, and the batch is called instead (the
+    # choice moves no iterate: both give the same numbers)
+    took = {"batch": 0.0, "one": 0.0}
+
     def vg_at(Y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Values and gradients at the ``rows`` of ``Y`` (elsewhere NaN and zero)."""
         n = int(rows.sum())
-        if some is None or n > B // 2 or not np.isfinite(Y[rows]).all():
-            return vg(Y)
+        if (
+            some is None
+            or not 0 < n <= B // 2
+            or n * took["one"] > took["batch"]
+            or not np.isfinite(Y[rows]).all()
+        ):
+            t0 = time.perf_counter()
+            out = vg(Y)
+            took["batch"] = time.perf_counter() - t0
+            return out
+        t0 = time.perf_counter()
+        v, g = some(Y[rows].reshape(n, *shape[1:]))
+        took["one"] = (time.perf_counter() - t0) / n
         v_all, g_all = np.full(B, np.nan), np.zeros_like(Y)
-        if n:
-            v, g = some(Y[rows].reshape(n, *shape[1:]))
-            v_all[rows] = np.asarray(v, dtype=float)
-            g_all[rows] = np.asarray(g, dtype=float).reshape(n, -1)
+        v_all[rows] = np.asarray(v, dtype=float)
+        g_all[rows] = np.asarray(g, dtype=float).reshape(n, -1)
         return v_all, g_all
 
     def project(Y: np.ndarray) -> np.ndarray:

@@ -289,3 +289,35 @@ def test_mode_slots_keep_problems_they_cannot_help() -> None:
                      target=g.target)  # fmt: skip
     other = tanks.replace(guards=[unmasked, *tanks.guards[1:]])
     assert mode_slots(other) is other
+
+
+def test_batched_lbfgs_evaluates_only_the_starts_still_searching() -> None:
+    """Backtracking trials of a few starts go to ``some`` (those starts only), and the
+    iterates, values and call count are those of the all-batch descent, bit for bit."""
+    from hybridoc.solvers.multistart import batched_lbfgs
+
+    rng = np.random.default_rng(4)
+    c = rng.standard_normal((1, 6))
+    w = np.linspace(1.0, 30.0, 6)[None, :]
+
+    def vg(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = X - c
+        return (w * d**2).sum(axis=1) + (d**4).sum(axis=1), 2 * w * d + 4 * d**3
+
+    sizes: list[int] = []
+
+    def some(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sizes.append(len(X))
+        return vg(X)
+
+    # the far starts need many halvings (the quartic), the near ones none
+    X0 = np.concatenate(
+        [c + 0.1 * rng.standard_normal((6, 6)), c + 8 * rng.standard_normal((2, 6))]
+    )
+    plain = batched_lbfgs(vg, X0, iters=25)
+    fewer = batched_lbfgs(vg, X0, iters=25, some=some)
+    assert sizes and max(sizes) <= 4  # at most half the batch
+    np.testing.assert_array_equal(plain[0], fewer[0])
+    np.testing.assert_array_equal(plain[1], fewer[1])
+    assert plain[2] == fewer[2]
+    assert np.all(plain[1] < 1e-10)  # the minimum, 0 at c
