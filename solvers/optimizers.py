@@ -21,6 +21,11 @@ buffers: importing torch (seconds) is left to the torch simulator, policies and 
     and the curvature history is reset; if the shortened step raises the loss, the iterate
     stays) and restarts at kinks (a step that does not move restarts from steepest descent
     with an empty history; a fresh start that does not move either has converged).
+:func:`lbfgs_torch_step`
+    What one call ``torch.optim.LBFGS.step(closure)`` does (up to ``max_iter`` iterations
+    and ``max_eval`` evaluations, with its stopping tests), on :class:`LBFGS`: policy
+    training (:func:`~hybridoc.workflows.training.train_policy`) runs it instead of the
+    torch optimiser, whose first construction imports ``torch._dynamo`` (seconds).
 :class:`SGD`, :class:`Adam`
     ``torch.optim.SGD`` and ``torch.optim.Adam`` (their defaults) on numpy arrays.
 
@@ -44,6 +49,7 @@ __all__ = [
     "Adam",
     "Iteration",
     "lbfgs_iterations",
+    "lbfgs_torch_step",
     "strong_wolfe",
 ]
 
@@ -372,6 +378,78 @@ def lbfgs_iterations(
         else:
             x, f, g, fresh = x_new, f_new, g_new, False
             yield Iteration(x, f, g, "step")
+
+
+def lbfgs_torch_step(
+    opt: LBFGS,
+    fun: Objective,
+    x: np.ndarray,
+    f: float,
+    g: np.ndarray,
+    *,
+    max_iter: int = 20,
+    max_eval: int | None = None,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """One call of ``torch.optim.LBFGS.step(closure)`` with ``line_search_fn="strong_wolfe"``.
+
+    Up to ``max_iter`` iterations of ``opt`` from ``x``, as torch's optimiser makes them in
+    one call, its curvature history kept in ``opt`` from call to call. The iterations stop
+    after ``max_eval`` evaluations (the one at ``x`` included: each line search gets what is
+    left), once ``max |g| <= opt.tolerance_grad``, once the slope ``g.d`` is above
+    ``-opt.tolerance_change``, or when the last step moved no coordinate or changed the loss
+    by no more than ``opt.tolerance_change``. ``opt`` should be built with torch's defaults
+    (``history_size=100, tolerance_grad=1e-7, tolerance_change=1e-9``) for torch's
+    iterates, which it reproduces up to rounding (torch's fused multiply-adds and dot
+    products round differently).
+
+    Parameters
+    ----------
+    opt
+        The optimiser and its state (``opt.max_ls`` is not used: the evaluations left are).
+    fun
+        The objective, ``fun(x) -> (f, g)``; an exception it raises propagates.
+    x, f, g
+        The start and its value and gradient (torch's call evaluates them first; here the
+        caller passes them, e.g. the last call's result, which is the same point).
+    max_iter
+        Iterations at most (torch's ``max_iter``).
+    max_eval
+        Evaluations at most, the one at ``x`` included; default ``max_iter * 5 // 4``.
+
+    Returns
+    -------
+    x, f, g
+        The new point, its value and gradient (``x``, ``f``, ``g`` when it does not move).
+    """
+    max_eval = max_iter * 5 // 4 if max_eval is None else max_eval
+    if float(np.abs(g).max()) <= opt.tolerance_grad:
+        return x, f, g
+    evals = 1
+    for n in range(1, max_iter + 1):
+        opt.n_iter += 1
+        d = opt.direction(g)
+        opt.d, opt.prev_g = d, g.copy()
+        f_prev = f
+        t = min(1.0, 1.0 / float(np.abs(g).sum())) * opt.lr if opt.n_iter == 1 else opt.lr
+        gtd = float(g @ d)
+        if gtd > -opt.tolerance_change:
+            opt.t = t
+            break
+        f, g, t, ls_evals = strong_wolfe(fun, x, t, d, f, g, gtd, max_ls=max_eval - evals)
+        opt.t = t
+        opt.evaluations += ls_evals
+        evals += ls_evals
+        # torch adds t d even for t = 0 (no step lowered the loss): x stays x
+        x = x + t * d
+        if (
+            n == max_iter
+            or evals >= max_eval
+            or float(np.abs(g).max()) <= opt.tolerance_grad
+            or float(np.abs(d * t).max()) <= opt.tolerance_change
+            or abs(f - f_prev) < opt.tolerance_change
+        ):
+            break
+    return x, f, g
 
 
 class SGD:

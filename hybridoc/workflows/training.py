@@ -21,6 +21,12 @@ the interval). This module trains such policies and differentiates that judgemen
     times' sensitivity (the saltation matrix) is part of the gradient, which is what
     ``toi="both"`` means there; the judge has no rollout without it, so other ``toi``
     values are refused on such problems.
+:class:`TensorAdam`, :func:`cosine_annealing_lrs`
+    The optimiser steps of the training, without ``torch.optim`` (whose first optimiser
+    imports ``torch._dynamo``, seconds per process): ``torch.optim.Adam``'s arithmetic on
+    the parameters in place and ``CosineAnnealingLR``'s learning rates, the same iterates
+    bit for bit on the CPU. L-BFGS is the numpy port of ``torch.optim.LBFGS``
+    (:func:`~hybridoc.solvers.optimizers.lbfgs_torch_step`) on the flattened parameters.
 :func:`training_draws`
     The initial states to train on: draws of the problem's distribution (a scene's
     ``[distribution]`` table or :attr:`HybridOCP.distribution <hybridoc.HybridOCP>`) with
@@ -71,6 +77,7 @@ from hybridoc.evaluator import adjoint, evaluate
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp, disc_scene
 from hybridoc.progress import Progress, ProgressLike, progress_scope
+from hybridoc.solvers.optimizers import LBFGS, lbfgs_torch_step
 from hybridoc.solvers.simulator import Simulator
 from hybridoc.solvers.threads import torch_threads
 
@@ -78,9 +85,11 @@ __all__ = [
     "ENGINES",
     "ClosedLoopGradient",
     "MLPPolicy",
+    "TensorAdam",
     "TrainResult",
     "closed_loop_cost",
     "closed_loop_gradient",
+    "cosine_annealing_lrs",
     "judged_loss",
     "mlp_policy",
     "train_policy",
@@ -573,7 +582,7 @@ def train_policy(
         An unknown optimiser or simulator setting, a simulator setting on a problem that is
         not a disc scene, no distribution to draw a count of initial states from.
     """
-    params = _trainable(policy, optimizer, schedule, iters)
+    params = _trainable(policy, optimizer, schedule, iters, lr)
     if isinstance(x0_batch, int | np.integer) and not isinstance(x0_batch, bool):
         x0_batch = training_draws(scene, int(x0_batch), distribution=distribution)[0]
     if _is_disc(scene):
@@ -649,7 +658,7 @@ def _judge_settings(ocp: HybridOCP, toi: str, contact: str, integrator: str) -> 
 
 
 def _trainable(
-    policy: torch.nn.Module, optimizer: str, schedule: str, iters: int
+    policy: torch.nn.Module, optimizer: str, schedule: str, iters: int, lr: float
 ) -> list[torch.Tensor]:
     """The policy's parameters to train, after the checks of :func:`train_policy`'s
     arguments."""
@@ -659,6 +668,8 @@ def _trainable(
         raise SceneError(f"unknown schedule {schedule!r}; choose 'constant' or 'cosine'")
     if int(iters) < 0:
         raise SceneError(f"iters must be >= 0, got {iters}")
+    if not lr >= 0 or not math.isfinite(lr):
+        raise SceneError(f"lr must be a finite number >= 0, got {lr}")
     if not isinstance(policy, torch.nn.Module):
         raise ControlsError(f"policy must be a torch.nn.Module, got {type(policy).__name__}")
     params = [p for p in policy.parameters() if p.requires_grad]
@@ -706,9 +717,9 @@ def _train_adam(
 ) -> None:
     """Full-batch Adam (:func:`train_policy`), ending with the best parameters seen when
     ``keep_best`` (or when the judge fails on an update: then training stops)."""
-    opt = torch.optim.Adam(params, lr=lr)
-    sched = (
-        torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(step.iters, 1), eta_min=lr / 100)
+    opt = TensorAdam(params, lr)
+    lrs = (
+        cosine_annealing_lrs(lr, lr / 100, max(step.iters, 1), step.iters)
         if schedule == "cosine"
         else None
     )
@@ -726,8 +737,8 @@ def _train_adam(
             best = value
             best_state = _snapshot(policy)
         opt.step()
-        if sched is not None:
-            sched.step()
+        if lrs is not None:
+            opt.lr = lrs[it + 1]
         step(it, value)
     if best_state is None:
         return
@@ -753,24 +764,181 @@ def _train_lbfgs(
     step: _Steps,
 ) -> None:
     """Full-batch L-BFGS with a strong Wolfe line search (:func:`train_policy`); a step the
-    judge cannot simulate ends the training with the parameters before it."""
-    opt = torch.optim.LBFGS(params, lr=lr, max_iter=20, line_search_fn="strong_wolfe")
+    judge cannot simulate ends the training with the parameters before it.
 
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
+    Each iteration is one call of ``torch.optim.LBFGS(max_iter=20,
+    line_search_fn="strong_wolfe")`` with torch's defaults, by its numpy port
+    (:func:`~hybridoc.solvers.optimizers.lbfgs_torch_step`) on the flattened parameters.
+    torch's call first evaluates the loss where the previous call ended, which that call's
+    line search has just done: the loss is deterministic, so its value and gradient are
+    reused (one closed loop of the batch less per iteration, and at the end)."""
+    opt = LBFGS(lr, history_size=100, tolerance_grad=1e-7, tolerance_change=1e-9)
+    flat = _FlatParameters(params)
+
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        flat.set(x)
+        for p in params:
+            p.grad = None
         loss = loss_fn()
         loss.backward()
-        return loss
+        return float(loss.detach()), flat.grad()
 
+    x = flat.get()
+    start: tuple[float, np.ndarray] | None = None  # the loss and gradient at x
     for it in range(step.iters):
         before = _snapshot(policy)
         try:
-            loss = opt.step(closure)
+            if start is None:
+                start = fun(x)
+            f, g = start
+            x_new, f_new, g_new = lbfgs_torch_step(opt, fun, x, f, g, max_iter=20)
         except EvaluationError as exc:
             policy.load_state_dict(before)
             step.stop(it, exc)
             break
-        step(it, float(loss.detach()))
+        x, start = x_new, (f_new, g_new)
+        flat.set(x)
+        step(it, f)
+    if start is not None:
+        step.result.final_loss = start[0]
+
+
+class _FlatParameters:
+    """Tensors as one flat numpy vector (their common dtype) and back: L-BFGS's iterate."""
+
+    def __init__(self, params: list[torch.Tensor]) -> None:
+        self.params = params
+
+    def get(self) -> np.ndarray:
+        return np.concatenate([p.detach().cpu().numpy().ravel() for p in self.params])
+
+    def grad(self) -> np.ndarray:
+        # no gradient (a parameter the loss does not use): zeros, as torch.optim.LBFGS
+        return np.concatenate([
+            torch.zeros(p.numel(), dtype=p.dtype).numpy() if p.grad is None
+            else p.grad.detach().cpu().numpy().ravel()
+            for p in self.params
+        ])  # fmt: skip
+
+    def set(self, x: np.ndarray) -> None:
+        offset = 0
+        with torch.no_grad():
+            for p in self.params:
+                n = p.numel()
+                p.copy_(torch.as_tensor(x[offset : offset + n]).view_as(p))
+                offset += n
+
+
+class TensorAdam:
+    """Adam on torch tensors in place: ``torch.optim.Adam``'s step, without ``torch.optim``.
+
+    The arithmetic of torch's single-tensor Adam (its CPU path) with its defaults: no
+    weight decay, no AMSGrad, ``maximize=False``. Per tensor, at its ``k``-th step,
+    ``m.lerp_(g, 1 - beta1)``, ``v.mul_(beta2).addcmul_(g, g, value=1 - beta2)``, then
+    ``p.addcdiv_(m, v.sqrt() / sqrt(1 - beta2^k) + eps, value=-lr / (1 - beta1^k))``;
+    a tensor without a gradient is skipped (and its ``k`` does not advance), so the
+    iterates are those of ``torch.optim.Adam`` bit for bit on the CPU, in float64 and
+    float32. Building a ``torch.optim`` optimiser imports ``torch._dynamo`` the first time
+    (seconds per process); this does not.
+
+    Parameters
+    ----------
+    params
+        The tensors to train (leaves that require grad).
+    lr
+        The learning rate; :attr:`lr` may be changed between steps (a schedule).
+    betas
+        The decay rates of the gradient's first and second moment averages.
+    eps
+        Added to the denominator.
+
+    Raises
+    ------
+    SceneError
+        ``lr`` negative or not finite, or ``betas`` outside ``[0, 1)``.
+    """
+
+    def __init__(
+        self,
+        params: Sequence[torch.Tensor],
+        lr: float,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+    ) -> None:
+        if not lr >= 0 or not math.isfinite(lr):
+            raise SceneError(f"lr must be a finite number >= 0, got {lr}")
+        if not all(0.0 <= b < 1.0 for b in betas):
+            raise SceneError(f"betas must be in [0, 1), got {betas}")
+        self.params = list(params)
+        self.lr = lr
+        self.betas = betas
+        self.eps = eps
+        self.steps = [0] * len(self.params)
+        self.moments: list[tuple[torch.Tensor, torch.Tensor] | None] = [None] * len(self.params)
+
+    def zero_grad(self) -> None:
+        """Forget the gradients (``None``, as ``torch.optim``'s ``zero_grad``)."""
+        for p in self.params:
+            p.grad = None
+
+    def step(self) -> None:
+        """One Adam step of every tensor that has a gradient."""
+        beta1, beta2 = self.betas
+        with torch.no_grad():
+            for i, p in enumerate(self.params):
+                grad = p.grad
+                if grad is None:
+                    continue
+                if self.moments[i] is None:
+                    zeros = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    self.moments[i] = (zeros, zeros.clone())
+                exp_avg, exp_avg_sq = self.moments[i]  # type: ignore[misc]
+                self.steps[i] += 1
+                # torch counts steps in a float tensor and raises the betas to its value
+                k = float(self.steps[i])
+                exp_avg.lerp_(grad, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                step_size = self.lr / (1 - beta1**k)
+                bias_correction2_sqrt = (1 - beta2**k) ** 0.5
+                denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+                p.addcdiv_(exp_avg, denom, value=-step_size)
+
+
+def cosine_annealing_lrs(base_lr: float, eta_min: float, t_max: int, steps: int) -> list[float]:
+    """The learning rates of ``torch.optim.lr_scheduler.CosineAnnealingLR``, step by step.
+
+    Its recursive form (what its ``step()`` computes from the previous rate), so that the
+    rates are torch's bit for bit; they follow
+    ``eta_min + (base_lr - eta_min) (1 + cos(pi k / t_max)) / 2`` up to rounding.
+
+    Parameters
+    ----------
+    base_lr
+        The rate before the first step.
+    eta_min
+        The lowest rate.
+    t_max
+        The steps from ``base_lr`` down to ``eta_min`` (``>= 1``).
+    steps
+        How many scheduler steps.
+
+    Returns
+    -------
+    list of float
+        ``steps + 1`` rates: ``[0]`` is ``base_lr``, ``[k]`` the rate after ``k`` steps.
+    """
+    lrs = [base_lr]
+    lr = base_lr
+    for k in range(1, steps + 1):
+        if (k - 1 - t_max) % (2 * t_max) == 0:
+            # torch's restart branch: past the minimum the rate climbs back
+            lr = lr + (base_lr - eta_min) * (1 - math.cos(math.pi / t_max)) / 2
+        else:
+            lr = (1 + math.cos(math.pi * k / t_max)) / (1 + math.cos(math.pi * (k - 1) / t_max)) * (
+                lr - eta_min
+            ) + eta_min
+        lrs.append(lr)
+    return lrs
 
 
 def judged_loss(
