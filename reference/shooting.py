@@ -50,7 +50,8 @@ Path constraints (DESIGN.md section 6)
 Compiled once per problem structure
     The initial state and the horizon are parameters of the compiled functions, so problems
     that differ only in their data (:meth:`hybridoc.HybridOCP.replace`, a sweep over initial
-    states) share them.
+    states) share them. A disc scene's residual is compiled once per number of events,
+    each event's guard chosen by a parameter, so every sequence of one length shares it.
 
 Phase maps
     Disc scenes integrate exactly: ``lambda_p`` is constant, ``lambda_v`` linear, hence
@@ -1127,9 +1128,12 @@ class _CoreBase:
             parts.append(np.array([float(T)]))
         return np.concatenate(parts)
 
-    def _assemble(self, ocp: HybridOCP, phase: Any, sym: Any) -> tuple[ca.Function, ca.Function]:
+    def _assemble(
+        self, ocp: HybridOCP, phase: Any, sym: Any, extra: Sequence[Any] = ()
+    ) -> tuple[ca.Function, ca.Function]:
         """The residual (with its Jacobian) and the trajectory function, from ``phase(k, s,
-        lambda, h) -> (s, lambda, running cost)`` and the symbol type ``sym``."""
+        lambda, h) -> (s, lambda, running cost)`` and the symbol type ``sym``; ``extra``:
+        symbols the pieces read besides ``(z, x0, T)``, inputs after them."""
         nx = self.nx
         z = sym.sym("z", self.nz)
         x0 = sym.sym("x0", nx)
@@ -1202,12 +1206,12 @@ class _CoreBase:
         if self.free:
             res.append(H_T)
         R = ca.vertcat(*res)
-        F = ca.Function("hmp_F", [z, x0, T_par], [R, ca.jacobian(R, z)])
+        F = ca.Function("hmp_F", [z, x0, T_par, *extra], [R, ca.jacobian(R, z)])
         running = sum(costs[1:], costs[0])
         hc = ca.horzcat
         traj = ca.Function(
             "hmp_traj",
-            [z, x0, T_par],
+            [z, x0, T_par, *extra],
             [
                 hc(*starts),
                 hc(*s_starts),
@@ -1273,7 +1277,8 @@ def _disc_pieces(ocp: HybridOCP) -> _DiscPieces:
 
 
 class _DiscCore(_CoreBase):
-    """Disc scenes: the exact polynomial phases, compiled per (structure, sequence) in SX."""
+    """Disc scenes: the exact polynomial phases of one sequence; its residual and trajectory
+    are those of every sequence of its length (:class:`_DiscResidual`) with its guards."""
 
     def __init__(self, ocp: HybridOCP, sequence: list[str]) -> None:
         super().__init__(ocp, sequence)
@@ -1307,7 +1312,63 @@ class _DiscCore(_CoreBase):
         return s1, lam1, J
 
     def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
-        return self._assemble(ocp, lambda k, j, s, lam, h: self.phase(s, lam, h), ca.SX)
+        shared = _disc_residual(ocp, self.K)
+        idx = np.asarray(self.guard_index, dtype=float)
+        return _WithGuards(shared.F, idx), _WithGuards(shared.traj, idx)
+
+
+class _DiscTemplate(_DiscCore):
+    """Disc scenes: the core of every sequence of ``K`` events, event ``k``'s guard chosen by
+    the symbol ``idx[k]`` (as in :class:`_DiscNLP`)."""
+
+    def __init__(self, ocp: HybridOCP, K: int) -> None:
+        super().__init__(ocp, [g.name for g in ocp.guards][:1] * K)
+        self.idx = ca.SX.sym("idx", K)
+        self.all_guards = _disc_pieces(ocp).guards
+
+    def guard_at(self, k: int, s: Any, v: Any = None) -> Any:
+        if len(self.all_guards) == 1:  # nothing to choose (single-collision)
+            return self.all_guards[0](s)
+        return _selected_guard(self.all_guards, self.idx[k], s)
+
+
+class _DiscResidual:
+    """Disc scenes: the residual with its Jacobian, ``F(z, x0, T, idx)``, and the trajectory
+    function, ``traj(z, x0, T, idx)``, of every sequence of ``K`` events of one structure,
+    the guard of event ``k`` being number ``idx[k]``: built once per (structure, ``K``)
+    instead of once per sequence (a search solves the Newton systems of dozens of sequences
+    of each length; one build takes about as long as the Newton iterations of a screen)."""
+
+    def __init__(self, ocp: HybridOCP, K: int) -> None:
+        t = _DiscTemplate(ocp, K)
+        self.F, self.traj = t._assemble(
+            ocp, lambda k, j, s, lam, h: t.phase(s, lam, h), ca.SX, [t.idx]
+        )
+
+
+_DISC_RESIDUALS: weakref.WeakKeyDictionary[Structure, dict[int, _DiscResidual]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _disc_residual(ocp: HybridOCP, K: int) -> _DiscResidual:
+    with _LOCK:
+        shared = _DISC_RESIDUALS.setdefault(ocp.structure, {})
+    return _built_once(shared, K, lambda: _DiscResidual(ocp, K))
+
+
+class _WithGuards:
+    """A function of :class:`_DiscResidual` as ``fn(z, x0, T)`` of one sequence: its guard
+    numbers bound."""
+
+    def __init__(self, fn: ca.Function, idx: np.ndarray) -> None:
+        self.fn, self.idx = fn, idx
+
+    def __call__(self, z: Any, x0: Any, T: Any) -> Any:
+        return self.fn(z, x0, T, self.idx)
+
+    def size1_out(self, i: int) -> int:
+        return int(self.fn.size1_out(i))
 
 
 class _FlowCore(_CoreBase):

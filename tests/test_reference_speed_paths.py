@@ -276,3 +276,37 @@ def test_no_sequence_is_solved_twice_from_the_same_start(monkeypatch):
     sol = solve_reference(load_problem("friction-patch-free-time"))
     assert sol.status.value == "success" and sol.info["sequence"] == ["enter-rough"]
     assert len(calls) == len(set(calls)), "a sequence was solved twice from one start"
+
+
+def test_the_disc_residual_of_one_length_is_each_sequence_s_own_bit_for_bit():
+    # the disc shooting residual is built once per number of events, each event's guard
+    # chosen by a parameter (issue #18); against the residual, Jacobian and trajectory
+    # built for the sequence alone, with its own guard functions, at random points: the
+    # same bits but for the sign of a zero (a structural zero there, a product with the
+    # unselected guards' zeros here)
+    from hybridoc.reference import shooting as sh
+
+    def same(a, b):
+        return _same_bits(np.asarray(a, dtype=float) + 0.0, np.asarray(b, dtype=float) + 0.0)
+
+    ocp = load_problem("multiple-collision").to_ocp()
+    names = [g.name for g in ocp.guards]
+    rng = np.random.default_rng(7)
+    seqs = [[a] for a in names] + [[a, b] for a in names for b in names]
+    seqs += [list(rng.choice(names, 3)) for _ in range(3)] + [list(rng.choice(names, 5))]
+    shared: dict[int, object] = {}
+    for seq in seqs:
+        S = sh.shooting_system(ocp, seq)
+        own = sh._DiscCore(ocp, seq)  # a core of its own, outside the cache
+        F, traj = own._assemble(ocp, lambda k, j, s, lam, h, c=own: c.phase(s, lam, h), ca.SX)
+        # one compiled function per length, whatever the guards
+        assert shared.setdefault(len(seq), S.core.F.fn) is S.core.F.fn
+        for _ in range(3):
+            z = rng.normal(size=S.core.nz)
+            for k, t in enumerate(np.sort(rng.uniform(0.0, S.T, S.K))):
+                z[S.core.nx + k * (S.core.nx + 2)] = t
+            for a, b in zip(S.core.F(z, S.x0, S.T), F(z, S.x0, S.T), strict=True):
+                assert same(a, b), seq
+            for a, b in zip(S.core.traj(z, S.x0, S.T), traj(z, S.x0, S.T), strict=True):
+                assert same(a, b), seq
+    assert sorted(shared) == [1, 2, 3, 5]
