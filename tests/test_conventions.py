@@ -17,16 +17,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_here import run_here
 
 import hybridoc
 from hybridoc.errors import ControlsError
 
 
 def _run(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``python -m hybridoc ARGS`` in a subprocess: one round trip per command here (the
+    missing files, the diverging solver); the other cases run in this process
+    (:func:`_here`), which answers the same (tests/test_cli_errors.py)."""
     return subprocess.run(
         [sys.executable, "-m", "hybridoc", *args], cwd=cwd, capture_output=True, text=True,
         timeout=300,
     )  # fmt: skip
+
+
+def _here(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return run_here(*args, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
@@ -49,13 +57,13 @@ def test_every_command_takes_a_saved_solution_as_controls(work: Path) -> None:
     }
     assert expected["dt.npz"] == hybridoc.evaluate("head-on", sol).cost
     for name, cost in expected.items():
-        ev = _run(work, "evaluate", "head-on", "--controls", name, "--json")
+        ev = _here(work, "evaluate", "head-on", "--controls", name, "--json")
         assert ev.returncode == 0, ev.stderr
         assert json.loads(ev.stdout)["cost"] == cost
-    val = _run(work, "validate", "head-on", "dt.npz", "--json")
+    val = _here(work, "validate", "head-on", "dt.npz", "--json")
     assert val.returncode == 0, val.stderr
     assert json.loads(val.stdout)["sequence_matches"] is True
-    ref = _run(work, "reference", "head-on", "--initial", "dt.json", "--json")
+    ref = _here(work, "reference", "head-on", "--initial", "dt.json", "--json")
     assert ref.returncode == 0, ref.stderr
 
 
@@ -73,7 +81,7 @@ def test_a_missing_file_is_named_as_given(work: Path) -> None:
 def test_output_names_follow_problem_command_method(work: Path) -> None:
     out = work / "o"
     for args in (("evaluate", "head-on"), ("solve", "head-on", "--method", "dt")):
-        proc = _run(work, *args, "--out", "o")
+        proc = _here(work, *args, "--out", "o")
         assert proc.returncode == 0, proc.stderr
     assert (out / "head-on_evaluate.npz").exists() and (out / "head-on_evaluate.json").exists()
     assert (out / "head-on_solve_dt.npz").exists() and (
@@ -84,12 +92,12 @@ def test_output_names_follow_problem_command_method(work: Path) -> None:
 @pytest.mark.parametrize("method", ["reference", "dt", "gd"])
 def test_every_method_prints_the_same_block_and_json(work: Path, method: str) -> None:
     extra = ("--iters", "2") if method == "gd" else ()
-    text = _run(work, "solve", "head-on", "--method", method, *extra)
+    text = _here(work, "solve", "head-on", "--method", method, *extra)
     # two iterations are not a converged gd: the same block, status not-converged, exit 2
     assert text.returncode == (2 if method == "gd" else 0), text.stderr
     for key in ("problem", "method", "status", "cost", "terminal", "running", "events"):
         assert any(line.startswith(key) for line in text.stdout.splitlines()), text.stdout
-    js = _run(work, "solve", "head-on", "--method", method, *extra, "--json")
+    js = _here(work, "solve", "head-on", "--method", method, *extra, "--json")
     data = json.loads(js.stdout)
     for key in ("problem", "method", "status", "success", "message", "cost", "events", "timings"):
         assert key in data
