@@ -25,8 +25,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +33,7 @@ import numpy as np
 import oracle
 import pytest
 import scipy.optimize as so
+from cli_here import run_here
 from library_optima import build, independent_optimum
 from test_judge_properties import _as_dict
 
@@ -194,13 +193,9 @@ def test_symmetric_striker_judge_raises_naming_both_guards() -> None:
 
 
 def test_symmetric_striker_reference_cli_is_one_clear_error(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "hybridoc", "reference", str(SCENES / "symmetric-striker.toml")],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    # in this process (the reference's subprocess round trips are in test_conventions.py
+    # and test_cli_errors.py): the discovery that ends in the error is what costs
+    proc = run_here("reference", str(SCENES / "symmetric-striker.toml"), cwd=tmp_path)
     lines = proc.stderr.splitlines()
     assert proc.returncode == 2, proc.stderr
     assert proc.stdout == ""
