@@ -1314,7 +1314,10 @@ class _DiscCore(_CoreBase):
     def _build_residual(self, ocp: HybridOCP) -> tuple[Any, Any]:
         shared = _disc_residual(ocp, self.K)
         idx = np.asarray(self.guard_index, dtype=float)
-        return _WithGuards(shared.F, idx), _WithGuards(shared.traj, idx)
+        return (
+            _WithGuards(shared.F, shared.F_layout, idx),
+            _WithGuards(shared.traj, shared.traj_layout, idx),
+        )
 
 
 class _DiscTemplate(_DiscCore):
@@ -1344,6 +1347,7 @@ class _DiscResidual:
         self.F, self.traj = t._assemble(
             ocp, lambda k, j, s, lam, h: t.phase(s, lam, h), ca.SX, [t.idx]
         )
+        self.F_layout, self.traj_layout = _dense_layout(self.F), _dense_layout(self.traj)
 
 
 _DISC_RESIDUALS: weakref.WeakKeyDictionary[Structure, dict[int, _DiscResidual]] = (
@@ -1358,17 +1362,65 @@ def _disc_residual(ocp: HybridOCP, K: int) -> _DiscResidual:
 
 
 class _WithGuards:
-    """A function of :class:`_DiscResidual` as ``fn(z, x0, T)`` of one sequence: its guard
-    numbers bound."""
+    """A function of :class:`_DiscResidual` as ``fn(z, x0, T)`` of one sequence, its guard
+    numbers bound, returning dense numpy arrays: evaluated through CasADi's buffer API
+    (bound once per thread), the same virtual machine and the same bits as ``fn(z, x0, T,
+    idx)`` without the ``DM`` conversions of that call, which cost more than the evaluation
+    of a screen's residual (a structural zero reads 0.0, as in ``np.asarray`` of the ``DM``)."""
 
-    def __init__(self, fn: ca.Function, idx: np.ndarray) -> None:
-        self.fn, self.idx = fn, idx
+    def __init__(self, fn: ca.Function, layout: list[Any], idx: np.ndarray) -> None:
+        self.fn, self.layout, self.idx = fn, layout, idx
+        self._local = threading.local()
 
-    def __call__(self, z: Any, x0: Any, T: Any) -> Any:
-        return self.fn(z, x0, T, self.idx)
+    def _buffers(self) -> tuple[Any, Any, list[np.ndarray], list[np.ndarray]]:
+        bound = getattr(self._local, "bound", None)
+        if bound is None:
+            fn = self.fn
+            buf, run = fn.buffer()
+            args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
+            outs = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+            for i, a in enumerate(args):
+                buf.set_arg(i, memoryview(a))
+            for i, r in enumerate(outs):
+                buf.set_res(i, memoryview(r))
+            args[3][...] = self.idx
+            bound = self._local.bound = (buf, run, args, outs)
+        return bound
+
+    def __call__(self, z: Any, x0: Any, T: Any) -> list[np.ndarray]:
+        buf, run, args, outs = self._buffers()
+        args[0][...] = np.asarray(z, dtype=float).ravel()
+        args[1][...] = np.asarray(x0, dtype=float).ravel()
+        args[2][...] = float(T)
+        run()
+        if buf.ret() != 0:
+            raise RuntimeError(f"numerical evaluation of {self.fn.name()!r} failed")
+        dense = []
+        for r, (shape, where) in zip(outs, self.layout, strict=True):
+            if where is None:
+                dense.append(r.reshape(shape, order="F").copy())
+            else:
+                out = np.zeros(shape)
+                out[where] = r
+                dense.append(out)
+        return dense
 
     def size1_out(self, i: int) -> int:
         return int(self.fn.size1_out(i))
+
+
+def _dense_layout(fn: ca.Function) -> list[Any]:
+    """Per output of ``fn``: its shape and, when it is sparse, the rows and columns of its
+    nonzeros in CasADi's order (``None`` when dense)."""
+    out = []
+    for i in range(fn.n_out()):
+        sp = fn.sparsity_out(i)
+        where = None
+        if not sp.is_dense():
+            rows, cols = sp.get_triplet()
+            where = (np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp))
+        out.append((sp.shape, where))
+    return out
 
 
 class _FlowCore(_CoreBase):

@@ -307,6 +307,10 @@ def test_the_disc_residual_of_one_length_is_each_sequence_s_own_bit_for_bit():
                 z[S.core.nx + k * (S.core.nx + 2)] = t
             for a, b in zip(S.core.F(z, S.x0, S.T), F(z, S.x0, S.T), strict=True):
                 assert same(a, b), seq
+            # through the buffer API: the shared function's own call, bit for bit
+            idx = np.asarray(S.core.guard_index, dtype=float)
+            for a, b in zip(S.core.F(z, S.x0, S.T), S.core.F.fn(z, S.x0, S.T, idx), strict=True):
+                assert _same_bits(a, np.asarray(b)), seq
             for a, b in zip(S.core.traj(z, S.x0, S.T), traj(z, S.x0, S.T), strict=True):
                 assert same(a, b), seq
     assert sorted(shared) == [1, 2, 3, 5]
