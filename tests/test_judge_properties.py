@@ -297,7 +297,11 @@ def test_judge_agrees_with_the_oracle_on_more_scenes(case: Any) -> None:
     _agrees_with_the_oracle(case)
 
 
-@settings(max_examples=examples(60))
+# The properties below check a handful of random cases in CI (each is 0.1-1 s: a new
+# structure's kernels, probes); each has a ``*_more_cases`` twin in the slow tier (``make
+# test-all``) that runs the same body (``.hypothesis.inner_test``) on the number of cases CI
+# ran before (issue #18).
+@settings(max_examples=examples(20))
 @given(case=scenes(max_discs=4))
 def test_no_penetration_at_dense_times(case: Any) -> None:
     scene, u = case
@@ -314,6 +318,13 @@ def test_no_penetration_at_dense_times(case: Any) -> None:
         assert psi.min() >= -1e-8 * scale, f"{g.name} penetrates by {-psi.min():.3g}"
 
 
+@pytest.mark.slow
+@settings(max_examples=examples(60))
+@given(case=scenes(max_discs=4))
+def test_no_penetration_at_dense_times_more_cases(case: Any) -> None:
+    test_no_penetration_at_dense_times.hypothesis.inner_test(case)  # type: ignore[attr-defined]
+
+
 def _momentum(scene: Scene, s: np.ndarray) -> np.ndarray:
     n = scene.n_discs
     m = np.array([d.mass for d in scene.discs])
@@ -326,7 +337,7 @@ def _kinetic(scene: Scene, s: np.ndarray) -> float:
     return float(0.5 * (m * (s[2 * n :].reshape(n, 2) ** 2).sum(1)).sum())
 
 
-@settings(max_examples=examples(60))
+@settings(max_examples=examples(20))
 @given(case=scenes(elastic=True))
 def test_impacts_conserve_momentum_and_elastic_energy(case: Any) -> None:
     scene, u = case
@@ -347,7 +358,14 @@ def test_impacts_conserve_momentum_and_elastic_energy(case: Any) -> None:
         np.testing.assert_array_equal(after[: 2 * scene.n_discs], before[: 2 * scene.n_discs])
 
 
-@settings(max_examples=examples(40))
+@pytest.mark.slow
+@settings(max_examples=examples(60))
+@given(case=scenes(elastic=True))
+def test_impacts_conserve_momentum_and_elastic_energy_more_cases(case: Any) -> None:
+    test_impacts_conserve_momentum_and_elastic_energy.hypothesis.inner_test(case)  # type: ignore[attr-defined]
+
+
+@settings(max_examples=examples(15))
 @given(
     case=scenes(max_discs=3, max_walls=2),
     picks=st.lists(st.integers(0, 10**6), min_size=3, max_size=3),
@@ -374,6 +392,18 @@ def test_adjoint_gradient_equals_central_differences(case: Any, picks: list[int]
             continue  # the event sequence changes: the cost is not differentiable there
         fd = (ep.cost - em.cost) / (2 * h)
         assert g.d_controls[n, k] == pytest.approx(fd, rel=1e-4, abs=1e-6 * max(1.0, abs(g.cost)))
+
+
+@pytest.mark.slow
+@settings(max_examples=examples(40))
+@given(
+    case=scenes(max_discs=3, max_walls=2),
+    picks=st.lists(st.integers(0, 10**6), min_size=3, max_size=3),
+)
+def test_adjoint_gradient_equals_central_differences_more_cases(
+    case: Any, picks: list[int]
+) -> None:
+    test_adjoint_gradient_equals_central_differences.hypothesis.inner_test(case, picks)  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------ metamorphic properties
@@ -545,7 +575,7 @@ def far_things(draw: Any) -> dict[str, Any]:
     }
 
 
-@settings(max_examples=examples(30))
+@settings(max_examples=examples(10))
 @given(case=scenes(max_discs=4, max_walls=3), far=far_things())
 def test_a_far_body_or_wall_changes_nothing(case: Any, far: dict[str, Any]) -> None:
     scene, u = case
@@ -590,6 +620,13 @@ def test_a_far_body_or_wall_changes_nothing(case: Any, far: dict[str, Any]) -> N
     _assert_same_answer(got, want, T, spread, d / DELTA, keep=keep, direct_t=dt)
 
 
+@pytest.mark.slow
+@settings(max_examples=examples(30))
+@given(case=scenes(max_discs=4, max_walls=3), far=far_things())
+def test_a_far_body_or_wall_changes_nothing_more_cases(case: Any, far: dict[str, Any]) -> None:
+    test_a_far_body_or_wall_changes_nothing.hypothesis.inner_test(case, far)  # type: ignore[attr-defined]
+
+
 def _translated(scene: Scene, c: np.ndarray) -> Scene:
     def moved(p: Any) -> tuple[float, float]:
         return (float(p[0] + c[0]), float(p[1] + c[1]))
@@ -604,7 +641,7 @@ def _translated(scene: Scene, c: np.ndarray) -> Scene:
     return dataclasses.replace(scene, discs=discs, walls=walls)
 
 
-@settings(max_examples=examples(30))
+@settings(max_examples=examples(10))
 @given(
     case=scenes(max_discs=4, max_walls=3),
     log_offset=st.floats(-3.0, 6.0),
@@ -633,7 +670,20 @@ def test_translating_the_scene_changes_nothing(case: Any, log_offset: float, ang
     _assert_same_answer(got, want, T, spread, d / DELTA, offset=offset, floor=floor, direct_t=dt)
 
 
+@pytest.mark.slow
 @settings(max_examples=examples(30))
+@given(
+    case=scenes(max_discs=4, max_walls=3),
+    log_offset=st.floats(-3.0, 6.0),
+    angle=st.floats(0.0, 2 * math.pi),
+)
+def test_translating_the_scene_changes_nothing_more_cases(
+    case: Any, log_offset: float, angle: float
+) -> None:
+    test_translating_the_scene_changes_nothing.hypothesis.inner_test(case, log_offset, angle)  # type: ignore[attr-defined]
+
+
+@settings(max_examples=examples(10))
 @given(
     case=scenes(max_discs=4, max_walls=3),
     log_factor=st.floats(-3.0, 3.0),
@@ -681,6 +731,19 @@ def test_scaling_lengths_scales_the_answer(
     # an inexact factor rounds every input once
     d, dt = _disturbance(want, T, length, 0 if power_of_two else 3)
     _assert_same_answer(got, want, T, spread, d / DELTA, length=lam, cost_scale=lam**2, direct_t=dt)
+
+
+@pytest.mark.slow
+@settings(max_examples=examples(30))
+@given(
+    case=scenes(max_discs=4, max_walls=3),
+    log_factor=st.floats(-3.0, 3.0),
+    power_of_two=st.booleans(),
+)
+def test_scaling_lengths_scales_the_answer_more_cases(
+    case: Any, log_factor: float, power_of_two: bool
+) -> None:
+    test_scaling_lengths_scales_the_answer.hypothesis.inner_test(case, log_factor, power_of_two)  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------ random mode switches
