@@ -84,7 +84,37 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def dataset(files: Path) -> Any:
-    return make_dataset(files / "scene.toml", M, files / "serial", workers=1, progress=False)
+    with pytest.MonkeyPatch.context() as mp:
+        share_nominals(mp)  # its nominal, solved here, serves the tests of nominal_once
+        return make_dataset(files / "scene.toml", M, files / "serial", workers=1, progress=False)
+
+
+#: make_dataset's nominal references in this process: ``(scene as TOML, tol) -> nominal``
+_NOMINALS: dict[tuple[str, float], Any] = {}
+
+
+def share_nominals(mp: pytest.MonkeyPatch) -> None:
+    """make_dataset's nominal reference of a scene solved once per process (module notes
+    of :func:`nominal_once`)."""
+    solve = dsmod._nominal
+
+    def once(source: Any, tol: float, progress: Any) -> Any:
+        key = (source.to_toml(), float(tol))
+        if key not in _NOMINALS:
+            _NOMINALS[key] = solve(source, tol, progress)
+        return copy.deepcopy(_NOMINALS[key])
+
+    mp.setattr(dsmod, "_nominal", once)
+
+
+@pytest.fixture
+def nominal_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The nominal reference of a scene solved once per process, for tests about what the
+    runs do with it (chunks, resuming, engines, a Dask scheduler out of reach): each run
+    into a new folder solved the same nominal again (1.5-5 s under load). That every run
+    finds the same nominal, in another process too, is checked by test_dataset_faults.py
+    (a subprocess's whole run against this process's, byte for byte)."""
+    share_nominals(monkeypatch)
 
 
 @pytest.fixture(scope="module")
@@ -257,7 +287,7 @@ def test_dataset_columns_and_manifest(dataset: Any) -> None:
 
 
 def test_dataset_resumes_to_the_same_file(
-    files: Path, dataset: Any, monkeypatch: pytest.MonkeyPatch
+    files: Path, dataset: Any, monkeypatch: pytest.MonkeyPatch, nominal_once: None
 ) -> None:
     monkeypatch.setattr(dsmod, "CHUNK", 2)
     ref = make_dataset(files / "scene.toml", M, files / "chunk2", workers=1, progress=False)
@@ -302,7 +332,9 @@ def test_dataset_resumes_to_the_same_file(
         make_dataset(files / "scene.toml", M + 1, out, workers=1, progress=False)
 
 
-def test_dataset_identical_under_pool_and_dask(files: Path, dataset: Any, dask_client: Any) -> None:
+def test_dataset_identical_under_pool_and_dask(
+    files: Path, dataset: Any, dask_client: Any, nominal_once: None
+) -> None:
     pool = make_dataset(files / "scene.toml", M, files / "pool", workers=2, progress=False)
     dsk = make_dataset(
         files / "scene.toml", M, files / "dask", workers=1, dask=dask_client, progress=False
@@ -334,7 +366,7 @@ def test_failed_draws_are_kept_and_marked(
     assert np.all(np.isnan(ds["cost"])) and ds.manifest["counts"] == {"failed": 3}
 
 
-def test_dataset_bad_inputs(files: Path, tmp_path: Path) -> None:
+def test_dataset_bad_inputs(files: Path, tmp_path: Path, nominal_once: None) -> None:
     for bad in (0, -5):
         with pytest.raises(HybridocError, match="samples must be an integer >= 1"):
             make_dataset(files / "scene.toml", bad, tmp_path / "x")
