@@ -1,4 +1,10 @@
-"""The ``hybridoc`` command: round trips in a subprocess, user errors, plugins."""
+"""The ``hybridoc`` command: round trips in a subprocess, user errors, plugins.
+
+One subprocess round trip per command (``problems``, ``show``, ``evaluate --json``,
+``gradient --json``); the other cases run the same entry point in this process
+(``tests/cli_here.py``, output captured at the descriptors too), which answers the same
+(``tests/test_cli_errors.py``): a subprocess each cost seconds of start-up under load.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +14,7 @@ import sys
 
 import numpy as np
 import pytest
+from cli_here import run_here
 
 import hybridoc
 from hybridoc import cli
@@ -24,6 +31,11 @@ def run(tmp_path, *args):
         text=True,
         timeout=300,
     )
+
+
+def here(tmp_path, *args):
+    """``run`` in this process."""
+    return run_here(*args, cwd=tmp_path)
 
 
 def ok(proc):
@@ -68,7 +80,7 @@ def test_evaluate_json_equals_library(tmp_path, single):
 def test_evaluate_controls_file(tmp_path, single, suffix):
     u = single.initial_controls() + np.linspace(-0.5, 0.5, single.steps)[:, None]
     save_controls(tmp_path / f"u{suffix}", u, single.control_labels())
-    proc = ok(run(tmp_path, "evaluate", "single-collision", "--controls", f"u{suffix}", "--json"))
+    proc = ok(here(tmp_path, "evaluate", "single-collision", "--controls", f"u{suffix}", "--json"))
     data = json.loads(proc.stdout)
     ev = hybridoc.evaluate(single, u)
     assert data["cost"] == ev.cost and data["events"] == ev.event_dicts()
@@ -77,7 +89,7 @@ def test_evaluate_controls_file(tmp_path, single, suffix):
 
 def test_evaluate_text_and_scene_file(tmp_path, single):
     (tmp_path / "mine.toml").write_text(single.to_toml())
-    out = ok(run(tmp_path, "evaluate", "mine.toml")).stdout
+    out = ok(here(tmp_path, "evaluate", "mine.toml")).stdout
     ev = hybridoc.evaluate(single)
     assert f"cost      {ev.cost!r}" in out
     assert "disc-disc" in out and repr(float(ev.events[0].time)) in out
@@ -100,7 +112,7 @@ def test_gradient_json_equals_library(tmp_path, single):
 
 
 def test_evaluate_out_json_mode(tmp_path):
-    proc = ok(run(tmp_path, "evaluate", "multiple-collision", "--json", "--out", "res"))
+    proc = ok(here(tmp_path, "evaluate", "multiple-collision", "--json", "--out", "res"))
     data = json.loads(proc.stdout)  # the "wrote ..." lines went to stderr
     assert "wrote" in proc.stderr
     res = tmp_path / "res"
@@ -137,7 +149,7 @@ def test_user_errors(tmp_path, args, setup, message):
         u = np.zeros((480, 2))
         u[7, 0] = np.nan
         np.save(tmp_path / "u.npy", u)
-    proc = run(tmp_path, *args)
+    proc = here(tmp_path, *args)
     assert proc.returncode == 2
     assert proc.stdout == ""
     lines = proc.stderr.splitlines()
