@@ -37,6 +37,7 @@ The reachability bound (:func:`reach_bound`, disc scenes)
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -122,10 +123,9 @@ def guess_times(ocp: HybridOCP, sequence: Sequence[str], ev: Evaluation | None) 
         if match:
             tt = match[0]
         else:
-            g = ocp.guards[ocp.guard_index(name)]
             m = (ev.times > prev) & (ev.times < T)
             if m.any():
-                psi = np.asarray(g.psi.map(int(m.sum()))(ev.states[m].T)).ravel()
+                psi = _psi_along(ocp, ev, ocp.guard_index(name))[m]
                 tt = float(ev.times[m][int(np.argmin(psi))])
             else:
                 tt = 0.5 * (prev + T)
@@ -133,6 +133,28 @@ def guess_times(ocp: HybridOCP, sequence: Sequence[str], ev: Evaluation | None) 
         out.append(tt)
         prev = tt
     return np.array(out)
+
+
+# per trajectory (by id, with a weak reference that tells a reused id), per guard: psi at
+# each of its states (a search guesses the times of a hundred sequences from one trajectory)
+_PSI: dict[int, tuple[Any, dict[Any, Any]]] = {}
+
+
+def _psi_along(ocp: HybridOCP, ev: Evaluation, j: int) -> np.ndarray:
+    """Guard ``j``'s ``psi`` at every state of ``ev``, computed once per (trajectory, guard):
+    column by column, the values a map over any subset of the states gives."""
+    entry = _PSI.get(id(ev))
+    if entry is None or entry[0]() is not ev:
+        for key in [k for k, (ref, _) in _PSI.items() if ref() is None]:
+            _PSI.pop(key, None)
+        entry = _PSI[id(ev)] = (weakref.ref(ev), {})
+    psi_fn = ocp.guards[j].psi
+    key = (j, id(psi_fn))
+    hit = entry[1].get(key)
+    if hit is None:
+        values = np.asarray(psi_fn.map(ev.states.shape[0])(ev.states.T), dtype=float).ravel()
+        hit = entry[1][key] = (psi_fn, values)  # psi_fn kept alive: its id stays its own
+    return hit[1]
 
 
 def _disc_layout(ocp: HybridOCP) -> dict[str, Any] | None:

@@ -171,3 +171,42 @@ def test_the_screened_sequences_are_the_enumeration_s_in_its_order(scene, monkey
     # enumerated sequence has a row
     rows = {tuple(r["sequence"]) for r in sol.info["landscape"]}
     assert want <= rows
+
+
+def test_guessed_event_times_read_psi_once_per_trajectory_and_guard():
+    # guess_times evaluates each guard's psi along the guess's trajectory once (issue #18:
+    # the search guesses the times of ~150 sequences from one trajectory); the times are
+    # those of psi mapped over the states after the previous event, bit for bit
+    import numpy as np
+
+    from hybridoc.reference import candidates as rc
+    from hybridoc.reference.candidates import enumerate_sequences, guess_times
+
+    ocp = hybridoc.load_scene("multiple-collision").to_ocp()
+    ev = hybridoc.evaluate(ocp, ocp.u_guess)  # the guess a search starts from
+    rc._PSI.pop(id(ev), None)
+
+    def direct(seq):
+        out, prev, T = [], 0.0, ocp.horizon
+        obs = rc._event_list(ev)
+        for name in seq:
+            match = [tt for n, tt in obs if n == name and tt > prev]
+            m = (ev.times > prev) & (ev.times < T)
+            if match:
+                tt = match[0]
+            elif m.any():
+                psi_fn = ocp.guards[ocp.guard_index(name)].psi
+                psi = np.asarray(psi_fn.map(int(m.sum()))(ev.states[m].T)).ravel()
+                tt = float(ev.times[m][int(np.argmin(psi))])
+            else:
+                tt = 0.5 * (prev + T)
+            tt = min(max(tt, prev + 1e-3 * T), T * (1 - 1e-3))
+            out.append(tt)
+            prev = tt
+        return np.array(out)
+
+    seqs = list(enumerate_sequences(ocp, 4))
+    assert len(seqs) > 20
+    for seq in seqs:
+        assert np.array_equal(guess_times(ocp, seq, ev), direct(seq)), seq
+    assert len(rc._PSI[id(ev)][1]) == len(ocp.guards)  # one psi per guard, not per call
