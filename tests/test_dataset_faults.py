@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from test_datasets import SCENE_TOML as DATASET_SCENE_TOML
+from test_datasets import share_nominals
 
 import hybridoc
 import hybridoc.workflows.datasets as dsmod
@@ -93,9 +94,12 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def reference(files: Path) -> bytes:
-    """The bytes of ``dataset.npz`` of an uninterrupted run (in this process)."""
+    """The bytes of ``dataset.npz`` of an uninterrupted run (in this process); its nominal
+    reference serves the in-process runs of the tests below (the subprocesses solve their
+    own, and must reach the same bytes)."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(dsmod, "CHUNK", CHUNK)
+        share_nominals(mp)
         make_dataset(files / "scene.toml", M, files / "ref", workers=1, progress=False)
     return (files / "ref" / "dataset.npz").read_bytes()
 
@@ -291,6 +295,7 @@ def test_bad_shards_are_computed_again(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     monkeypatch.setattr(dsmod, "CHUNK", CHUNK)
+    share_nominals(monkeypatch)  # the reference's nominal: this test is about the shards
     solve = dsmod._solve_chunk
     seen: list[list[int]] = []
 
@@ -339,6 +344,7 @@ def test_an_older_versions_unfinished_run_is_resumed(
     # the same settings beside it, the folder is adopted and the run finishes to the same
     # bytes; with a file of anyone else's in it, it is still refused and left alone
     monkeypatch.setattr(dsmod, "CHUNK", CHUNK)
+    share_nominals(monkeypatch)  # the reference's nominal: this test is about the folder
     solve = dsmod._solve_chunk
 
     def interrupted(spec: Any, idx: list[int]) -> Any:
