@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from paper_references import paper_reference
 from scipy.optimize import minimize, minimize_scalar
 
 import hybridoc
@@ -76,12 +77,12 @@ def minimise_one_collision(p0, q0, target) -> float:
 
 @pytest.fixture(scope="module")
 def single():
-    return solve_reference(hybridoc.load_scene("single-collision"))
+    return paper_reference("single-collision")  # shared with test_transcription
 
 
 @pytest.fixture(scope="module")
 def multiple_auto():
-    return solve_reference(hybridoc.load_scene("multiple-collision"))
+    return paper_reference("multiple-collision")
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import json
 import casadi as ca
 import numpy as np
 import pytest
+from paper_references import paper_reference
 
 import hybridoc
 from hybridoc import Guard, HybridOCP
@@ -20,13 +21,8 @@ PAPER = ("single-collision", "multiple-collision")
 
 @pytest.fixture(scope="module")
 def solved() -> dict[str, tuple[Solution, Solution]]:
-    from hybridoc.reference import solve_reference
-
-    out = {}
-    for name in PAPER:
-        scene = hybridoc.load_scene(name)
-        out[name] = (solve_dt(scene), solve_reference(scene))
-    return out
+    # the references are shared with test_reference (one solve per worker)
+    return {name: (solve_dt(hybridoc.load_scene(name)), paper_reference(name)) for name in PAPER}
 
 
 @pytest.mark.parametrize("name", PAPER)
