@@ -47,7 +47,8 @@ STEPS = 60  # control intervals, fewer than the paper's
 N_TRAIN = 8 if QUICK else 16  # training draws
 N_VAL = 4 if QUICK else 25  # validation draws
 ITERS = 20 if QUICK else 200  # Adam iterations
-SNAPSHOTS = (0, 3, 6, 12)  # iterations at which we look at the gradients
+# iterations at which we look at the gradients
+SNAPSHOTS = (0, 12) if QUICK else (0, 3, 6, 12)
 
 # %%
 # A distribution and a policy
