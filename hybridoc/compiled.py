@@ -48,12 +48,14 @@ cache folder (default ``~/.cache/hybridoc``); ``HYBRIDOC_CACHE_MAX_MB`` bounds i
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import hashlib
 import hmac
 import os
 import re
 import shutil
+import signal
 import stat
 import subprocess
 import tempfile
@@ -90,6 +92,10 @@ HOT_CALLS = 50
 """Calls after which a function is compiled (see :class:`Accelerated`)."""
 _BUILDS: list[threading.Thread] = []  # background compilations started, finished ones pruned
 _BUILDS_LOCK = threading.Lock()
+#: the C compilers running, each the leader of its own process group, with the pid of the
+#: process that started it (a forked child inherits the set but must not kill them)
+_COMPILERS: dict[subprocess.Popen[str], int] = {}
+_COMPILE_TIMEOUT_S = 600.0
 DEFAULT_MAX_MB = 500.0
 """Default bound of the cache's size in megabytes (``HYBRIDOC_CACHE_MAX_MB``)."""
 _FLAGS = ["-O1", "-ffp-contract=off", "-fPIC", "-shared"]
@@ -677,6 +683,51 @@ def _as_tuple(out: Any) -> tuple[Any, ...]:
     return out if isinstance(out, tuple) else (out,)
 
 
+def _run_compiler(cmd: list[str]) -> tuple[int, str]:
+    """Run the C compiler in a process group of its own; its exit status and stderr.
+
+    ``cc`` runs ``cc1`` and the assembler as children: a timeout, or the exit of this process
+    while it compiles (:func:`_stop_compilers`), ends the whole group, where killing ``cc``
+    alone left them running without a parent, loading the cores for minutes.
+    """
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    with _BUILDS_LOCK:
+        _COMPILERS[proc] = os.getpid()
+    try:
+        _, stderr = proc.communicate(timeout=_COMPILE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        _kill_group(proc)
+        proc.communicate()
+        return -1, f"the C compiler took longer than {_COMPILE_TIMEOUT_S:.0f} s"
+    finally:
+        with _BUILDS_LOCK:
+            _COMPILERS.pop(proc, None)
+    return proc.returncode, stderr
+
+
+def _kill_group(proc: subprocess.Popen[str]) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass  # already gone
+
+
+@atexit.register
+def _stop_compilers() -> None:
+    """At exit, end the compilations this process started (its daemon threads die with it,
+    and the library they would have written with them): the compilers must not outlive it."""
+    with _BUILDS_LOCK:
+        mine = [proc for proc, owner in _COMPILERS.items() if owner == os.getpid()]
+    for proc in mine:
+        _kill_group(proc)
+
+
 def wait_for_compilations(timeout: float | None = None) -> bool:
     """Wait for the background compilations in flight, at most ``timeout`` seconds in all.
 
@@ -819,14 +870,11 @@ class Accelerated:
                     gen.add(self.vm)
                     gen.generate(str(Path(tmp)) + os.sep)
                     out = Path(tmp) / "f.so"
-                    res = subprocess.run(
-                        [cc, *_FLAGS, str(src), "-o", str(out), "-lm"],
-                        capture_output=True,
-                        text=True,
-                        timeout=600,
+                    returncode, stderr = _run_compiler(
+                        [cc, *_FLAGS, str(src), "-o", str(out), "-lm"]
                     )
-                    if res.returncode != 0:
-                        self.error = res.stderr[-500:]
+                    if returncode != 0:
+                        self.error = stderr[-500:]
                         return
                     data = out.read_bytes()
                 name = self._lib.name
