@@ -94,8 +94,8 @@ _NOMINALS: dict[tuple[str, float], Any] = {}
 
 
 def share_nominals(mp: pytest.MonkeyPatch) -> None:
-    """make_dataset's nominal reference of a scene solved once per process (module notes
-    of :func:`nominal_once`)."""
+    """Patch make_dataset's nominal solve so that each scene's is solved once per process
+    and each run gets its own copy (why: :func:`nominal_once`)."""
     solve = dsmod._nominal
 
     def once(source: Any, tol: float, progress: Any) -> Any:
