@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_here import run_here
+from paper_references import paper_reference
 
 import hybridoc
 from hybridoc.workflows.validation import (
@@ -27,9 +28,9 @@ EXE = Path(sys.executable).with_name("hybridoc")
 
 @pytest.fixture(scope="module")
 def ref():
-    from hybridoc.reference import solve_reference
-
-    return solve_reference(hybridoc.load_scene(SCENE))
+    """The default reference, shared with test_reference and test_transcription in a
+    worker (read only)."""
+    return paper_reference(SCENE)
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
