@@ -118,6 +118,8 @@ def test_cosine_rates_are_cosine_annealing_lr_bit_for_bit(torch_optim, t_max):
     closed = eta_min + (base - eta_min) * (1 + np.cos(np.pi * k / t_max)) / 2
     np.testing.assert_allclose(ours, closed, rtol=1e-12, atol=1e-15)
     assert ours[min(t_max, steps)] == pytest.approx(eta_min, rel=1e-12)
+    with pytest.raises(SceneError, match="t_max"):
+        cosine_annealing_lrs(base, eta_min, 0, steps)
 
 
 def test_lbfgs_torch_step_is_torch_optim_lbfgs_to_rounding(torch_optim):

@@ -846,7 +846,7 @@ class TensorAdam:
     params
         The tensors to train (leaves that require grad).
     lr
-        The learning rate; :attr:`lr` may be changed between steps (a schedule).
+        The learning rate; the attribute ``lr`` may be changed between steps (a schedule).
     betas
         The decay rates of the gradient's first and second moment averages.
     eps
@@ -926,7 +926,14 @@ def cosine_annealing_lrs(base_lr: float, eta_min: float, t_max: int, steps: int)
     -------
     list of float
         ``steps + 1`` rates: ``[0]`` is ``base_lr``, ``[k]`` the rate after ``k`` steps.
+
+    Raises
+    ------
+    SceneError
+        ``t_max < 1``.
     """
+    if t_max < 1:
+        raise SceneError(f"t_max must be >= 1, got {t_max}")
     lrs = [base_lr]
     lr = base_lr
     for k in range(1, steps + 1):
@@ -934,9 +941,9 @@ def cosine_annealing_lrs(base_lr: float, eta_min: float, t_max: int, steps: int)
             # torch's restart branch: past the minimum the rate climbs back
             lr = lr + (base_lr - eta_min) * (1 - math.cos(math.pi / t_max)) / 2
         else:
-            lr = (1 + math.cos(math.pi * k / t_max)) / (1 + math.cos(math.pi * (k - 1) / t_max)) * (
-                lr - eta_min
-            ) + eta_min
+            # torch's order of operations: (ratio * (lr - eta_min)) + eta_min
+            ratio = (1 + math.cos(math.pi * k / t_max)) / (1 + math.cos(math.pi * (k - 1) / t_max))
+            lr = ratio * (lr - eta_min) + eta_min
         lrs.append(lr)
     return lrs
 
