@@ -276,16 +276,21 @@ def _rollout_functions(
     vector-Jacobian products (SX), about twice as fast as CasADi's reverse mode of the
     forward ``mapaccum``.
     """
-    s, u, lam = ca.SX.sym("s", nx), ca.SX.sym("u", nu), ca.SX.sym("lam", nx)
+    # an MX step (a switch over modes, hybridoc.solvers.multistart.mode_switch) stays MX
+    sym = ca.MX if step.is_a("MXFunction") else ca.SX
+    s, u, lam = sym.sym("s", nx), sym.sym("u", nu), sym.sym("lam", nx)
     s_next, c = step(s, u)
-    back_step = ca.Function(
-        "adjoint_step",
-        [lam, s, u],
-        [
+    if sym is ca.MX:
+        # one reverse sweep of lam^T s_next + c for both inputs: each reverse sweep of an MX
+        # graph evaluates its calls' forward passes again (four sweeps: 3 times slower)
+        back = ca.jtimes(ca.vertcat(s_next, c), ca.vertcat(s, u), ca.vertcat(lam, 1.0), True)
+        adjoint = [back[:nx], back[nx:]]
+    else:
+        adjoint = [
             ca.jtimes(s_next, s, lam, True) + ca.gradient(c, s),
             ca.jtimes(s_next, u, lam, True) + ca.gradient(c, u),
-        ],
-    )
+        ]
+    back_step = ca.Function("adjoint_step", [lam, s, u], adjoint)
     sf = ca.SX.sym("sf", nx)
     phi_grad = ca.Function("phi_grad", [sf], [phi(sf), ca.gradient(phi(sf), sf)])
     x0 = ca.MX.sym("x0", nx)

@@ -32,6 +32,7 @@ __all__ = [
     "exploration_loss",
     "explore",
     "mode_slots",
+    "mode_switch",
     "resample",
     "smooth_noise",
     "starting_controls",
@@ -522,7 +523,7 @@ def exploration_loss(coarse: HybridOCP) -> Any:
 
     integrator = "exact" if isinstance(coarse, DiscOCP) else None
     return CompiledLoss(
-        mode_slots(coarse), contact_model("direct", toi="both"), integrator=integrator
+        mode_switch(mode_slots(coarse)), contact_model("direct", toi="both"), integrator=integrator
     )
 
 
@@ -610,6 +611,48 @@ def mode_slots(ocp: HybridOCP) -> HybridOCP:
             )
         )
     return ocp.replace(guards=slots)
+
+
+def mode_switch(ocp: HybridOCP) -> HybridOCP:
+    """The same problem with its closed-form flow map as a switch over the modes, or ``ocp``.
+
+    The flow map of :meth:`~hybridoc.HybridOCP.from_modes` computes every mode's flow and
+    selects the current one (SX ``if_else`` evaluates both of its branches), and the
+    time-of-impact step (:func:`~hybridoc.solvers.toi_sim.toi_step`) evaluates it about 30
+    times per step (the Newton iterations on each event time). Here each mode's flow is the
+    flow map with the mode index fixed (the selection folds away), and the flow map is an
+    MX function that calls only the current mode's branch (``casadi.Function.conditional``,
+    index ``floor(q + 1/2)`` clipped to the modes: the same mode as the selection's
+    ``q < k + 1/2``); the step is then built in MX around its calls. Each branch does the
+    same floating-point operations as the selected branch of the SX map, so the flow's
+    values are bit for bit the same. ``ocp`` itself where it has no modes or no closed-form
+    SX flow map, or where the mode index is not the flow's last output, unchanged.
+    """
+    import casadi as ca
+
+    fm, modes = ocp.flow_map, ocp.modes
+    if modes is None or not ocp.has_closed_form_flow or fm is None or not fm.is_a("SXFunction"):
+        return ocp
+    nx = ocp.nx
+    x, u, h = ca.SX.sym("x", nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("h")
+    q = x[nx - 1]
+    end, cost = fm(x, u, h)
+    if not ca.is_equal(end[nx - 1], q):
+        return ocp
+    branches = []
+    for k in range(len(modes)):
+        fixed = ca.SX(float(k))
+        # the mode index passes through as it is (its derivative stays 1, as in fm)
+        body = ca.substitute(ca.vertcat(end[: nx - 1], cost), q, fixed)
+        branches.append(
+            ca.Function(f"flow_mode{k}", [x, u, h], [ca.vertcat(body[: nx - 1], q), body[nx - 1]])
+        )
+    switch = ca.Function.conditional("flow_by_mode", branches[:-1], branches[-1])
+    xm, um, hm = ca.MX.sym("x", nx), ca.MX.sym("u", ocp.nu), ca.MX.sym("h")
+    index = ca.fmin(ca.fmax(ca.floor(xm[nx - 1] + 0.5), 0.0), float(len(modes) - 1))
+    s_end, c_end = switch(index, xm, um, hm)
+    flow = ca.Function("flow_map", [xm, um, hm], [s_end, c_end], ["s", "u", "h"], ["s_end", "cost"])
+    return ocp.replace(flow_map=flow)
 
 
 def explore(

@@ -22,6 +22,13 @@ flow map and converged Newton iterations the step is the exact flow of the
 piecewise-constant control up to the events it resolves, and the discrete loss is the
 continuous cost (to rounding). On disc scenes it agrees with the disc simulator's ``exact``
 integrator (:mod:`hybridoc.solvers.simulator`).
+
+A problem whose flow map is an MX function (the multi-start's switch over modes,
+:func:`hybridoc.solvers.multistart.mode_switch`) gets an MX step: the same parts, each an SX
+function (a guard's estimate, one Newton iteration, the choice of the earliest event), called
+between the flow's calls, so that each flow evaluation runs only the current mode's branch;
+an SX step inlines the same parts (the same expression as before they were parts, bit for
+bit).
 """
 
 from __future__ import annotations
@@ -42,10 +49,16 @@ RK4_SUBSTEPS = 4
 
 
 def _sx_flow(ocp: HybridOCP, substeps: int) -> ca.Function:
-    """``(s, u, h) -> (s(h), integral of L)``: the closed-form flow map or RK4 sub-steps."""
+    """``(s, u, h) -> (s(h), integral of L)``: the closed-form flow map or RK4 sub-steps.
+
+    A closed-form flow map that is an MX function (a switch over the modes,
+    :func:`hybridoc.solvers.multistart.mode_switch`) is returned as it is: the step is then
+    built in MX around its calls."""
     nx, nu = ocp.nx, ocp.nu
     fm = ocp.flow_map
     if ocp.has_closed_form_flow and fm is not None and fm.is_a("SXFunction"):
+        return fm
+    if ocp.has_closed_form_flow and fm is not None and fm.is_a("MXFunction"):
         return fm
     for fn in (ocp.f, ocp.L):
         if not fn.is_a("SXFunction"):
@@ -67,6 +80,69 @@ def _sx_flow(ocp: HybridOCP, substeps: int) -> ca.Function:
         k4 = rhs(z + dh * k3)
         z = z + dh / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     return ca.Function("rk4_flow", [s, u, h], [z[:nx], z[nx]])
+
+
+def _guard_blocks(ocp: HybridOCP, g: Any) -> tuple[ca.Function, ca.Function, ca.Function]:
+    """One guard's parts of the step (module notes, 2-4) as SX functions.
+
+    ``start(s^, u, remaining) -> (hit, tau_0)``, ``newton(Phi(s, u, tau), u, tau, hit,
+    remaining) -> tau`` (one iteration) and ``pick(s_ev, c_ev, u, tau, hit, *best) -> best``
+    (the earlier event wins; ``best = (tau, state, cost, state after, fired)``). In an SX
+    step their calls are inlined (the same expression as written out); in an MX step (a
+    flow that switches over modes) each stays one call between the flow's calls.
+    """
+    nx, nu = ocp.nx, ocp.nu
+    sp, u = ca.SX.sym("sp", nx), ca.SX.sym("u", nu)
+    psi = g.psi(sp)
+    det = g.detector(sp) if g.detector is not None else psi
+    rate = ca.jtimes(psi, sp, ocp.f(sp, u))
+    det_rate = ca.jtimes(det, sp, ocp.f(sp, u))
+    remaining, tau, hit = ca.SX.sym("remaining"), ca.SX.sym("tau"), ca.SX.sym("hit")
+
+    found = ca.logic_and(psi < 0, rate < 0)
+    safe_rate = ca.if_else(found, rate, -1.0)
+    # the paper's estimate: the guard was crossed psi / rate before the end
+    tau0 = ca.fmin(ca.fmax(remaining - psi / safe_rate, 0.0), remaining)
+    start = ca.Function("toi_start", [sp, u, remaining], [found, tau0])
+
+    ok = ca.logic_and(hit, det_rate < 0)
+    dd = ca.if_else(ok, det_rate, -1.0)
+    step = ca.if_else(ok, ca.fmin(ca.fmax(tau - det / dd, 0.0), remaining), tau)
+    newton = ca.Function("toi_newton", [sp, u, tau, hit, remaining], [step])
+
+    c_ev = ca.SX.sym("c_ev")
+    b_tau, b_state, b_cost = ca.SX.sym("b_tau"), ca.SX.sym("b_state", nx), ca.SX.sym("b_cost")
+    b_after, fired = ca.SX.sym("b_after", nx), ca.SX.sym("fired")
+    earlier = ca.logic_and(hit, tau < b_tau)
+    # a reset that depends on the control reads the step's own (the cell's) control
+    picked = [
+        ca.if_else(earlier, tau, b_tau),
+        ca.if_else(earlier, sp, b_state),
+        ca.if_else(earlier, c_ev, b_cost),
+        ca.if_else(earlier, g.reset_at(sp, u), b_after),
+        ca.if_else(earlier, 1.0, fired),
+    ]
+    pick = ca.Function(
+        "toi_pick", [sp, c_ev, u, tau, hit, b_tau, b_state, b_cost, b_after, fired], picked
+    )
+    return start, newton, pick
+
+
+def _advance_block(nx: int) -> ca.Function:
+    """``(cost, remaining, *best) -> (cost, state, remaining)``: after the guards of one
+    event, the state just after the earliest event's jump, or the flow to the end."""
+    cost, remaining = ca.SX.sym("cost"), ca.SX.sym("remaining")
+    b_tau, b_state, b_cost = ca.SX.sym("b_tau"), ca.SX.sym("b_state", nx), ca.SX.sym("b_cost")
+    b_after, fired = ca.SX.sym("b_after", nx), ca.SX.sym("fired")
+    return ca.Function(
+        "toi_advance",
+        [cost, remaining, b_tau, b_state, b_cost, b_after, fired],
+        [
+            cost + b_cost,
+            ca.if_else(fired > 0.5, b_after, b_state),
+            ca.if_else(fired > 0.5, remaining - b_tau, 0.0),
+        ],
+    )
 
 
 def toi_step(
@@ -97,55 +173,28 @@ def toi_step(
     """
     nx, nu = ocp.nx, ocp.nu
     flow = _sx_flow(ocp, substeps)
-    s = ca.SX.sym("s", nx)
-    u = ca.SX.sym("u", nu)
-    sp = ca.SX.sym("sp", nx)
-    guards = ocp.guards
-    psi_fns, det_fns, rate_fns, det_rate_fns = [], [], [], []
-    for g in guards:
-        psi = g.psi(sp)
-        det = g.detector(sp) if g.detector is not None else psi
-        psi_fns.append(ca.Function("psi", [sp], [psi]))
-        det_fns.append(ca.Function("det", [sp], [det]))
-        rate_fns.append(ca.Function("rate", [sp, u], [ca.jtimes(psi, sp, ocp.f(sp, u))]))
-        det_rate_fns.append(ca.Function("det_rate", [sp, u], [ca.jtimes(det, sp, ocp.f(sp, u))]))
-
+    # an MX flow (a switch that evaluates only the current mode's branch) keeps the step in
+    # MX, so that each of its calls stays one call; SX would inline every branch again
+    sym = ca.MX if flow.is_a("MXFunction") and not isinstance(dt, ca.SX) else ca.SX
+    if sym is ca.SX and flow.is_a("MXFunction"):
+        flow = flow.expand()
+    s = sym.sym("s", nx)
+    u = sym.sym("u", nu)
+    blocks = [_guard_blocks(ocp, g) for g in ocp.guards]
+    advance = _advance_block(nx)
     state = s
-    cost = ca.SX(0)
-    remaining = ca.SX(dt)
-    for _ in range(max_events if guards else 0):
+    cost = sym(0)
+    remaining = dt if isinstance(dt, ca.SX) else sym(dt)
+    for _ in range(max_events if blocks else 0):
         s_hat, c_hat = flow(state, u, remaining)
-        best_tau = remaining
-        best_state = s_hat
-        best_cost = c_hat
-        best_after = s_hat
-        fired = ca.SX(0)
-        for j in range(len(guards)):
-            psi_hat = psi_fns[j](s_hat)
-            rate_hat = rate_fns[j](s_hat, u)
-            hit = ca.logic_and(psi_hat < 0, rate_hat < 0)
-            safe_rate = ca.if_else(hit, rate_hat, -1.0)
-            # the paper's estimate: the guard was crossed psi / rate before the end
-            tau = ca.fmin(ca.fmax(remaining - psi_hat / safe_rate, 0.0), remaining)
+        best = [remaining, s_hat, c_hat, s_hat, sym(0)]  # tau, state, cost, after, fired
+        for start, newton, pick in blocks:
+            hit, tau = start(s_hat, u, remaining)
             for _k in range(newton_iterations):
-                s_tau = flow(state, u, tau)[0]
-                d = det_fns[j](s_tau)
-                dd = det_rate_fns[j](s_tau, u)
-                ok = ca.logic_and(hit, dd < 0)
-                dd = ca.if_else(ok, dd, -1.0)
-                tau = ca.if_else(ok, ca.fmin(ca.fmax(tau - d / dd, 0.0), remaining), tau)
+                tau = newton(flow(state, u, tau)[0], u, tau, hit, remaining)
             s_ev, c_ev = flow(state, u, tau)
-            earlier = ca.logic_and(hit, tau < best_tau)
-            best_tau = ca.if_else(earlier, tau, best_tau)
-            best_state = ca.if_else(earlier, s_ev, best_state)
-            best_cost = ca.if_else(earlier, c_ev, best_cost)
-            # a reset that depends on the control reads the step's own (the cell's) control
-            best_after = ca.if_else(earlier, guards[j].reset_at(s_ev, u), best_after)
-            fired = ca.if_else(earlier, 1.0, fired)
-        # no event: the flow to the end; an event: the state just after its jump
-        cost = cost + best_cost
-        state = ca.if_else(fired > 0.5, best_after, best_state)
-        remaining = ca.if_else(fired > 0.5, remaining - best_tau, 0.0)
+            best = pick(s_ev, c_ev, u, tau, hit, *best)
+        cost, state, remaining = advance(cost, remaining, *best)
     s_end, c_end = flow(state, u, remaining)
     cost = cost + c_end
     if isinstance(dt, ca.SX):

@@ -291,6 +291,48 @@ def test_mode_slots_keep_problems_they_cannot_help() -> None:
     assert mode_slots(other) is other
 
 
+@pytest.mark.parametrize("name", ["two-tanks", "hopper"])
+def test_mode_switch_evaluates_one_mode_with_the_same_loss(name: str) -> None:
+    """The multi-start's flow map as a switch over the modes: each branch is the flow map at
+    that mode index, bit for bit (the index rounded and clipped as the selection does), and
+    costs fewer operations than all modes together; the MX step built around it gives the
+    SX step's loss values and gradients to rounding, on controls that fire transitions (the
+    values differ at all only where the SX step folded its constant step length into the
+    flow's operations at build time: an ulp of a step cost on the hopper)."""
+    import casadi as ca
+
+    from hybridoc.solvers.compiled import CompiledLoss
+    from hybridoc.solvers.multistart import mode_slots, mode_switch
+
+    ocp = load_problem(name).replace(steps=30)
+    slotted = mode_slots(ocp)
+    switched = mode_switch(slotted)
+    assert switched.flow_map.is_a("MXFunction") and slotted.flow_map.is_a("SXFunction")
+    rng = np.random.default_rng(2)
+    n_modes = len(ocp.modes)
+    for q in [*range(n_modes), -1.0, n_modes + 2.0, n_modes - 1.4]:
+        for _ in range(3):
+            x = np.r_[rng.uniform(-1.0, 1.0, ocp.nx - 1), q]
+            u, h = rng.uniform(-1.0, 1.0, ocp.nu), rng.uniform(0.0, 0.1)
+            want = [np.asarray(v) for v in slotted.flow_map(x, u, h)]
+            got = [np.asarray(v) for v in switched.flow_map(x, u, h)]
+            assert all(np.array_equal(a, b) for a, b in zip(want, got, strict=True)), (q, x)
+    x, u, h = ca.SX.sym("x", ocp.nx), ca.SX.sym("u", ocp.nu), ca.SX.sym("h")
+    whole = ca.Function("f", [x, u, h], slotted.flow_map(x, u, h)).n_instructions()
+    for k in range(n_modes):
+        one = ca.substitute(ca.vertcat(*slotted.flow_map(x, u, h)), x[-1], ca.SX(float(k)))
+        assert ca.Function("f", [x, u, h], [one]).n_instructions() < whole
+    u0 = np.asarray(ocp.u_guess, dtype=float)
+    U = np.stack([u0, 0 * u0 - 1.0, *(u0 + rng.standard_normal((4, *u0.shape)))])
+    J, gU, gx = CompiledLoss(slotted).value_and_grad_batch(U)
+    Jm, gUm, gxm = CompiledLoss(switched).value_and_grad_batch(U)
+    eps = np.finfo(float).eps
+    np.testing.assert_allclose(Jm, J, rtol=16 * eps, atol=0)
+    np.testing.assert_allclose(gUm, gU, rtol=0, atol=16 * eps * abs(gU).max())
+    np.testing.assert_allclose(gxm, gx, rtol=0, atol=16 * eps * abs(gx).max())
+    assert np.ptp(J) > 0
+
+
 def test_batched_lbfgs_evaluates_only_the_starts_still_searching() -> None:
     """Backtracking trials of a few starts go to ``some`` (those starts only), and the
     iterates, values and call count are those of the all-batch descent, bit for bit."""
