@@ -208,6 +208,31 @@ def test_gd_loss_is_the_judges_cost_through_both_switches(opt) -> None:
     assert opt["cost"] < judged.cost < opt["cost"] * (1 + 1e-4)
 
 
+def test_multistart_loss_is_the_judges_cost_through_all_four_modes() -> None:
+    """The reference's multi-start loss (mode slots and the flow as a switch over the modes:
+    an MX step that runs one mode's flow per evaluation) on the coarse grid, on a control
+    that fills, drains and fills again (spill, connect, backflow, backflow-stops: every
+    mode): its value is the judge's cost, its gradient the judge's central differences."""
+    from hybridoc.solvers.multistart import exploration_loss
+
+    p = hybridoc.as_ocp("two-tanks").replace(steps=80)
+    loss = exploration_loss(p)
+    assert loss.step.is_a("MXFunction")
+    t = p.time_grid()[:-1] + p.dt / 2
+    U = np.where(t < 1.0, 2.0, np.where(t < 1.6, -3.0, 0.3))[:, None]
+    judged = hybridoc.evaluate(p, U)
+    assert judged.sequence == ["spill", "connect", "backflow", "backflow-stops"]
+    J, gU, _ = loss.value_and_grad(U)
+    assert J == pytest.approx(judged.cost, rel=1e-12)
+    h = 1e-6
+    for n in (5, 30, 50):  # apart, connected and backflowing cells
+        Up, Um = U.copy(), U.copy()
+        Up[n] += h
+        Um[n] -= h
+        fd = (hybridoc.evaluate(p, Up).cost - hybridoc.evaluate(p, Um).cost) / (2 * h)
+        assert gU[n, 0] == pytest.approx(fd, rel=1e-6, abs=1e-8), n
+
+
 @pytest.mark.slow
 def test_every_method_with_no_option_agrees_in_crossval(opt) -> None:
     """crossval with gd as ``solve`` runs it (one start, not crossval's multi-start: the
