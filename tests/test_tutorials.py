@@ -14,6 +14,11 @@ from pathlib import Path
 
 import pytest
 
+# No background C compilation: a quick tutorial is over before most of its compilations
+# pay. Side by side, sequential, fresh code cache: the module took 83.3 s of CPU with them
+# (30 compilations, 37 s of the compiler) against 54.7 s without, the same 54 s wall.
+pytestmark = pytest.mark.usefixtures("virtual_machine")
+
 TUTORIALS = sorted(
     (Path(__file__).resolve().parents[1] / "docs" / "tutorials").glob("[0-9][0-9]_*.py")
 )
