@@ -11,10 +11,7 @@ solves) are only fed arguments that are rejected up front.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_here import run_here
 
 import hybridoc
 from hybridoc.errors import ControlsError, SceneError
@@ -54,21 +52,9 @@ def _run(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
 
 
 def _run_here(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """What ``python -m hybridoc ARGS`` does (``sys.exit(main())``), in this process."""
-    from hybridoc.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                code = main(list(args))
-            except SystemExit as exc:  # argparse's usage errors
-                code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
-    finally:
-        os.chdir(old)
-    return subprocess.CompletedProcess(["hybridoc", *args], code, out.getvalue(), err.getvalue())
+    """What ``python -m hybridoc ARGS`` does (``sys.exit(main())``), in this process, in
+    ``cwd`` (:func:`cli_here.run_here`)."""
+    return run_here(*args, cwd=cwd)
 
 
 def _one_error(proc: subprocess.CompletedProcess[str], *fragments: str) -> str:
