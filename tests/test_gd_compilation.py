@@ -53,6 +53,9 @@ def test_solve_waits_for_compilations_after_its_output(
     assert [t for t, _, _ in calls] == [0.0, cli_solve.COMPILATION_WAIT_S]
     assert json.loads(calls[0][1])["method"] == "gd"  # the result came first
     assert "finishing the C compilation" in calls[1][2]  # and says why it lingers
+    if code == 2:  # the reason for the exit code stays the last line, after the wait
+        last = capsys.readouterr().err.splitlines()[-1]
+        assert last.startswith("hybridoc: error: not-converged"), last
 
 
 @pytest.mark.slow

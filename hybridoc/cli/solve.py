@@ -112,9 +112,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
         print_solution(args, sol, ocp, method.summary_lines(sol))
         for p in written:
             say(args, f"wrote {p}")
-    code = exit_code(sol.status, sol.message)  # says why on stderr: before the wait
+    # the result is out; the reason for a non-zero exit stays the last line on stderr
     _finish_compilations()
-    return code
+    return exit_code(sol.status, sol.message)
 
 
 #: how long ``hybridoc solve`` waits, after its output, for a C compilation still running
