@@ -294,10 +294,17 @@ class LBFGS:
         return r
 
     def step(
-        self, fun: Objective, x: np.ndarray, f: float, g: np.ndarray
+        self,
+        fun: Objective,
+        x: np.ndarray,
+        f: float,
+        g: np.ndarray,
+        *,
+        max_ls: int | None = None,
     ) -> tuple[np.ndarray, float, np.ndarray]:
         """One iteration from ``x`` (value ``f``, gradient ``g``): the new point, its value
-        and gradient (``x``, ``f``, ``g`` themselves when it does not move)."""
+        and gradient (``x``, ``f``, ``g`` themselves when it does not move). ``max_ls``
+        overrides ``self.max_ls`` for this iteration's line search."""
         if float(np.abs(g).max()) <= self.tolerance_grad:
             return x, f, g
         self.n_iter += 1
@@ -308,7 +315,8 @@ class LBFGS:
         if gtd > -self.tolerance_change:
             self.t = t
             return x, f, g
-        f_new, g_new, t, evals = strong_wolfe(fun, x, t, d, f, g, gtd, max_ls=self.max_ls)
+        max_ls = self.max_ls if max_ls is None else max_ls
+        f_new, g_new, t, evals = strong_wolfe(fun, x, t, d, f, g, gtd, max_ls=max_ls)
         self.evaluations += evals
         self.t = t
         if t == 0:
@@ -422,30 +430,20 @@ def lbfgs_torch_step(
         The new point, its value and gradient (``x``, ``f``, ``g`` when it does not move).
     """
     max_eval = max_iter * 5 // 4 if max_eval is None else max_eval
-    if float(np.abs(g).max()) <= opt.tolerance_grad:
-        return x, f, g
     evals = 1
     for n in range(1, max_iter + 1):
-        opt.n_iter += 1
-        d = opt.direction(g)
-        opt.d, opt.prev_g = d, g.copy()
-        f_prev = f
-        t = min(1.0, 1.0 / float(np.abs(g).sum())) * opt.lr if opt.n_iter == 1 else opt.lr
-        gtd = float(g @ d)
-        if gtd > -opt.tolerance_change:
-            opt.t = t
+        f_prev, before = f, opt.evaluations
+        # each line search gets the evaluations left (torch's max_eval)
+        x, f, g = opt.step(fun, x, f, g, max_ls=max_eval - evals)
+        used = opt.evaluations - before
+        if used == 0:  # converged gradient, or no descent direction: no search was made
             break
-        f, g, t, ls_evals = strong_wolfe(fun, x, t, d, f, g, gtd, max_ls=max_eval - evals)
-        opt.t = t
-        opt.evaluations += ls_evals
-        evals += ls_evals
-        # torch adds t d even for t = 0 (no step lowered the loss): x stays x
-        x = x + t * d
+        evals += used
         if (
             n == max_iter
             or evals >= max_eval
             or float(np.abs(g).max()) <= opt.tolerance_grad
-            or float(np.abs(d * t).max()) <= opt.tolerance_change
+            or float(np.abs(opt.d * opt.t).max()) <= opt.tolerance_change
             or abs(f - f_prev) < opt.tolerance_change
         ):
             break
