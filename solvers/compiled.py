@@ -22,6 +22,8 @@ function (imported on first use), so it plugs into torch optimisers and policy t
 
 from __future__ import annotations
 
+import weakref
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import casadi as ca
@@ -33,14 +35,34 @@ from hybridoc.solvers.codegen import Accelerated
 from hybridoc.solvers.contacts import ContactModel, contact_model
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.ocp import HybridOCP
+    from hybridoc.ocp import HybridOCP, Structure
     from hybridoc.problem import ProblemLike
 
-__all__ = ["CompiledLoss", "SIMULATIONS", "TerminalLoss"]
+__all__ = ["CompiledLoss", "SIMULATIONS", "TerminalLoss", "per_structure"]
 
 SIMULATIONS = ("auto", "disc", "generic")
 """Which step :class:`CompiledLoss` compiles: ``auto`` (the disc step for disc scenes, the
 generic TOI step otherwise), ``disc`` or ``generic``."""
+
+
+def per_structure(
+    store: weakref.WeakKeyDictionary[Structure, dict[tuple[Any, ...], Any]],
+    ocp: HybridOCP,
+    key: tuple[Any, ...],
+    build: Callable[[], Any],
+) -> Any:
+    """``build()`` once per problem structure and ``key``, kept in ``store`` while the
+    structure lives (weakly, per :class:`~hybridoc.ocp.Structure`): building a compiled loss
+    takes milliseconds to seconds, and continuation stages, repeated solves and a dataset's
+    draws ask for the same one. More than eight keys of one structure (e.g. the initial
+    states of many draws) start its entry afresh."""
+    cache = store.setdefault(ocp.structure, {})
+    value = cache.get(key)
+    if value is None:
+        if len(cache) > 8:
+            cache.clear()
+        value = cache[key] = build()
+    return value
 
 
 def _threads() -> int:

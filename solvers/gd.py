@@ -384,21 +384,20 @@ def make_loss(
         torch_threads()  # one torch thread unless HYBRIDOC_THREADS says otherwise
 
         return Simulator(ocp, contact=model, integrator=integrator), "torch"
-    from hybridoc.solvers.compiled import CompiledLoss
+    from hybridoc.solvers.compiled import CompiledLoss, per_structure
 
     key = (
         ocp.steps, ocp.horizon, _model_key(model), integrator, path_weight,
         tuple(ocp.x0.tolist()),
     )  # fmt: skip
-    cache = _LOSSES.setdefault(ocp.structure, {})
-    loss = cache.get(key)
-    if loss is None:
-        if len(cache) > 8:
-            cache.clear()
-        loss = CompiledLoss(
+    loss = per_structure(
+        _LOSSES,
+        ocp,
+        key,
+        lambda: CompiledLoss(
             ocp, model, integrator=integrator if is_disc else None, path_weight=path_weight
-        )
-        cache[key] = loss
+        ),
+    )
     return loss, "compiled"
 
 
@@ -1237,16 +1236,12 @@ _TERMINAL_LOSSES: weakref.WeakKeyDictionary[Structure, dict[tuple[Any, ...], Any
 def _terminal_loss(ocp: HybridOCP, path_weight: float) -> Any:
     """The :class:`~hybridoc.solvers.compiled.TerminalLoss` of a problem, kept per structure
     (the final time is an input of it, not part of the key)."""
-    from hybridoc.solvers.compiled import TerminalLoss
+    from hybridoc.solvers.compiled import TerminalLoss, per_structure
 
     key = (ocp.steps, path_weight, tuple(ocp.x0.tolist()))
-    cache = _TERMINAL_LOSSES.setdefault(ocp.structure, {})
-    loss = cache.get(key)
-    if loss is None:
-        if len(cache) > 8:
-            cache.clear()
-        loss = cache[key] = TerminalLoss(ocp, path_weight=path_weight)
-    return loss
+    return per_structure(
+        _TERMINAL_LOSSES, ocp, key, lambda: TerminalLoss(ocp, path_weight=path_weight)
+    )
 
 
 def _terminal_refusal(ocp: HybridOCP, opts: GDOptions) -> str | None:

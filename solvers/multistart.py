@@ -544,14 +544,10 @@ def cached_exploration_loss(coarse: HybridOCP) -> Any:
     """:func:`exploration_loss`, built once per problem structure, grid, horizon and initial
     state and kept (weakly, per :class:`~hybridoc.ocp.Structure`): the reference's
     multi-start source asks for it on every solve (datasets solve one draw after another)."""
+    from hybridoc.solvers.compiled import per_structure
+
     key = (coarse.steps, coarse.horizon, tuple(coarse.x0.tolist()))
-    cache = _LOSSES.setdefault(coarse.structure, {})
-    loss = cache.get(key)
-    if loss is None:
-        if len(cache) > 8:
-            cache.clear()
-        loss = cache[key] = exploration_loss(coarse)
-    return loss
+    return per_structure(_LOSSES, coarse, key, lambda: exploration_loss(coarse))
 
 
 def mode_slots(ocp: HybridOCP) -> HybridOCP:
