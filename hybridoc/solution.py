@@ -102,6 +102,13 @@ class Status(StrEnum):
         The method stopped without meeting its convergence test (iteration limit, NaN).
     ``DISAGREE``
         Methods that should agree (a cross-validation) do not.
+    ``BEST_FOUND``
+        The best control a search for the global optimum found, without proof that it is
+        the optimum: the coverage the search reached (``info["coverage"]``) does not exclude
+        a cheaper control (a sequence of events within the claimed length not solved, an
+        extremal found from a single start, the budget or the time limit stopped the
+        search). It is a finding (exit code 1): nothing cheaper is known, but nothing
+        rules it out either.
     """
 
     SUCCESS = "success"
@@ -111,13 +118,14 @@ class Status(StrEnum):
     INFEASIBLE = "infeasible"
     NOT_CONVERGED = "not-converged"
     DISAGREE = "disagree"
+    BEST_FOUND = "best-found"
 
     @property
     def code(self) -> int:
         """An integer like scipy's ``status``: 0 for success, then in the order above
         (``extremal`` 1, ``not-optimal`` 2, ``events-differ`` 3, ``infeasible`` 4,
-        ``not-converged`` 5, ``disagree`` 6). ``int(status)`` gives it too; the files keep
-        the string."""
+        ``not-converged`` 5, ``disagree`` 6, ``best-found`` 7). ``int(status)`` gives it
+        too; the files keep the string."""
         return _STATUS_CODES[self.value]
 
     def __int__(self) -> int:
@@ -139,6 +147,7 @@ _STATUS_CODES = {
     "infeasible": 4,
     "not-converged": 5,
     "disagree": 6,
+    "best-found": 7,
 }
 
 _ARRAY_PREFIX = "arrays/"
