@@ -13,10 +13,13 @@ time, into a cache folder keyed by a hash of the function's serialisation: a lat
 the library at once. Without a compiler,
 or when compilation fails, the virtual machine simply stays in use.
 
-The cache is private and checked: its folder is created with mode 0700 (an existing one of
-the user's that others may read or write is narrowed to 0700, its compiled files discarded
-when others could write there) and used only while
-it is owned by the user and writable by nobody else, and a library is loaded only when its
+The cache is private and checked: its folder is created with mode 0700, and any folder is
+used only while it is owned by the user and writable by nobody else. An existing folder is
+never re-permissioned (a shared folder such as ``/tmp``, mode 1777, must stay open to its
+other users): one that is not private is refused, with one warning saying why and what to do,
+and compiled code is then off. Only regular files are opened in it (``lstat`` first, then a
+non-blocking open without following links: a FIFO planted at a record's name cannot make a
+run wait forever), and a library is loaded only when its
 SHA-256 matches the one hybridoc recorded beside it when it built it (``<lib>.sha256``);
 anything else is not loaded. The least recently used libraries are deleted when the cache
 outgrows its bound. :func:`cache_info` and :func:`clear_cache` (``hybridoc cache info`` and
@@ -182,7 +185,7 @@ def check_cache_dir(path: str | Path | None = None) -> str | None:
     ----------
     path
         The folder; default :func:`cache_dir`. A folder that does not exist yet is safe
-        (hybridoc creates it with mode 0700).
+        (hybridoc creates it with mode 0700); an existing one is never re-permissioned.
     """
     p = cache_dir() if path is None else Path(path)
     try:
@@ -192,28 +195,6 @@ def check_cache_dir(path: str | Path | None = None) -> str | None:
     except OSError as exc:
         return f"it cannot be read: {exc.strerror or exc}"
     return _unsafe(st)
-
-
-def _make_private(dfd: int, path: Path, st: os.stat_result) -> None:
-    """Narrow a cache folder of this user's that others may read or write to 0700.
-
-    Older versions made it with the default mode (0755, or 0775 under umask 002). A folder
-    others could write to may hold their files: its libraries and records are discarded
-    (compiled again when needed), with one warning, before anything is loaded from it.
-    """
-    try:
-        os.fchmod(dfd, 0o700)
-    except OSError:
-        return  # stays as it is; _unsafe then decides
-    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        names = [name for name, _ in _entries(dfd)]
-        for name in names:
-            _unlink(dfd, name)
-        _warn_once(
-            f"the code cache {str(path)!r} was writable by other users (mode "
-            f"{stat.S_IMODE(st.st_mode):04o}): it is now private (0700), and its {len(names)} "
-            "compiled file(s) were discarded, to be compiled again"
-        )
 
 
 @contextmanager
@@ -235,16 +216,9 @@ def _private_dir(create: bool) -> Iterator[tuple[int | None, bool]]:
         yield None, True
         return
     try:
-        st = os.fstat(fd)
-        if (
-            stat.S_ISDIR(st.st_mode)
-            and hasattr(os, "geteuid")
-            and st.st_uid == os.geteuid()
-            and stat.S_IMODE(st.st_mode) & 0o077
-        ):
-            _make_private(fd, path, st)
-            st = os.fstat(fd)
-        reason = _unsafe(st)
+        # never chmod an existing folder: it may be shared (a sticky /tmp, mode 1777), and
+        # narrowing it would lock its other users out; a folder others can write is refused
+        reason = _unsafe(os.fstat(fd))
         if reason is not None:
             _warn_once(
                 f"the code cache {str(path)!r} is not private: {reason}; compiled code is "
@@ -266,15 +240,23 @@ def _load_path(dfd: int, name: str) -> str:
 
 
 def _read_own(dfd: int, name: str) -> tuple[bytes, int] | None:
-    """The bytes of a regular file of this user in the folder, and its descriptor (open)."""
+    """The bytes of a regular file of this user in the folder, and its descriptor (open).
+
+    Anything else at ``name`` is not opened: ``lstat`` first, then a non-blocking open that
+    does not follow a link (a FIFO swapped in between cannot block), and the opened file must
+    be the one that was checked."""
     try:
-        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=dfd)
+        before = os.stat(name, dir_fd=dfd, follow_symlinks=False)
+        if not stat.S_ISREG(before.st_mode):
+            return None
+        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK, dir_fd=dfd)
     except OSError:
         return None
     try:
         st = os.fstat(fd)
         if (
             not stat.S_ISREG(st.st_mode)
+            or not os.path.samestat(st, before)
             or st.st_uid != os.geteuid()
             or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
         ):
