@@ -208,6 +208,11 @@ class ReferenceResult:
         the best cost of each number of events), set by
         :func:`~hybridoc.reference.solve.solve_reference` on the extremal it returns and
         copied to ``info["coverage"]``; ``None`` for an extremal solved on its own.
+    start_costs
+        The costs of the extremals that every converged start reached in the solve of the
+        sequence that found this one (:func:`~hybridoc.reference.sequence.solve_sequence`;
+        the cheapest is this one): the search's test that the sequence's extremal was found
+        from several starts.
     judged
         The judge's re-simulation of :meth:`control_function` that verified this extremal
         (:func:`~hybridoc.reference.sequence.judged_reference`; ``None`` before, or where it
@@ -252,6 +257,7 @@ class ReferenceResult:
     arc_costates: np.ndarray | None = None
     arc_levels: tuple[int, ...] | None = None
     arc_nodes: list[np.ndarray] | None = field(default=None, repr=False)
+    start_costs: tuple[float, ...] = field(default=(), repr=False, compare=False)
     arc_laws: list[tuple[tuple[float, float], ...]] | None = None
 
     def _piece_laws(self, attr: str) -> Any:

@@ -372,6 +372,8 @@ def solve_sequence(
             attempt(z_from_costates(S, proposal.warm_start), starter.name)
     if found:
         best = min(found, key=lambda r: r.cost)
+        # every converged start's extremal: the search counts those that agree
+        best.start_costs = tuple(float(r.cost) for r in found)
         return best, ""
     return None, "; ".join(reasons) or "no start for Newton"
 

@@ -118,17 +118,21 @@ __all__ = [
     "DEFAULT_BUDGET",
     "EVENT_CONTROL_PROBE",
     "MAX_EVENTS",
+    "MAX_PROOF_DEPTH",
     "MAX_SEARCH",
     "METHOD",
     "MULTISTART",
     "PATH_SAMPLES",
     "PATH_TOL",
+    "PROOF_STARTS",
+    "START_RTOL",
     "ReferenceOptions",
     "coverage_line",
     "event_control_rival",
     "families_line",
     "parse_budget",
     "parse_search",
+    "parse_time_limit",
     "path_violation",
     "reference_supports",
     "solve_reference",
@@ -172,6 +176,25 @@ _IMPOSSIBLE = (
 DEFAULT_BUDGET = 30.0
 """Seconds the default reference (without ``sequence``) may spend: its sources get what is
 left of it, and the enumeration stops when it is spent (``budget``)."""
+PROOF_STARTS = 2
+"""Distinct starts of Newton that must reach the optimum's extremal (the same cost, to
+:data:`START_RTOL`) for a ``success``: one start can land on a worse stationary point of
+the right sequence."""
+START_RTOL = 1e-6
+"""Two starts reached the same extremal when their costs agree to this much relative (the
+integration's refinement moves a cost by about ``rtol``; distinct stationary points of one
+sequence differ by far more)."""
+MAX_PROOF_DEPTH = MAX_SEARCH
+"""The longest sequences the default enumeration extends to so that it covers every
+sequence of up to one event more than the best extremal found (the budget stops it)."""
+
+
+class _Stopped(Exception):
+    """The time limit or a KeyboardInterrupt stopped the search (``reason``)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
 
 
 def _events(k: int) -> str:
@@ -212,6 +235,23 @@ def parse_search(text: str) -> int:
             f"about sevenfold per event), got {k}"
         )
     return k
+
+
+def parse_time_limit(text: str) -> float:
+    """The ``--time-limit SECONDS`` value: a positive number of seconds.
+
+    Raises
+    ------
+    ValueError
+        With a one-line reason.
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"time limit must be a number of seconds > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"time limit must be a number of seconds > 0, got {text!r}")
+    return value
 
 
 def parse_budget(text: str) -> float:
@@ -256,6 +296,14 @@ class ReferenceOptions:
         parse=parse_budget,
         metavar="SECONDS",
     )
+    time_limit: float | None = option(
+        None,
+        "a hard wall-clock limit over the whole solve, sources included (checked between "
+        "stages and sequences): the best verified extremal found by then is returned as "
+        "not-converged; default none (the budget stays the search's soft limit)",
+        parse=parse_time_limit,
+        metavar="SECONDS",
+    )
     verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
     rtol: float = option(
         COST_RTOL,
@@ -292,7 +340,7 @@ def coverage_line(coverage: dict[str, Any] | None) -> str:
     failed = coverage.get("failed") or {}
     if ex is not None:
         reach = f"every sequence of up to {_events(ex)}"
-    elif coverage.get("depth") and failed.get("count"):
+    elif "enumeration" in coverage.get("sources", ()):
         reach = "no length covered exhaustively"
     else:
         reach = "no enumeration"
@@ -311,6 +359,10 @@ def coverage_line(coverage: dict[str, Any] | None) -> str:
     )
     if coverage.get("budget_stopped"):
         text += f"; stopped by the budget of {coverage['budget_s']:g} s"
+    if coverage.get("stopped"):
+        text += f"; stopped: {coverage['stopped']}"
+    if "proven" in coverage:
+        text += "; optimum proven" if coverage["proven"] else "; not proven"
     unsupported = [
         f"{row['name']} ({row['reason'].removeprefix('not run: ')})"
         for row in coverage.get("skipped_sources") or []
@@ -505,6 +557,25 @@ class _Book:
     # the starts each sequence was solved from (_Start): the same start again gives the
     # same outcome
     starts: dict[tuple[str, ...], list[_Start]] = field(default_factory=dict)
+    # the cost of the extremal every converged start of a sequence reached
+    start_costs: dict[tuple[str, ...], list[float]] = field(default_factory=dict)
+    # perf_counter() time of the hard time limit (time_limit), and what stopped the search
+    hard_deadline: float = math.inf
+    stopped: str = ""
+
+    def check_limit(self) -> None:
+        """Raise :class:`_Stopped` once the hard time limit is reached."""
+        if time.perf_counter() >= self.hard_deadline:
+            raise _Stopped("the time limit")
+
+    def agreeing_starts(self, key: tuple[str, ...]) -> int:
+        """How many converged starts of ``key`` reached its extremal (the same cost, to
+        :data:`START_RTOL`)."""
+        res = self.results.get(key)
+        if res is None:
+            return 0
+        tol = START_RTOL * max(abs(res.cost), 1e-300)
+        return sum(abs(c - res.cost) <= tol for c in self.start_costs.get(key, ()))
 
     def tried(self, key: tuple[str, ...], start: _Start) -> bool:
         """Whether ``key`` was already solved from ``start``."""
@@ -576,6 +647,7 @@ class _Book:
             self.say(f"{list(key)} ({origin}): event times of another length, guessed anew")
             gamma0 = guess_times(self.ocp, key, guess_ev)
         start = _Start.of(u_guess, gamma0, estimate, grad, guess_ev, warm_start)
+        self.check_limit()
         if self.tried(key, start):
             # solve_sequence is a function of its start: the known control of the guess is
             # the guess (friction-patch-free-time: its failed starts, 0.4 s, were repeated)
@@ -594,6 +666,8 @@ class _Book:
             res, why = None, str(exc)
         self.times[key] = self.times.get(key, 0.0) + time.perf_counter() - t0
         self.origins.setdefault(key, origin)
+        if res is not None:
+            self.start_costs.setdefault(key, []).extend(res.start_costs or (float(res.cost),))
         old = self.results.get(key)
         if res is not None and (old is None or res.cost < old.cost - 1e-12 * abs(old.cost)):
             self.results[key] = res
@@ -754,6 +828,7 @@ def solve_reference(
     initial: ControlsLike | None = None,
     search: int | None = None,
     budget: float = DEFAULT_BUDGET,
+    time_limit: float | None = None,
     verbose: bool = False,
     rtol: float = COST_RTOL,
     tol: float = 1e-10,
@@ -872,10 +947,16 @@ def solve_reference(
         or not (math.isfinite(budget) and budget > 0)
     ):
         raise SceneError(f"budget must be a number of seconds > 0, got {budget!r}")
+    if time_limit is not None and (
+        isinstance(time_limit, bool)
+        or not isinstance(time_limit, numbers.Real)
+        or not (math.isfinite(time_limit) and time_limit > 0)
+    ):
+        raise SceneError(f"time_limit must be a number of seconds > 0, got {time_limit!r}")
     proposers, starters, kind = _active_sources(sources, transcription, multistart)
     run = _Run(
         seq=seq, initial=initial, search=search, budget=float(budget), verbose=verbose, tol=tol,
-        rtol=rtol,
+        rtol=rtol, time_limit=None if time_limit is None else float(time_limit),
         verify=verify,
         transcription=transcription, multistart=multistart, sources=sources,
         proposers=proposers, starters=starters, kind=kind, t_start=t_start,
@@ -903,6 +984,7 @@ class _Run:
     starters: tuple[Any, ...]
     kind: str
     t_start: float
+    time_limit: float | None = None
 
     def options(self) -> dict[str, Any]:
         """The options of a second run of the same problem (the search without a given
@@ -910,6 +992,10 @@ class _Run:
         return dict(
             initial=self.initial, verbose=self.verbose, tol=self.tol, rtol=self.rtol,
             budget=self.budget,
+            # what is left of the limit: the second run is part of this one
+            time_limit=None if self.time_limit is None else max(
+                1e-3, self.t_start + self.time_limit - time.perf_counter()
+            ),
             transcription=self.transcription, multistart=self.multistart, sources=self.sources,
         )  # fmt: skip
 
@@ -946,6 +1032,16 @@ def source_lacks(ocp: HybridOCP, source: Any) -> str:
     have = frozenset(getattr(source, "features", frozenset()) or ())
     missing = [FEATURES[f] for f in problem_features(ocp) if f not in have]
     return " or ".join(missing)
+
+
+_LACKS = "its features do not declare"
+
+
+def _lacks_reason(lacking: str) -> str:
+    """Why a source or warm start that lacks features of the problem (:func:`source_lacks`)
+    is not used: what the source declares, not what the solver behind it can do (dt solves
+    a free final time, while the transcription source's proposals do not carry it yet)."""
+    return f"{_LACKS} {lacking} (the source would answer a simpler problem)"
 
 
 def _active_sources(
@@ -1009,26 +1105,72 @@ def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
     ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
     guess = _Guess(u_used, ev, grad, given or grad is not None)
     starters = tuple(s for s in run.starters if not source_lacks(ocp, s))
+    hard = math.inf if run.time_limit is None else run.t_start + run.time_limit
     book = _Book(
         ocp, run.tol, run.verbose, starters, run.rtol, progress=progress,
-        deadline=run.t_start + run.budget,
+        deadline=min(run.t_start + run.budget, hard), hard_deadline=hard,
     )  # fmt: skip
     for s in run.starters:
         if s not in starters:
-            book.say(f"warm start {s.name!r}: not used, it does not honour {source_lacks(ocp, s)}")
+            book.say(f"warm start {s.name!r}: not used, {_lacks_reason(source_lacks(ocp, s))}")
     book.known.append(
         _Known("the initial guess", ev.cost, ev.sequence, u_used, ev, _feasible(ocp, ev))
     )
-    if run.seq is not None:
-        best = _solve_given(ocp, run, book, guess)
-        same = [k for k in book.rivals() if k.sequence == run.seq]
-        cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
-    else:
-        _discover(ocp, run, book, guess)
-        best = _best_of(book)
-        best, cheaper = _revisit_cheaper(ocp, book, best)
+    try:
+        if run.seq is not None:
+            best = _solve_given(ocp, run, book, guess)
+            same = [k for k in book.rivals() if k.sequence == run.seq]
+            cheaper = [k for k in same if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
+        else:
+            _discover(ocp, run, book, guess)
+            best = _best_of(book)
+            best, cheaper = _revisit_cheaper(ocp, book, best)
+            if not cheaper:
+                book.check_limit()
+                best = _second_start(ocp, book, guess, best)
+        book.check_limit()
+    except _Stopped as stop:
+        return _stopped(ocp, run, book, stop.reason)
+    except KeyboardInterrupt:
+        return _stopped(ocp, run, book, "interrupted")
     status, message, cheapest, landscape = _verdict(ocp, run, book, best, cheaper)
     return _finish(ocp, run, book, best, status, message, cheapest, landscape)
+
+
+def _stopped(ocp: HybridOCP, run: _Run, book: _Book, reason: str) -> Solution:
+    """The answer when the time limit or a KeyboardInterrupt stopped the search
+    (``reason``): the best verified extremal found so far (of the given sequence, with
+    ``sequence``), status ``not-converged``; a :class:`ConvergenceError` when there is
+    none."""
+    book.stopped = reason
+    what = (
+        f"stopped by the time limit of {run.time_limit:g} s"
+        if reason == "the time limit"
+        else "interrupted"
+    )
+    book.say(f"{what}: the best verified extremal so far")
+    if run.seq is not None:
+        key = tuple(run.seq)
+        best = book.results.get(key) if key in book.results and book.verify(key) else None
+    else:
+        best = book.best_verified()
+    if best is None:
+        raise ConvergenceError(
+            f"{what} before any extremal was found and verified"
+            + (f" for the sequence {run.seq}" if run.seq is not None else "")
+            + ("; --time-limit gives it more time" if reason == "the time limit" else "")
+        )
+    message = (
+        f"{what}: the best verified extremal found so far (cost {best.cost:.10g}, events "
+        f"{best.sequence}); the search did not finish, so it claims nothing more"
+    )
+    cheaper = [k for k in book.rivals() if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
+    cheapest = None
+    if cheaper:
+        c = min(cheaper, key=lambda k: k.cost)
+        message += f"; {c.source} costs less, {c.cost:.10g} (events {c.sequence})"
+        cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
+    return _finish(ocp, run, book, best, Status.NOT_CONVERGED, message, cheapest, None)
 
 
 def _solve_given(ocp: HybridOCP, run: _Run, book: _Book, guess: _Guess) -> ReferenceResult:
@@ -1101,7 +1243,7 @@ def _given_by_discovery(
     book.progress.stage("the discovery without the given sequence")
     sub = _Book(
         ocp, run.tol, run.verbose, book.starters, run.rtol, progress=book.progress,
-        deadline=book.deadline,
+        deadline=book.deadline, hard_deadline=book.hard_deadline,
     )  # fmt: skip
     sub.known = list(book.known)
     _discover(ocp, run, sub, guess)
@@ -1168,10 +1310,10 @@ def _discover_with(
     for source in run.proposers:
         lacking = source_lacks(ocp, source)
         if lacking:
-            book.say(f"source {source.name!r}: not run, it does not honour {lacking}")
+            book.say(f"source {source.name!r}: not run, {_lacks_reason(lacking)}")
             _note_source(
                 book, source.name, run.kind, 0, time.perf_counter(),
-                skipped=f"not run: it does not honour {lacking}",
+                skipped=f"not run: {_lacks_reason(lacking)}",
             )  # fmt: skip
             continue
         if book.left() <= 0:
@@ -1186,6 +1328,19 @@ def _discover_with(
     _enumerate(ocp, run, book, guess, early)
     book.best_verified()
     book.follow_resimulations()
+    best = book.best_verified()
+    if (
+        best is not None
+        and len(best.sequence) + 1 > book.depth
+        and book.depth < MAX_PROOF_DEPTH
+        and _exhaustive(book) == book.depth
+        and not book.budget_stopped
+    ):
+        # a re-simulation found a best as long as the enumeration: the proof needs one
+        # length more (friction-patch-free-time's optimum comes from the no-event extremal)
+        _enumerate(ocp, run, book, guess)
+        book.best_verified()
+        book.follow_resimulations()
 
 
 def _note_source(
@@ -1212,6 +1367,13 @@ def _note_source(
         row["failed"] = failed
     if skipped:
         row["skipped"] = skipped if isinstance(skipped, str) else "not run: the budget was spent"
+    old = next((r for r in book.sources if r["name"] == name == "enumeration"), None)
+    if old is not None:
+        # the enumeration extended after the re-simulations: one row
+        old["proposals"] += row["proposals"]
+        old["time_s"] += row["time_s"]
+        old.update(extra)
+        return
     book.sources.append(row)
 
 
@@ -1385,7 +1547,11 @@ def _verdict(
             f"candidate(s), of up to {max(map(len, skipped))} events, were not solved "
             "(MAX_EVENTS)"
         )
-    if status in (Status.SUCCESS, Status.EXTREMAL):
+    if status is Status.SUCCESS and seq is None:
+        proven, text = _proof(run, book, best)
+        if not proven:
+            status, message = Status.BEST_FOUND, f"best found, not proven: {text}"
+    if status in (Status.SUCCESS, Status.EXTREMAL, Status.BEST_FOUND):
         rival = event_control_rival(ocp, best)
         if rival is not None:
             status = Status.NOT_OPTIMAL
@@ -1417,6 +1583,119 @@ def _verdict(
         # say so instead of returning a worse one
         raise ConvergenceError(f"{touch}; the reference's best answer otherwise: {message}")
     return status, message, cheapest, landscape
+
+
+def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
+    """``(proven, text)``: whether the coverage proves ``best`` the global optimum, and
+    the words that say how, or what is missing.
+
+    Proven means all of: every feasible sequence of up to ``len(best) + 1`` events was
+    solved (an extremal found) or excluded by a valid lower bound (``exhaustive_length``);
+    no extremal of those lengths that is cheaper than ``best`` fails to re-simulate to its
+    own events (that sequence's optimum, with the extra contacts avoided, would be unknown);
+    and the optimum's extremal was reached from at least :data:`PROOF_STARTS` distinct
+    starts of Newton that agree (:data:`START_RTOL`). Sequences longer than
+    ``len(best) + 1`` are not covered: the proof is of the search's claim, not of an
+    infinite enumeration (docs/reference.rst, "What success means")."""
+    k = len(best.sequence)
+    need = k + 1
+    ex = _exhaustive(book)
+    why: list[str] = []
+    if ex is not None and ex >= need:
+        covered = (
+            f"every feasible sequence of up to {_events(ex)} solved or excluded by a bound "
+            f"(the optimum has {_events(k)})"
+        )
+    else:
+        reach = (
+            "no length covered" if ex is None else f"every sequence of up to {_events(ex)} covered"
+        )
+        nxt = 0 if ex is None else ex + 1
+        why.append(f"{reach}; the best has {_events(k)}; {_uncovered(run, book, nxt)}")
+        covered = ""
+    bound = best.cost * (1 - _OPT_RTOL) - 1e-15
+    for key, res in sorted(book.results.items(), key=lambda kv: kv[1].cost):
+        if res.cost >= bound:
+            break
+        if len(key) <= need and not book.verify(key):
+            why.append(
+                f"the extremal of {list(key) or 'no event'} costs {res.cost:.10g}, less, but "
+                "does not re-simulate to its own events: that sequence's optimum with the other "
+                "contacts avoided is not known"
+            )
+            break
+    key = tuple(best.sequence)
+    n = book.agreeing_starts(key)
+    if n < PROOF_STARTS:
+        others = sorted(
+            {f"{c:.10g}" for c in book.start_costs.get(key, ()) if c != best.cost}
+            - {f"{best.cost:.10g}"}
+        )
+        why.append(
+            f"its extremal was reached from {n} start(s) of Newton, {PROOF_STARTS} needed"
+            + (f" (other starts reached {', '.join(others)})" if others else "")
+        )
+    if why:
+        return False, "; ".join(why)
+    return True, f"{covered}; its extremal reached from {n} starts of Newton"
+
+
+def _uncovered(run: _Run, book: _Book, length: int) -> str:
+    """Why the sequences of ``length`` events are not all covered (for :func:`_proof`)."""
+    if length > book.depth or length >= len(book.enumerated):
+        if book.depth >= MAX_PROOF_DEPTH:
+            return f"sequences of {_events(length)} are beyond the enumeration (MAX_PROOF_DEPTH)"
+        return f"sequences of {_events(length)} were not enumerated"
+    keys = book.enumerated[length]
+    left = [k for k in keys if k not in book.results and k not in book.pruned]
+    failed = [k for k in left if k in book.reasons]
+    untried = len(left) - len(failed)
+    parts = []
+    if failed:
+        first = ",".join(failed[0]) or "no event"
+        parts.append(f"{len(failed)} failed (the first: {first})")
+    if untried:
+        stop = f"the budget of {run.budget:g} s was spent" if book.budget_stopped else "not reached"
+        parts.append(f"{untried} not solved ({stop})")
+    return f"sequences of {_events(length)} not all solved: " + ", ".join(parts)
+
+
+def _second_start(
+    ocp: HybridOCP, book: _Book, guess: _Guess, best: ReferenceResult
+) -> ReferenceResult:
+    """The best sequence solved from other starts until :data:`PROOF_STARTS` of them reach
+    its extremal (each start once): the known controls with its events (their costate
+    estimates), then on a disc scene the NLP from evenly spread event times and no control,
+    elsewhere the warm starts and the zero costate from the guess. Returns the cheapest
+    verified extremal then (a start may find a cheaper one)."""
+    key = tuple(best.sequence)
+    if book.agreeing_starts(key) >= PROOF_STARTS:
+        return best
+    same = [k for k in book.known if tuple(k.sequence) == key and k.evaluation is not None]
+    tries: list[tuple[Any, ...]] = [
+        (guess_times(ocp, key, k.evaluation), k.controls, f"second start ({k.source})", True,
+         _adjoint(ocp, k.controls), k.evaluation)
+        for k in sorted(same, key=lambda k: k.cost)[:KNOWN_STARTS]
+    ]  # fmt: skip
+    if is_disc_scene(ocp):
+        tries.append(
+            (guess_times(ocp, key, None), np.zeros_like(guess.controls),
+             "second start (the NLP from evenly spread event times)", False, None, None)
+        )  # fmt: skip
+    else:
+        tries.append(
+            (guess_times(ocp, key, guess.evaluation), guess.controls,
+             "second start (the warm starts from the guess)", False, None, guess.evaluation)
+        )  # fmt: skip
+    for times, u, origin, estimate, grad, ev in tries:
+        if book.agreeing_starts(key) >= PROOF_STARTS:
+            break
+        book.attempt(
+            key, times, u, origin, estimate=estimate, grad=grad, guess_ev=ev, retry=True,
+            fallback=False,
+        )  # fmt: skip
+    found = book.best_verified()
+    return found if found is not None and found.cost < best.cost else best
 
 
 def _touch_note(book: _Book) -> str:
@@ -1568,21 +1847,26 @@ def _finish(
     unused = [s for s in run.starters if s not in book.starters]
     if unused:
         info["warm_starts_skipped"] = [
-            {"name": s.name, "reason": f"it does not honour {source_lacks(ocp, s)}"} for s in unused
+            {"name": s.name, "reason": _lacks_reason(source_lacks(ocp, s))} for s in unused
         ]
     if cheapest is not None:
         info["cheaper"] = cheapest
     if landscape is not None:
         info["landscape"] = landscape
-    best.coverage = _coverage(run, book)
+    best.coverage = _coverage(run, book, best)
+    if best.coverage.get("proven") and status is not Status.SUCCESS:
+        # the coverage would prove it, but the answer is beaten or infeasible
+        best.coverage["proven"] = False
+        best.coverage.pop("proof", None)
+        best.coverage["why_not_proven"] = f"the answer is {status.value}"
     if best.coverage["budget_stopped"] and status is Status.SUCCESS and not message:
         ex = best.coverage["exhaustive_length"]
         message = (
-            f"the best over the coverage: the budget of {run.budget:g} s stopped the "
-            "enumeration"
-            + ("" if ex is None else f" (every sequence of up to {ex} events covered)")
-            + "; --budget gives it more time"
+            f"the optimum: the budget of {run.budget:g} s stopped the enumeration after it "
+            f"had covered every sequence of up to {ex} events, as the proof needs"
         )
+    elif status is Status.BEST_FOUND and best.coverage["budget_stopped"]:
+        message += "; --budget gives it more time"
     sol = best.to_solution(timings={"verify_time_s": book.verify_time}, info=info)
     sol.settings = {
         "tol": run.tol, "rtol": run.rtol, "sequence": run.seq, "search": run.search,
@@ -1592,8 +1876,9 @@ def _finish(
     return sol.set_status(status, message)
 
 
-def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
-    """``info["coverage"]``: what the search covered (:func:`solve_reference`)."""
+def _coverage(run: _Run, book: _Book, best: ReferenceResult | None = None) -> dict[str, Any]:
+    """``info["coverage"]``: what the search covered (:func:`solve_reference`), and whether
+    it proves ``best`` the optimum (:func:`_proof`)."""
     # the cheapest extremal of each length that re-simulates to its own events
     families: dict[int, tuple[float, tuple[str, ...]]] = {}
     for key, res in sorted(book.results.items(), key=lambda kv: kv[1].cost):
@@ -1613,6 +1898,9 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
         "failed": {"count": len(failed), "sequences": [list(k) for k in failed[:FAILED_SHOWN]]},
         "budget_s": run.budget,
         "budget_stopped": bool(book.budget_stopped),
+        "time_limit_s": run.time_limit,
+        "stopped": book.stopped or None,
+        **_proof_fields(run, book, best),
         "family": "the number of events",
         "families": [
             {"events": k, "best_cost": c, "sequence": list(key)}
@@ -1622,6 +1910,22 @@ def _coverage(run: _Run, book: _Book) -> dict[str, Any]:
     }
 
 
+def _proof_fields(run: _Run, book: _Book, best: ReferenceResult | None) -> dict[str, Any]:
+    """``proven`` and ``proof`` (how) or ``why_not_proven`` for ``info["coverage"]``."""
+    if best is None:
+        return {"proven": False, "why_not_proven": "no answer"}
+    if run.seq is not None:
+        return {
+            "proven": False,
+            "why_not_proven": "a given sequence: its extremal, not compared with every other "
+            "sequence" + (" (the search without it decides the status)" if run.search else ""),
+        }
+    if book.stopped:
+        return {"proven": False, "why_not_proven": f"the search was stopped ({book.stopped})"}
+    proven, text = _proof(run, book, best)
+    return {"proven": True, "proof": text} if proven else {"proven": False, "why_not_proven": text}
+
+
 def _skipped_sources(book: _Book) -> dict[str, Any]:
     """``{"skipped_sources": [{"name", "reason"}]}``: the sources not run because they do not
     honour the problem's features (:func:`source_lacks`), or ``{}`` (a source the budget
@@ -1629,7 +1933,7 @@ def _skipped_sources(book: _Book) -> dict[str, Any]:
     rows = [
         {"name": r["name"], "reason": r["skipped"]}
         for r in book.sources
-        if "skipped" in r and "does not honour" in r["skipped"]
+        if "skipped" in r and _LACKS in r["skipped"]
     ]
     return {"skipped_sources": rows} if rows else {}
 
@@ -1995,9 +2299,16 @@ class _EarlyScreens:
         return self.done.pop(i)
 
     def outcomes(
-        self, ocp: HybridOCP, book: _Book, guess: _Guess, todo: list[list[str]]
+        self,
+        ocp: HybridOCP,
+        book: _Book,
+        guess: _Guess,
+        todo: list[list[str]],
+        deadline: float | None = None,
     ) -> list[_Outcome]:
-        """:func:`_search_one` of each sequence of ``todo``, in its order (:meth:`_get`)."""
+        """:func:`_search_one` of each sequence of ``todo``, in its order (:meth:`_get`);
+        none after ``deadline`` (``time.perf_counter()``, the time limit): the outcomes
+        then stop short of ``todo``."""
         _SEARCH_STATE.update(
             ocp=ocp, u0=guess.controls, ev=guess.evaluation, tol=book.tol, rtol=book.rtol,
             starters=book.starters,
@@ -2006,6 +2317,8 @@ class _EarlyScreens:
         out: list[_Outcome] = []
         try:
             for pos, (seq, i) in enumerate(zip(todo, idx, strict=True)):
+                if deadline is not None and time.perf_counter() >= deadline:
+                    break
                 if i is None:
                     out.append(_search_one(seq))
                 else:
@@ -2065,20 +2378,36 @@ def _enumerate(
     the cheapest verified extremal or known control, solved in worker processes (one per
     core, at most :data:`MAX_WORKERS`) where the platform can fork. Lengths beyond
     ``search`` stop when the budget is spent; ``book.exhaustive`` is the longest length
-    completed."""
+    completed.
+
+    A ``success`` needs every sequence of up to one event more than the optimum's own
+    covered (:func:`_proof`): while the lengths so far are covered and the best verified
+    extremal has ``depth`` events or more, the enumeration goes on to its length plus one
+    (at most :data:`MAX_PROOF_DEPTH`; the budget stops these lengths too)."""
     t0 = time.perf_counter()
     if early is not None:
         early.withdraw(book.results)
     explicit = run.search or 0
     depth = max(explicit, default_depth(ocp))
-    book.depth = depth
-    by_length: list[list[list[str]]] = [[] for _ in range(depth + 1)]
-    for seq in enumerate_sequences(ocp, depth):
-        by_length[len(seq)].append(seq)
-    book.enumerated = [[tuple(q) for q in seqs] for seqs in by_length]
+    by_length = _by_length(ocp, book, depth)
     book.best_verified()  # the cheapest verified extremal so far bounds the enumeration
     solved = 0
-    for length, seqs in enumerate(by_length):
+    length = -1
+    while True:
+        length += 1
+        if length > depth and depth < MAX_PROOF_DEPTH:
+            # the proof needs one length beyond the optimum's: go on while it can succeed
+            # (every length so far covered)
+            best_res = book.best_verified()
+            need = 0 if best_res is None else len(best_res.sequence) + 1
+            if need > depth and _exhaustive(book) == depth:
+                depth = min(need, MAX_PROOF_DEPTH)
+                book.say(f"enumeration: extended to {_events(depth)} (the best has {need - 1})")
+                by_length = _by_length(ocp, book, depth)
+        if length > depth:
+            break
+        seqs = by_length[length]
+        book.check_limit()
         bounded = length > explicit  # the budget may stop this length
         if bounded and book.left() <= 0:
             book.budget_stopped = True
@@ -2113,20 +2442,23 @@ def _enumerate(
             todo.append((lb, seq))
         todo.sort(key=lambda item: item[0])
         if not todo:
+            book.exhaustive = length  # every sequence of this length solved or pruned before
             continue
         book.progress.stage(f"enumeration of {_events(length)}: {len(todo)} to solve")
         seqs_todo = [seq for _, seq in todo]
+        hard = None if math.isinf(book.hard_deadline) else book.hard_deadline
         if early is not None and not bounded:
-            outcomes = early.outcomes(ocp, book, guess, seqs_todo)
+            outcomes = early.outcomes(ocp, book, guess, seqs_todo, deadline=hard)
         else:
             outcomes = _search_outcomes(
                 ocp, book, seqs_todo, guess.controls, guess.evaluation,
-                deadline=book.deadline if bounded else None,
+                deadline=book.deadline if bounded else hard,
             )  # fmt: skip
         solved += len(outcomes)
         for seq, z, levels, why, took, horizon in outcomes:
             _record(ocp, book, seq, z, levels, why, took, horizon)
         if len(outcomes) < len(todo):
+            book.check_limit()
             book.budget_stopped = True
             book.say(
                 f"enumeration: the budget of {run.budget:g} s is spent after {len(outcomes)} "
@@ -2140,6 +2472,16 @@ def _enumerate(
         else:
             book.best_verified()
     _note_source(book, "enumeration", "reference", solved, t0, depth=depth)
+
+
+def _by_length(ocp: HybridOCP, book: _Book, depth: int) -> list[list[list[str]]]:
+    """The feasible sequences of up to ``depth`` events, by length (kept in ``book``)."""
+    book.depth = depth
+    by_length: list[list[list[str]]] = [[] for _ in range(depth + 1)]
+    for seq in enumerate_sequences(ocp, depth):
+        by_length[len(seq)].append(seq)
+    book.enumerated = [[tuple(q) for q in seqs] for seqs in by_length]
+    return by_length
 
 
 def _record(
@@ -2177,8 +2519,13 @@ def _record(
         book.reasons[key] = ref.reason
         book.from_known(key)
         return
-    book.results[key] = make_result(ref.system, ref.newton, "search", ref.error)
-    book.say(f"{seq} (enumeration): cost {book.results[key].cost:.12g}")
+    res = make_result(ref.system, ref.newton, "search", ref.error)
+    book.start_costs.setdefault(key, []).append(float(res.cost))
+    old = book.results.get(key)
+    if old is None or res.cost < old.cost - 1e-12 * abs(old.cost):
+        book.results[key] = res
+        book.verdicts.pop(key, None)
+    book.say(f"{seq} (enumeration): cost {res.cost:.12g}")
 
 
 def _search_outcomes(

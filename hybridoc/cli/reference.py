@@ -48,7 +48,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
     sol = solve_reference(
         ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
-        budget=args.budget, rtol=args.rtol, progress=True,
+        budget=args.budget, rtol=args.rtol, progress=True, time_limit=args.time_limit,
     )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
@@ -209,7 +209,13 @@ def register(sub: Any) -> None:
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
     from hybridoc.reference.sequence import COST_RTOL, RTOL_RANGE, check_rtol
-    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH, parse_budget
+    from hybridoc.reference.solve import (
+        DEFAULT_BUDGET,
+        MAX_SEARCH,
+        ReferenceOptions,
+        parse_budget,
+        parse_time_limit,
+    )
 
     problem_arg(p)
     p.add_argument(
@@ -235,6 +241,13 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
         help="seconds the search for the optimum may take: the sources get what is left, "
         "the enumeration of sequences stops when it is spent and the coverage line says "
         f"so (default {DEFAULT_BUDGET:g})",
+    )
+    p.add_argument(
+        "--time-limit",
+        metavar="SECONDS",
+        type=option_type(parse_time_limit, "time limit"),
+        default=None,
+        help=ReferenceOptions.__dataclass_fields__["time_limit"].metadata["help"],
     )
     p.add_argument(
         "--rtol",
