@@ -19,8 +19,20 @@ What it tries
     :func:`~hybridoc.reference.sequence.solve_sequence` (Newton from a costate estimate,
     the disc NLP, or the warm start of a source such as the transcription with the
     sequence fixed). ``info["sources"]`` lists the sources used, ``info["coverage"]`` what
-    the search covered; ``success`` means the best over that coverage, confirmed by the
-    HMP (:func:`solve_reference`).
+    the search covered.
+
+What it claims
+    ``success`` means the global optimum, and only where the coverage proves it
+    (:func:`_proof`): every feasible sequence of up to one event more than the answer's
+    own was solved or excluded by a valid lower bound (the enumeration extends to that
+    length while the shorter ones are covered, at most :data:`MAX_PROOF_DEPTH`, within the
+    budget), no cheaper extremal of those lengths fails its re-simulation (that sequence's
+    optimum, with the extra contacts avoided, would be unknown), and the answer's extremal
+    was reached from :data:`PROOF_STARTS` distinct starts of Newton that agree (a second
+    start is run where needed). Anything less is ``best-found``: the best verified
+    extremal, nothing cheaper known, with ``info["coverage"]["why_not_proven"]``.
+    ``time_limit`` (and a KeyboardInterrupt) stops everything and returns the best verified
+    extremal so far as ``not-converged``.
 
 What it checks before it answers
     1. The HMP residual (transversality, guards, costate jumps, Hamiltonian continuity) is
@@ -864,7 +876,17 @@ def solve_reference(
         (:attr:`~hybridoc.reference.sources.SourceContext.budget_s`; one not started when
         nothing is left), and the default enumeration stops when it is spent
         (``info["coverage"]["budget_stopped"]``). What follows (the verification, the
-        sequences of cheaper controls met) is not cut short.
+        sequences of cheaper controls met) is not cut short. The budget is the search's soft
+        limit: a search it stops short of the proof returns ``best-found``.
+    time_limit
+        A hard wall-clock limit in seconds over the whole solve (default none): checked
+        before each sequence's solve, between the stages and in the enumeration, and given
+        to the sources as their ``budget_s`` when it is nearer than the budget's end. When
+        it is reached the best verified extremal found so far is returned with status
+        ``not-converged`` and a message that says so; a :class:`ConvergenceError` when none
+        was found. A KeyboardInterrupt during the search does the same (message
+        ``"interrupted"``). One sequence's solve, a source that does not keep to its
+        ``budget_s`` and the final verification are not cut short.
     verbose
         Print Newton's iterations and the candidates to stderr.
     rtol
@@ -899,13 +921,19 @@ def solve_reference(
     Returns
     -------
     hybridoc.solution.Solution
-        Method ``"reference"``; ``status`` ``success`` (the best extremal over the coverage
-        below, confirmed by the HMP: it satisfies the HMP conditions, re-simulates to its
-        own events, and no sequence proposed or enumerated, nor any control met, is cheaper;
-        sequences beyond the exhaustive length that no source proposed are not covered),
-        ``extremal`` (the extremal of a given ``sequence``, not compared with other
-        sequences; with ``search`` as well, the search runs without the sequence and makes
-        it ``success`` when it finds nothing cheaper), ``not-optimal`` (a cheaper control is
+        Method ``"reference"``; ``status`` ``success`` (the global optimum as the coverage
+        proves it: the answer satisfies the HMP conditions, re-simulates to its own events,
+        no control met is cheaper, every feasible sequence of up to one event more than its
+        own was solved or excluded by a valid bound with no cheaper extremal among them
+        failing its re-simulation, and its extremal was reached from :data:`PROOF_STARTS`
+        agreeing starts of Newton; ``coverage["proven"]`` and ``coverage["proof"]``),
+        ``best-found`` (the best verified extremal of a search whose coverage proves less:
+        ``coverage["why_not_proven"]`` and the message say what is missing; exit code 1),
+        ``not-converged`` (``time_limit`` or a KeyboardInterrupt stopped the search: the
+        best verified extremal so far, ``coverage["stopped"]``), ``extremal`` (the
+        extremal of a given ``sequence``, not compared with other sequences; with ``search``
+        as well, the search runs without the sequence and makes it ``success`` when it finds
+        nothing cheaper and proves its own answer), ``not-optimal`` (a cheaper control is
         known: named in ``message`` and ``info["cheaper"]``) or ``infeasible`` (the extremal
         violates the control bounds or the path constraints); ``info`` holds ``residual``,
         ``sequence``, ``newton_iterations``, ``grazing``, ``event_times``, ``candidates``
@@ -920,7 +948,9 @@ def solve_reference(
         solve failed leaves its length uncovered; ``None`` without an enumeration, or when
         not even the empty sequence is covered), ``failed`` (the sequences attempted whose
         solve failed and that no bound prunes: ``count`` and the first few ``sequences``),
-        ``budget_s``, ``budget_stopped``, and ``families``: the best extremal of each
+        ``budget_s``, ``budget_stopped``, ``time_limit_s``, ``stopped`` (``None``, ``"the
+        time limit"`` or ``"interrupted"``), ``proven`` with ``proof`` or
+        ``why_not_proven``, and ``families``: the best extremal of each
         sequence family, a family being the sequences of one number of events) and with
         ``search`` the ``landscape``.
 
@@ -932,7 +962,8 @@ def solve_reference(
         ``sequence``, candidates longer than :data:`MAX_EVENTS` are not attempted (listed in
         ``info["candidates"]`` with the reason).
     ConvergenceError
-        No candidate sequence satisfies the conditions and re-simulates to its own events.
+        No candidate sequence satisfies the conditions and re-simulates to its own events,
+        or the time limit (or an interrupt) came before any did.
     """
     t_start = time.perf_counter()
     ocp = as_ocp(problem)
