@@ -28,6 +28,13 @@ buffers: importing torch (seconds) is left to the torch simulator, policies and 
     torch optimiser, whose first construction imports ``torch._dynamo`` (seconds).
 :class:`SGD`, :class:`Adam`
     ``torch.optim.SGD`` and ``torch.optim.Adam`` (their defaults) on numpy arrays.
+:func:`nonsmooth_bfgs`, :func:`min_norm_element`
+    Full BFGS with a weak Wolfe line search, which keeps converging on a loss with kinks
+    (Lewis and Overton, "Nonsmooth optimization via quasi-Newton methods", Math. Program.
+    141, 2013) where L-BFGS with a strong Wolfe search stalls, and the certificate of its
+    result: the smallest convex combination of the gradients at the last iterates near it
+    (a Clarke-stationary point has one near zero; Burke, Lewis and Overton's gradient
+    sampling test).
 
 Every objective is a callable ``fun(x) -> (f, g)`` of a flat float array (``g`` a flat
 array of the same size).
@@ -50,6 +57,8 @@ __all__ = [
     "Iteration",
     "lbfgs_iterations",
     "lbfgs_torch_step",
+    "min_norm_element",
+    "nonsmooth_bfgs",
     "strong_wolfe",
 ]
 
@@ -481,3 +490,217 @@ class Adam:
         step_size = self.lr / (1 - self.b1**self.k)
         denom = np.sqrt(self.v) / math.sqrt(1 - self.b2**self.k) + self.eps
         return x - step_size * (self.m / denom)
+
+
+# ---------------------------------------------------------------------- losses with kinks
+def min_norm_element(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The point of smallest norm in the convex hull of the rows of ``G`` ``(m, n)``, and
+    its weights: ``min |lambda G|`` over ``lambda >= 0``, ``sum lambda = 1``.
+
+    Solved as a non-negative least-squares problem with the sum as one heavily weighted
+    row (an exact method, finite, for the few gradients of a bundle)."""
+    from scipy.optimize import nnls
+
+    G = np.asarray(G, dtype=float)
+    m = G.shape[0]
+    if m == 1:
+        return G[0].copy(), np.ones(1)
+    scale = max(float(np.abs(G).max()), 1e-300)
+    weight = 1e3
+    A = np.vstack([G.T / scale, weight * np.ones((1, m))])
+    b = np.concatenate([np.zeros(G.shape[1]), [weight]])
+    lam, _ = nnls(A, b, maxiter=50 * m)
+    lam = lam / max(float(lam.sum()), 1e-300)
+    return lam @ G, lam
+
+
+@dataclass
+class NonsmoothResult:
+    """What :func:`nonsmooth_bfgs` returns."""
+
+    x: np.ndarray
+    """The best iterate."""
+    f: float
+    """Its value."""
+    g: np.ndarray
+    """Its gradient."""
+    iterations: int
+    evaluations: int
+    message: str
+    """Why it stopped."""
+    stationarity: float
+    """The certificate: the norm of the smallest convex combination of the gradients
+    sampled around ``x`` (:func:`min_norm_element`), relative (``|d| (1 + |x|_inf) /
+    (1 + |f|)``); small at a Clarke-stationary point."""
+    bundle: int
+    """How many gradients went into it."""
+
+
+def _weak_wolfe(
+    fun: Objective,
+    x: np.ndarray,
+    f: float,
+    g: np.ndarray,
+    d: np.ndarray,
+    *,
+    c1: float = 1e-4,
+    c2: float = 0.9,
+    max_evals: int = 30,
+) -> tuple[float, np.ndarray, float, np.ndarray]:
+    """Lewis and Overton's weak Wolfe search by bisection and doubling: a step with
+    sufficient decrease and ``g(x + t d).d >= c2 g.d``; else the last step with sufficient
+    decrease, else ``t = 0``. Returns ``(t, x + t d, f, g)`` there."""
+    gd0 = float(g @ d)
+    lo, hi, t = 0.0, math.inf, 1.0
+    best: tuple[float, np.ndarray, float, np.ndarray] = (0.0, x, f, g)
+    for _ in range(max_evals):
+        xt = x + t * d
+        ft, gt = fun(xt)
+        if not ft <= f + c1 * t * gd0:  # also NaN
+            hi = t
+        else:
+            best = (t, xt, ft, gt)
+            if float(gt @ d) >= c2 * gd0:
+                return best
+            lo = t
+        t = 2.0 * lo if math.isinf(hi) else 0.5 * (lo + hi)
+    return best
+
+
+def _relative(norm: float, x: np.ndarray, f: float) -> float:
+    """A gradient's norm as a relative rate: ``|g| (1 + |x|_inf) / (1 + |f|)``, about the
+    relative change of ``f`` per relative change of ``x``."""
+    return norm * (1.0 + float(np.abs(x).max())) / (1.0 + abs(f))
+
+
+def nonsmooth_bfgs(
+    fun: Objective,
+    x0: np.ndarray,
+    *,
+    max_iter: int = 1000,
+    gtol: float = 1e-6,
+    ftol: float = 1e-15,
+    patience: int = 10,
+    radii: tuple[float, float] = (1e-4, 1e-7),
+    pairs: int = 8,
+    seed: int = 0,
+    start: tuple[float, np.ndarray] | None = None,
+    stop: Callable[[], bool] | None = None,
+) -> NonsmoothResult:
+    """Minimise a loss with kinks: full BFGS with a weak Wolfe line search, and gradient
+    sampling where it stalls (module notes).
+
+    BFGS runs until its line search finds no decrease or ``patience`` iterations in a row
+    lower ``f`` by less than ``ftol |f|``. Then gradient sampling: the gradients at ``x``,
+    at ``pairs`` pairs ``x +- eps r`` (``r`` random in the unit box, ``eps`` relative to
+    ``1 + |x|_inf``) and at the iterates within ``eps`` make a bundle; the smallest convex
+    combination ``d`` of it (:func:`min_norm_element`) is the certificate. Small enough
+    (``|d| (1 + |x|_inf) <= gtol (1 + |f|)``): stationary, stop. Else an Armijo step along
+    ``-d``; where it lowers ``f``, BFGS starts again from there; where it does not, ``eps``
+    shrinks tenfold, from ``radii[0]`` down to ``radii[1]``.
+
+    Parameters
+    ----------
+    fun
+        The objective, ``x -> (f, g)`` on flat arrays.
+    x0
+        The start.
+    max_iter
+        The most iterations (BFGS and sampling steps together).
+    gtol, ftol, patience, radii, pairs, seed
+        See above; ``seed`` seeds the sampling.
+    start
+        ``(f, g)`` at ``x0`` when known.
+    stop
+        Called before each iteration; a true return value stops it (``message``
+        ``"stopped"``).
+
+    Returns
+    -------
+    NonsmoothResult
+        The last (and best: every step lowers ``f``) iterate; ``stationarity`` the relative
+        norm of the last certificate (of the gradient at ``x`` alone when no sampling ran).
+    """
+    rng = np.random.default_rng(seed)
+    x = np.array(x0, dtype=float).ravel()
+    n = x.size
+    counter = [0]
+
+    def counted(z: np.ndarray) -> tuple[float, np.ndarray]:
+        counter[0] += 1
+        value, grad = fun(z)
+        return float(value), np.asarray(grad, dtype=float).ravel()
+
+    if start is None:
+        f, g = counted(x)
+    else:
+        f, g = float(start[0]), np.asarray(start[1], dtype=float).ravel()
+    H: np.ndarray | None = None  # the inverse Hessian, scaled at the first pair
+    trail: list[tuple[np.ndarray, np.ndarray]] = [(x.copy(), g.copy())]
+    stale, k, bundle = 0, 0, 1
+    stationarity = _relative(float(np.linalg.norm(g)), x, f)
+    eps = radii[0]
+    message = f"the iteration limit ({max_iter})"
+    sampling = False
+    while k < max_iter:
+        if stop is not None and stop():
+            message = "stopped"
+            break
+        k += 1
+        if sampling:
+            reach = eps * (1.0 + float(np.abs(x).max()))
+            G = [gi for xi, gi in trail if float(np.abs(xi - x).max()) <= reach]
+            for _ in range(pairs):
+                r = reach * rng.uniform(-1.0, 1.0, n)
+                G += [counted(x + r)[1], counted(x - r)[1]]
+            d, _ = min_norm_element(np.array(G))
+            bundle = len(G)
+            stationarity = _relative(float(np.linalg.norm(d)), x, f)
+            if stationarity <= gtol:
+                message = f"stationary: gradients within {eps:.0e} cancel"
+                break
+            t, dd = 1.0, float(d @ d)
+            for _ in range(40):  # Armijo backtracking along -d
+                ft, gt = counted(x - t * d)
+                if ft < f - 1e-4 * t * dd:
+                    break
+                t *= 0.5
+            else:
+                eps *= 0.1
+                if eps < radii[1] * (1 - 1e-9):
+                    message = f"no decrease along the sampled gradients down to {radii[1]:.0e}"
+                    break
+                continue
+            x, f, g = x - t * d, ft, gt
+            trail.append((x.copy(), g.copy()))
+            sampling, stale = False, 0
+            continue
+        d = -g if H is None else -(H @ g)
+        if not float(g @ d) < 0.0:  # not a descent direction: forget the curvature
+            H, d = None, -g
+        t, xn, fn, gn = _weak_wolfe(counted, x, f, g, d)
+        if t == 0.0:
+            sampling = True
+            continue
+        s, y = xn - x, gn - g
+        sy = float(s @ y)
+        if sy > 0.0:
+            if H is None:
+                H = np.eye(n) * (sy / float(y @ y))
+            # the rank-two BFGS update of the inverse, O(n^2)
+            Hy = H @ y
+            rho = 1.0 / sy
+            H += (rho * rho * float(y @ Hy) + rho) * np.outer(s, s) - rho * (
+                np.outer(Hy, s) + np.outer(s, Hy)
+            )
+        stale = 0 if fn < f - ftol * abs(f) else stale + 1
+        x, f, g = xn, fn, gn
+        trail.append((x.copy(), g.copy()))
+        del trail[: max(0, len(trail) - (n + 1))]
+        stationarity = _relative(float(np.linalg.norm(g)), x, f)
+        if stale >= patience:
+            sampling = True
+    return NonsmoothResult(
+        x=x, f=f, g=g, iterations=k, evaluations=counter[0], message=message,
+        stationarity=stationarity, bundle=bundle,
+    )  # fmt: skip
