@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -190,7 +191,9 @@ def _fishing_w(level: float) -> Any:
     return lambda ocp: np.full((ocp.steps, ocp.nu), level)
 
 
-def test_a_refused_reference_compares_the_others(registered: Any) -> None:
+def test_a_refused_reference_compares_the_others(
+    registered: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The relaxed fishing problem: the reference refuses it (a Hamiltonian linear in u);
     crossval compares the others with the cheapest of them and says so. Two answers 11%
     apart disagree; two that agree within the tolerance are best-found (nothing proven)."""
@@ -207,6 +210,13 @@ def test_a_refused_reference_compares_the_others(registered: Any) -> None:
     assert any(r.startswith("fish_b is") and "above fish_a" in r for r in report["reasons"])
     assert any("refused" in n for n in report["notes"])
     assert not any("reference failed" in r for r in report["reasons"])
+    # the command says so: a 'refused' row, gaps to the baseline, exit 1
+    problem = f"{Path(user_problems.__file__)}:lotka_volterra_relaxed"
+    code = main(["crossval", problem, "--methods", "fish_a,fish_b", "--no-progress"])
+    out = capsys.readouterr().out
+    assert code == 1
+    assert re.search(r"^reference\s+refused", out, flags=re.M)
+    assert "no reference: gap and same events are to fish_a" in out
     # a near answer: within fish_b's tolerance of fish_a
     unregister_method("fish_b")
     near = Method("fish_b", "w = 1e-4", run=_returns(_fishing_w(1e-4), "fish_b"))
