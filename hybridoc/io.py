@@ -401,7 +401,8 @@ def save_controls(
 
     CSV values are written with Python's shortest round-tripping repr, so
     :func:`load_controls` reads back the identical float64 values. Parent directories are
-    created.
+    created. The file is written by the rules of :mod:`hybridoc.outputs` (atomically; a
+    link, or a file hybridoc did not write, at ``path`` is refused).
 
     Parameters
     ----------
@@ -429,11 +430,13 @@ def save_controls(
         raise ControlsError(f"{len(names)} labels given for {arr.shape[1]} control columns")
     if any("," in name for name in names):
         raise ControlsError(f"labels must not contain commas: {names}")
-    p.parent.mkdir(parents=True, exist_ok=True)
+    from hybridoc.outputs import write_text, write_with
+
+    # by the rules of hybridoc.outputs: atomically, never through a link or over a user's file
     if suffix == ".npy":
-        np.save(p, arr)
+        write_with(p, lambda fh: np.save(fh, arr))  # a file object: no suffix appended
     else:
         lines = [",".join(names)]
         lines += [",".join(repr(float(x)) for x in row) for row in arr]
-        p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        write_text(p, "\n".join(lines) + "\n")
     return p

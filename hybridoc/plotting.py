@@ -690,12 +690,15 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
     Raises
     ------
     hybridoc.errors.HybridocError
-        A suffix that is no figure format matplotlib writes.
+        A suffix that is no figure format matplotlib writes; a link, or a file hybridoc did
+        not write, at the path (:mod:`hybridoc.outputs`); a file that cannot be written.
     """
+    from hybridoc.outputs import write_with
+
     p = figure_path(path)
     kind = p.suffix[1:].lower()
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=120, format=kind)
+    # by the rules of hybridoc.outputs: atomically, never through a link or over a user's file
+    write_with(p, lambda fh: fig.savefig(fh, dpi=120, format=kind))
     if getattr(fig.canvas, "manager", None) is not None:  # a pyplot figure: release it
         import matplotlib.pyplot as plt
 

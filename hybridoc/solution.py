@@ -1054,11 +1054,23 @@ class Solution:
         """Write ``stem.npz`` and ``stem.json``; ``path`` may be ``stem``, ``stem.npz`` or
         ``stem.json``. Parent directories are created.
 
+        Each file is written by the rules of :mod:`hybridoc.outputs`: through a temporary
+        file renamed over its name, never through a symbolic link, and never over a file
+        that hybridoc did not write (both names are checked before either is written).
+
         Returns
         -------
         tuple of Path
             The two files written.
+
+        Raises
+        ------
+        hybridoc.errors.HybridocError
+            A name refused (a link, or a file hybridoc did not write), or a file that
+            cannot be written.
         """
+        from hybridoc.outputs import check_targets, write_text, write_with
+
         self.__post_init__()  # re-validate fields changed since construction
         stem = _stem(path)
         npz_path, json_path = _with(stem, ".npz"), _with(stem, ".json")
@@ -1090,10 +1102,10 @@ class Solution:
             "message": self.message,
         }
         text = json.dumps(meta, indent=2)
-        stem.parent.mkdir(parents=True, exist_ok=True)
-        with open(npz_path, "wb") as fh:  # a file object: numpy must not append ".npz"
-            np.savez(fh, **stored)
-        json_path.write_text(text + "\n", encoding="utf-8")
+        check_targets(npz_path, json_path)  # neither file is written if either is refused
+        # a file object: numpy must not append ".npz"
+        write_with(npz_path, lambda fh: np.savez(fh, **stored))
+        write_text(json_path, text + "\n")
         return npz_path, json_path
 
     @classmethod
@@ -1118,12 +1130,10 @@ class Solution:
                         f"{npz_path.name} + {json_path.name})"
                     )
                 raise HybridocError(f"solution file {str(p)!r} does not exist")
-        try:
-            meta = json.loads(json_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise HybridocError(
-                f"solution file {str(json_path)!r} is not valid JSON: {exc}"
-            ) from None
+        from hybridoc.outputs import read_json
+
+        # bounded in size and nesting: a file nested 200 000 deep is one clear error
+        meta = read_json(json_path, f"solution file {str(json_path)!r}")
         if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
             raise HybridocError(f"{str(json_path)!r} is not a hybridoc solution file")
         if meta.get("format_version") not in _READABLE_VERSIONS:

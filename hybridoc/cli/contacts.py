@@ -15,7 +15,6 @@ from hybridoc.cli._util import (
     add_substeps_arg,
     disc_scene_of,
     emit_json,
-    ensure_dir,
     fmt,
     format_table,
     load_problem_arg,
@@ -29,6 +28,7 @@ from hybridoc.cli._util import (
     to_jsonable,
 )
 from hybridoc.errors import HybridocError, SceneError
+from hybridoc.outputs import check_folder, check_targets, write_text
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
@@ -143,17 +143,15 @@ def _gradcheck_against(args: argparse.Namespace) -> int:
     given = read_array(
         args.against, what="gradient", labels=ocp.control_labels, error=GradientError
     )
-    out = None if args.out is None else ensure_dir(args.out)
+    out = None if args.out is None else check_folder(args.out)
+    stem = None if out is None else output_stem(out, problem_slug(args.problem, ocp), "gradcheck")
+    if stem is not None:  # a refused output name fails before the work
+        check_targets(f"{stem}.png", f"{stem}.json")
     try:
         cmp = compare_gradient(base, given, u, substeps=k, flag="--substeps")
     except GradientError as exc:
         raise GradientError(f"gradient file {str(args.against)!r}: {exc}") from None
     report = {"gradient_file": str(args.against), "controls": source, **cmp.to_dict()}
-    written: list[Path] = []
-    if out is not None:
-        stem = output_stem(out, problem_slug(args.problem, ocp), "gradcheck")
-        written.append(save(gradient_figure(cmp, label=args.against.stem), f"{stem}.png"))
-        written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
         emit_json(report)
     else:
@@ -177,8 +175,11 @@ def _gradcheck_against(args: argparse.Namespace) -> int:
         say(args, format_table(headers, rows, right=[False] + [True] * 7))
         say(args, "rel. error: |given - exact| / |exact| over the entries; exact: the adjoint of")
         say(args, "the continuous cost (hybridoc gradient); cells split by the judge's events.")
-    for p in written:
-        say(args, f"wrote {p}")
+    if stem is not None:  # after the answer is out: a write that fails loses nothing shown
+        written = [save(gradient_figure(cmp, label=args.against.stem), f"{stem}.png")]
+        written.append(_write_json(Path(f"{stem}.json"), report))
+        for p in written:
+            say(args, f"wrote {p}")
     return 0
 
 
@@ -187,13 +188,10 @@ def _events_line(events: list[dict[str, Any]]) -> str:
 
 
 def _write_json(path: Path, obj: Any) -> Path:
+    """Write a report by the rules of :mod:`hybridoc.outputs`."""
     import json
 
-    try:
-        path.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    return path
+    return write_text(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
 def _learning_curves(scene: Scene, sols: dict[str, Solution]) -> Figure:
@@ -240,7 +238,6 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
     is the event-exact continuous cost of the learned controls. A model whose learned
     controls make no contact at all is named in one line below the table.
     """
-    from hybridoc.cli.evaluate import save
     from hybridoc.problems.paper import PAPER_OPTIMUM
     from hybridoc.solvers.gradcheck import (
         compare_contacts,
@@ -251,27 +248,21 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
 
     scene = disc_scene_of(load_problem_arg(args.problem), "compare-contacts")
     models = parse_models(args.models)
-    out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    out = None if args.out is None else check_folder(args.out)  # fail before the solves
+    stem = None
+    if out is not None:
+        stem = output_stem(out, problem_slug(args.problem, scene), "compare-contacts")
+        names = [f"{stem}_{m.label.replace('/', '-')}" for m in models]
+        check_targets(
+            *(f"{n}{ext}" for n in names for ext in (".npz", ".json")),
+            f"{stem}_learning_curves.png", f"{stem}_controls.png",
+        )  # fmt: skip
     lr, iters = paper_gd_settings(scene)
     lr = lr if args.lr is None else args.lr
     iters = iters if args.iters is None else args.iters
     say(args, f"compare-contacts {scene.name}: plain gd, lr {lr:g}, {iters} iterations")
     sols = compare_contacts(scene, models=models, iters=iters, lr=lr, progress=True)
-    figures: list[str] = []
-    if out is not None:
-        from hybridoc.plotting import plot_controls
-
-        stem = output_stem(out, problem_slug(args.problem, scene), "compare-contacts")
-        for name, sol in sols.items():
-            sol.save(f"{stem}_{name.replace('/', '-')}")
-        figures.append(str(save(_learning_curves(scene, sols), f"{stem}_learning_curves.png")))
-        fig = plot_controls(
-            scene.time_grid(),
-            {name: sol.controls for name, sol in sols.items()},
-            scene.control_labels(),
-            title=f"{scene.name}: controls learned with each contact model",
-        )
-        figures.append(str(save(fig, f"{stem}_controls.png")))
+    figures = [] if stem is None else [f"{stem}_{f}.png" for f in ("learning_curves", "controls")]
     results = [
         {
             "model": name,
@@ -299,6 +290,7 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
                 "figures": figures,
             }
         )
+        _write_compare_contacts(scene, sols, stem)
         return 0
     rows = [
         [r["model"], fmt(r["loss"], 7), fmt(r["cost"], 7), len(r["events"]), f"{r['time_s']:.1f}"]
@@ -313,9 +305,30 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
             f"the paper's grid-search optimum: {PAPER_OPTIMUM[scene.name]} (the exact optimum: "
             "'hybridoc reference')"
         )
+    _write_compare_contacts(scene, sols, stem)
     for f in figures:
         print(f"wrote {f}")
     return 0
+
+
+def _write_compare_contacts(scene: Scene, sols: dict[str, Solution], stem: Path | None) -> None:
+    """Each model's Solution and the two figures of ``compare-contacts --out``, written after
+    the answer is out (a write that fails at the end loses nothing shown)."""
+    if stem is None:
+        return
+    from hybridoc.cli.evaluate import save
+    from hybridoc.plotting import plot_controls
+
+    for name, sol in sols.items():
+        sol.save(f"{stem}_{name.replace('/', '-')}")
+    save(_learning_curves(scene, sols), f"{stem}_learning_curves.png")
+    fig = plot_controls(
+        scene.time_grid(),
+        {name: sol.controls for name, sol in sols.items()},
+        scene.control_labels(),
+        title=f"{scene.name}: controls learned with each contact model",
+    )
+    save(fig, f"{stem}_controls.png")
 
 
 def register(sub: Any) -> None:

@@ -14,7 +14,6 @@ from hybridoc.cli._util import (
     add_policy_arg,
     add_progress_arg,
     emit_json,
-    ensure_dir,
     fmt,
     format_table,
     nonnegative_int,
@@ -28,6 +27,7 @@ from hybridoc.cli._util import (
     warn,
 )
 from hybridoc.errors import HybridocError
+from hybridoc.outputs import check_folder, check_targets, write_text, write_with
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
@@ -81,7 +81,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     from hybridoc.workflows.datasets import DATA_FILE, MANIFEST_FILE, make_dataset
 
     scene = _source_arg(args.problem)
-    ensure_dir(args.out)
+    check_folder(args.out)  # make_dataset refuses a dataset.npz or manifest it did not write
     ds = make_dataset(
         args.problem, args.samples, args.out, seed=args.seed, workers=args.workers, dask=args.dask,
         tol=args.tol, full=args.full, progress=not args.no_progress,
@@ -148,8 +148,10 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
 
     scene = _source_arg(args.problem)
     policy = _policy_arg(args)
-    out = None if args.out is None else ensure_dir(args.out)
+    out = None if args.out is None else check_folder(args.out)
     slug = problem_slug(args.problem, scene)
+    if out is not None:  # a refused output name fails before the work
+        check_targets(*_policy_report_files(output_stem(out, slug, "validate-policy")))
     report = validate_policy(
         args.problem, policy, args.samples, seed=args.seed, dataset=args.dataset,
         dataset_out=None if out is None else output_stem(out, slug, "dataset"),
@@ -158,11 +160,13 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     )  # fmt: skip
     s = report.summary
     payload = {"problem": scene.name, **report.to_json()}
-    written = [] if out is None else _write_policy_report(out, slug, scene, report, payload)
     if args.json:
         emit_json(payload)
     else:
         _print_policy_report(args, scene, report)
+    # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
+    written = [] if out is None else _write_policy_report(out, slug, scene, report, payload)
+    if not args.json:
         for p in written:
             say(args, f"wrote {p}")
     if s["reference_failed"]:
@@ -193,24 +197,22 @@ def _write_policy_report(
     from hybridoc.problem import as_ocp
     from hybridoc.workflows.policies import report_figures
 
-    written: list[Path] = []
     stem = output_stem(out, slug, "validate-policy")
-    try:
-        p = Path(f"{stem}.json")
-        p.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
-        written.append(p)
-        cols: dict[str, Any] = {k: np.asarray(v) for k, v in report.columns.items()}
-        np.savez(f"{stem}.npz", **cols)
-        written.append(Path(f"{stem}.npz"))
-    except OSError as exc:
-        raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
+    json_path, npz_path = Path(f"{stem}.json"), Path(f"{stem}.npz")
+    # by the rules of hybridoc.outputs: atomically, never through a link or over a user's file
+    written = [write_text(json_path, json.dumps(to_jsonable(payload), indent=2) + "\n")]
+    cols: dict[str, Any] = {k: np.asarray(v) for k, v in report.columns.items()}
+    written.append(write_with(npz_path, lambda fh: np.savez(fh, **cols)))
     ocp = as_ocp(scene)
     labels = list(ocp.state_labels or [f"x{i}" for i in range(ocp.nx)])
-    try:
-        written += report_figures(report, labels, stem, title=scene.name)
-    except OSError as exc:
-        raise HybridocError(f"cannot write figures: {exc.strerror or exc}") from None
+    written += report_figures(report, labels, stem, title=scene.name)
     return written
+
+
+def _policy_report_files(stem: Path) -> list[Path]:
+    """The files of ``validate-policy --out`` (the references' folder aside)."""
+    ends = (".json", ".npz", "_gap_hist.png", "_gap_scatter.png")
+    return [Path(f"{stem}{end}") for end in ends]
 
 
 def _print_policy_report(

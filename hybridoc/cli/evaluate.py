@@ -13,7 +13,6 @@ from hybridoc.cli._util import (
     add_policy_arg,
     add_substeps_arg,
     emit_json,
-    ensure_dir,
     events_table,
     fmt,
     format_table,
@@ -27,6 +26,7 @@ from hybridoc.cli._util import (
     say,
 )
 from hybridoc.errors import EvaluationError, HybridocError
+from hybridoc.outputs import check_folder, check_targets
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -37,16 +37,16 @@ __all__ = ["register", "save", "write_figures"]
 
 #: The scenes evaluated by ``hybridoc demo``: the paper's two problems.
 DEMO_SCENES = ("single-collision", "multiple-collision")
+#: The figures of one evaluation, ``<stem>_<figure>.png`` (:func:`write_figures`).
+FIGURES = ("trajectory", "controls")
 
 
 def save(fig: Any, path: str | Path) -> Path:
-    """Write a figure; an unwritable path is a user error."""
+    """Write a figure by the rules of :mod:`hybridoc.outputs`; an unwritable or refused
+    path is a user error (one line)."""
     from hybridoc.plotting import save_figure
 
-    try:
-        return save_figure(fig, path)
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    return save_figure(fig, path)
 
 
 def write_figures(ocp: Any, ev: Any, stem: Path, *, label: str) -> list[Path]:
@@ -72,6 +72,11 @@ def write_figures(ocp: Any, ev: Any, stem: Path, *, label: str) -> list[Path]:
     return paths
 
 
+def _evaluate_files(stem: Path) -> list[Path]:
+    """The files ``evaluate --out`` writes: the Solution and its two figures."""
+    return [Path(f"{stem}{end}") for end in (".npz", ".json", "_trajectory.png", "_controls.png")]
+
+
 def _timed(fn: Any, *args: Any, repeat: int = 1) -> tuple[Any, float]:
     best = float("inf")
     out = None
@@ -92,7 +97,12 @@ def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[HybridOCP,
             raise HybridocError("give --controls or --policy, not both")
         if args.substeps is not None:
             raise HybridocError("--substeps applies to --controls, not to --policy")
-        return ocp, load_policy(args.policy), None, f"policy {args.policy} (hold {args.hold})"
+        from hybridoc.workflows.policy_format import check_policy_sizes
+
+        policy = load_policy(args.policy)
+        # sizes against the problem before any rollout (an MLP for 4 states on 8)
+        check_policy_sizes(policy, ocp.nx, ocp.nu, f"policy {args.policy!r}")
+        return ocp, policy, None, f"policy {args.policy} (hold {args.hold})"
     if args.hold != "zoh":
         raise HybridocError("--hold applies to --policy only")
     if (
@@ -130,7 +140,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     ocp, policy, controls, source = _evaluated_arg(args, load_problem_arg(args.problem))
     ocp = _solution_horizon(args, ocp)
-    out = None if args.out is None else ensure_dir(args.out)
+    out = None if args.out is None else check_folder(args.out)
+    stem = None if out is None else output_stem(out, problem_slug(args.problem, ocp), "evaluate")
+    if stem is not None:  # a refused output name fails before the evaluation
+        check_targets(*_evaluate_files(stem))
     try:
         ev, seconds = _timed(
             lambda: (
@@ -195,11 +208,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             ev, method="evaluate", scene=ocp.name, settings={"controls": source},
             timings={"evaluate_time_s": seconds},
         )  # fmt: skip
-        stem = output_stem(out, problem_slug(args.problem, ocp), "evaluate")
-        try:
-            written = list(sol.save(stem))
-        except OSError as exc:
-            raise HybridocError(f"cannot write to {str(out)!r}: {exc.strerror or exc}") from None
+        assert stem is not None
+        written = list(sol.save(stem))  # by the rules of hybridoc.outputs
         label = (
             "initial guess"
             if args.controls is None and policy is None
@@ -279,7 +289,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from hybridoc.evaluator import evaluate, gradient
 
-    out = ensure_dir(args.out)
+    out = check_folder(args.out)
+    check_targets(*(f"{output_stem(out, n, 'demo')}_{f}.png" for n in DEMO_SCENES for f in FIGURES))
     rows = []
     written: list[Path] = []
     for name in DEMO_SCENES:

@@ -11,7 +11,6 @@ from typing import Any
 
 from hybridoc.cli._util import (
     emit_json,
-    ensure_dir,
     fmt,
     load_problem_arg,
     positive_float,
@@ -21,6 +20,7 @@ from hybridoc.cli._util import (
     warn,
 )
 from hybridoc.errors import HybridocError
+from hybridoc.outputs import check_folder, check_targets, write_text
 
 __all__ = ["FORMATS", "register"]
 
@@ -32,14 +32,19 @@ _FEW_STEPS = 15
 
 
 def _target(out: Path | None, name: str) -> Path | None:
-    """The file to write: ``out`` itself, or ``out/<name>.xml`` when ``out`` is a folder."""
+    """The file to write: ``out`` itself, or ``out/<name>.xml`` when ``out`` is a folder;
+    checked before the work (:mod:`hybridoc.outputs`: a writable folder, and no link or
+    file hybridoc did not write at the name)."""
     if out is None:
         return None
     if out.is_dir():
         safe = "".join(c if c.isalnum() or c in "._-" else "-" for c in name).strip("-")
-        return out / f"{safe or 'scene'}.xml"
-    ensure_dir(out.parent if str(out.parent) else Path("."))
-    return out
+        path = check_folder(out) / f"{safe or 'scene'}.xml"
+    else:
+        check_folder(out.parent if str(out.parent) else Path("."))
+        path = out
+    check_targets(path)
+    return path
 
 
 def _count(n: int, what: str) -> str:
@@ -86,17 +91,14 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise HybridocError("--json needs --out FILE (the model itself goes to standard output)")
     ocp = load_problem_arg(args.problem)
     scene = disc_scene(ocp)
-    text = scene_to_mjcf(ocp, substeps=substeps, stiffness=stiffness)
     path = _target(args.out, scene.name)
+    text = scene_to_mjcf(ocp, substeps=substeps, stiffness=stiffness)
     if path is None:
         sys.stdout.write(text)
         sys.stdout.flush()
         return 0
     checked = _compiles(text)
-    try:
-        path.write_text(text, encoding="utf-8")
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    write_text(path, text)  # atomically; never through a link or over a user's file
     h = scene.dt / substeps
     damping = contact_damping(scene.restitution, stiffness)
     report = {

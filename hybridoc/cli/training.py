@@ -13,7 +13,6 @@ from hybridoc.cli._util import (
     add_json_out,
     add_progress_arg,
     emit_json,
-    ensure_dir,
     fmt,
     nonnegative_int,
     output_stem,
@@ -26,6 +25,7 @@ from hybridoc.cli._util import (
     warn,
 )
 from hybridoc.errors import HybridocError, SceneError
+from hybridoc.outputs import check_folder, check_targets, write_text
 
 __all__ = ["register"]
 
@@ -68,19 +68,20 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
             "event-exact closed loop, whose exact adjoint always has the event times' "
             "sensitivity: leave --toi on"
         )
-    out = ensure_dir(args.out)
+    out = check_folder(args.out)
+    stem = output_stem(out, problem_slug(args.problem, source), "train-policy")
+    path, weights, report = (Path(f"{stem}{end}") for end in (".json", ".npz", "_report.json"))
+    check_targets(path, weights, report)  # a refused output name fails before the training
     x0, seed = training_draws(source, args.samples, seed=args.seed)
     policy = mlp_policy(source, hidden=args.hidden, layers=args.layers, seed=seed)
     res = train_policy(
         source, policy, x0, toi="both" if args.toi else "none", iters=args.epochs, lr=args.lr,
         seed=seed, progress=not args.no_progress,
     )  # fmt: skip
-    stem = output_stem(out, problem_slug(args.problem, source), "train-policy")
-    path = save_mlp_policy(res.policy, f"{stem}.json")
     payload = {
         "problem": source.name,
         "policy": str(path),
-        "weights": str(path.with_suffix(".npz")),
+        "weights": str(weights),
         "samples": args.samples,
         "seed": seed,
         "epochs": args.epochs,
@@ -98,11 +99,6 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         "infeasible": res.infeasible,
         "violations": violation_summary(res.feasibility) if res.feasibility else None,
     }
-    report = Path(f"{stem}_report.json")
-    try:
-        report.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(report)!r}: {exc.strerror or exc}") from None
     what = (
         "the simulator's mean closed-loop loss"
         if res.engine == "simulator"
@@ -122,7 +118,11 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         if res.infeasible:
             say(args, f"INFEASIBLE  on {res.infeasible} of {args.samples} training draws: "
                       + "; ".join(violation_lines(payload["violations"])))  # fmt: skip
-        for p in (path, path.with_suffix(".npz"), report):
+    # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
+    save_mlp_policy(res.policy, path)
+    write_text(report, json.dumps(to_jsonable(payload), indent=2) + "\n")
+    if not args.json:
+        for p in (path, weights, report):
             say(args, f"wrote {p}")
         say(args, f"judge it: hybridoc validate-policy {args.problem} --policy {path} --samples M")
     if res.message:

@@ -13,7 +13,6 @@ from hybridoc.cli._util import (
     add_json_out,
     add_substeps_arg,
     emit_json,
-    ensure_dir,
     fmt,
     format_table,
     indent,
@@ -25,7 +24,7 @@ from hybridoc.cli._util import (
     say,
     to_jsonable,
 )
-from hybridoc.errors import HybridocError
+from hybridoc.outputs import check_folder, check_targets, write_text
 
 __all__ = ["register"]
 
@@ -53,7 +52,11 @@ def cmd_compare_trajectory(args: argparse.Namespace) -> int:
     ocp, u, source = load_substep_controls_arg(args.controls, base, args.substeps)
     times = read_array(args.times, what="times", error=TrajectoryError)
     states = read_array(args.states, what="states", labels=ocp.state_labels, error=TrajectoryError)
-    out = None if args.out is None else ensure_dir(args.out)
+    out = None if args.out is None else check_folder(args.out)
+    stem = None
+    if out is not None:  # a refused output name fails before the work
+        stem = output_stem(out, problem_slug(args.problem, ocp), "compare-trajectory")
+        check_targets(f"{stem}.png", f"{stem}.json")
     try:
         cmp = compare_trajectory(base, times, states, u, substeps=ocp.steps // base.steps)
     except TrajectoryError as exc:
@@ -64,17 +67,15 @@ def cmd_compare_trajectory(args: argparse.Namespace) -> int:
         "controls": source,
         **cmp.to_dict(),
     }
-    written: list[Path] = []
-    if out is not None:
-        stem = output_stem(out, problem_slug(args.problem, ocp), "compare-trajectory")
-        written.append(save(trajectory_figure(cmp, label=args.states.stem), f"{stem}.png"))
-        written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
         emit_json(report)
     else:
         _print(args, ocp, cmp, source, report)
-    for p in written:
-        say(args, f"wrote {p}")
+    if stem is not None:  # after the answer is out: a write that fails loses nothing shown
+        written = [save(trajectory_figure(cmp, label=args.states.stem), f"{stem}.png")]
+        written.append(_write_json(Path(f"{stem}.json"), report))
+        for p in written:
+            say(args, f"wrote {p}")
     return 0
 
 
@@ -117,11 +118,8 @@ def _print(args: argparse.Namespace, ocp: Any, cmp: Any, source: str, report: di
 
 
 def _write_json(path: Path, obj: Any) -> Path:
-    try:
-        path.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    return path
+    """Write a report by the rules of :mod:`hybridoc.outputs`."""
+    return write_text(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
 def register(sub: Any) -> None:

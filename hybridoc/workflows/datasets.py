@@ -54,6 +54,13 @@ Writes, resume and checks
     writes the same bytes as an uninterrupted run. The data file's SHA-256 is checked on
     every load (:func:`load_dataset`, and a rerun that finds the dataset complete): a
     mismatch is an error naming the file and both hashes; the file is left as it is.
+    Every load also checks the manifest against its schema (:func:`check_manifest`: the
+    type and range of every field) and the rows against the problem (:func:`check_draws`:
+    the initial states and targets recomputed from the manifest's scene and seed and
+    compared bit for bit), so that a file edited and rehashed, or a manifest whose seed
+    is not the data's, is an error too. A ``dataset.npz`` that no manifest of ours
+    records (the user's own), or a link at either file's name, is never overwritten: the
+    run refuses at once, before any solve.
     Pool workers end when the process that started them dies.
 
 Columns
@@ -1261,13 +1268,17 @@ def _existing(out: Path, settings: dict[str, Any]) -> dict[str, Any] | Dataset |
         SHA-256.
     """
     mpath = out / MANIFEST_FILE
-    if not mpath.exists():
+    if not mpath.exists() and not mpath.is_symlink():
+        if (out / DATA_FILE).exists() or (out / DATA_FILE).is_symlink():
+            # no manifest records it: the user's own file, never overwritten
+            raise HybridocError(
+                f"{str(out / DATA_FILE)!r} exists and was not written by 'hybridoc dataset' "
+                f"(no {MANIFEST_FILE} records it): hybridoc never overwrites a file it did not "
+                "write; move it away or choose another --out"
+            )
         return None
-    try:
-        manifest = json.loads(mpath.read_text())
-    except (OSError, ValueError) as exc:
-        raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
-    if not isinstance(manifest, dict) or manifest.get("settings") != settings:
+    manifest = _read_manifest(mpath)
+    if manifest.get("settings") != settings:
         raise HybridocError(
             f"{str(out)!r} holds a dataset with other settings (scene, samples, seed, tol "
             "or version); choose another --out or remove it"
@@ -1319,6 +1330,7 @@ def _make(
     if isinstance(manifest, Dataset):
         return manifest
     # before the nominal solve, so that a folder that is not ours fails at once
+    _check_data_file(out)
     sdir = _shard_dir(out, resuming=manifest is not None)
     _sweep(sdir, lambda n: bool(_CHUNK_NAME.fullmatch(n)), lambda n: False)
     t0 = time.perf_counter()
@@ -1368,7 +1380,10 @@ def _finish(
 ) -> Dataset:
     """Write the data file and the complete manifest, and remove the shards."""
     data = _concat(parts)
-    digest = _write_npz(out / DATA_FILE, data)
+    body = _npz_bytes(data)
+    _check_data_file(out, body)  # the shards stay: a run after the file is moved finishes
+    _atomic_write(out / DATA_FILE, body)
+    digest = hashlib.sha256(body).hexdigest()
     status, counts = data["status"], {}
     for s in sorted(set(status.tolist())):
         counts[s] = int(np.sum(status == s))
@@ -1395,8 +1410,248 @@ def _finish(
     return Dataset(out, data, manifest)
 
 
+def _check_data_file(out: Path, body: bytes | None = None) -> None:
+    """Refuse to write ``out/dataset.npz`` over anything but a file of this run: a link, or
+    something that is not a regular file, always; with ``body``, a file whose bytes differ
+    (the file a run killed after writing it left has the very same bytes, since the data
+    are written deterministically; any other is the user's).
+
+    Raises
+    ------
+    HybridocError
+        One line naming the file.
+    """
+    dpath = out / DATA_FILE
+    if dpath.is_symlink() or (dpath.exists() and not dpath.is_file()):
+        raise HybridocError(
+            f"{str(dpath)!r} is a symbolic link or not a regular file: hybridoc never writes "
+            "through a link; remove it or choose another --out"
+        )
+    if body is not None and dpath.exists():
+        try:
+            same = dpath.stat().st_size == len(body) and dpath.read_bytes() == body
+        except OSError:
+            same = False
+        if not same:
+            raise HybridocError(
+                f"{str(dpath)!r} exists and was not written by this dataset run: hybridoc "
+                "never overwrites a file it did not write; move it away and run the same "
+                "command again (the finished shards are kept)"
+            )
+
+
 def _write_json(path: Path, obj: Any) -> None:
     _atomic_write(path, (json.dumps(obj, indent=1) + "\n").encode())
+
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+_SETTINGS_COMMON = {"format", "hybridoc", "samples", "seed", "chunk", "tol", "full"}
+_SETTINGS_SCENE = _SETTINGS_COMMON | {"scene"}
+_SETTINGS_PROBLEM = _SETTINGS_COMMON | {"problem", "nominal_x0", "x0_sha256"}
+_MANIFEST_KEYS = {"format", "complete", "settings", "nominal"}
+_COMPLETE_KEYS = {"versions", "counts", "methods", "sha256", "columns", "last_run"}
+#: the most draws a dataset may record (its columns hold the optimal controls of each)
+MAX_SAMPLES = 10**9
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _counts(v: Any) -> bool:
+    return isinstance(v, dict) and all(
+        isinstance(k, str) and _is_int(n) and n >= 0 for k, n in v.items()
+    )
+
+
+def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
+    """Validate a dataset manifest against its schema: the type and range of every field,
+    written as code (module notes, ``manifest.json``).
+
+    Returns
+    -------
+    dict
+        ``manifest``.
+
+    Raises
+    ------
+    HybridocError
+        The first field that is missing, unknown, of another type or out of range: one
+        line naming it and what it holds.
+    """
+
+    def bad(field: str, want: str, got: Any) -> HybridocError:
+        shown = repr(got)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
+        return HybridocError(f"{where}: {field!r} must be {want}, got {shown}")
+
+    if not isinstance(manifest, dict):
+        raise bad("manifest", "a JSON object", manifest)
+    if manifest.get("format") != FORMAT:
+        raise bad("format", repr(FORMAT), manifest.get("format"))
+    complete = manifest.get("complete")
+    if not isinstance(complete, bool):
+        raise bad("complete", "true or false", complete)
+    allowed = _MANIFEST_KEYS | (_COMPLETE_KEYS if complete else set())
+    unknown = sorted(set(manifest) - allowed)
+    if unknown:
+        raise HybridocError(f"{where}: unknown entries {', '.join(map(repr, unknown))}")
+    missing = sorted(allowed - set(manifest))
+    if missing:
+        raise HybridocError(f"{where}: missing entries {', '.join(map(repr, missing))}")
+    st = manifest["settings"]
+    if not isinstance(st, dict):
+        raise bad("settings", "a JSON object", st)
+    keys = _SETTINGS_SCENE if "scene" in st else _SETTINGS_PROBLEM
+    if set(st) != keys:
+        extra, lack = sorted(set(st) - keys), sorted(keys - set(st))
+        raise HybridocError(
+            f"{where}: 'settings' must hold exactly {', '.join(sorted(keys))} (unknown: "
+            f"{', '.join(extra) or 'none'}; missing: {', '.join(lack) or 'none'})"
+        )
+    checks: list[tuple[str, str, Callable[[Any], bool]]] = [
+        ("format", repr(FORMAT), lambda v: v == FORMAT),
+        ("hybridoc", "a version string", lambda v: isinstance(v, str)),
+        ("samples", f"an integer in [1, {MAX_SAMPLES}]",
+         lambda v: _is_int(v) and 1 <= v <= MAX_SAMPLES),
+        ("seed", "an integer in [0, 2**63)", lambda v: _is_int(v) and 0 <= v < 2**63),
+        ("chunk", "a positive integer", lambda v: _is_int(v) and v >= 1),
+        ("tol", "a positive finite number", lambda v: _is_number(v) and v > 0),
+        ("full", "true or false", lambda v: isinstance(v, bool)),
+        ("scene", "the scene as TOML text", lambda v: isinstance(v, str)),
+        ("problem", "the problem's name", lambda v: isinstance(v, str)),
+        ("nominal_x0", "a list of finite numbers",
+         lambda v: isinstance(v, list) and len(v) >= 1 and all(map(_is_number, v))),
+        ("x0_sha256", "a SHA-256 in hex",
+         lambda v: isinstance(v, str) and _SHA256.fullmatch(v) is not None),
+    ]  # fmt: skip
+    for key, want, ok in checks:
+        if key in st and not ok(st[key]):
+            raise bad(f"settings.{key}", want, st[key])
+    nominal = manifest["nominal"]
+    if nominal is not None:
+        if not isinstance(nominal, dict) or set(nominal) != {"sequence", "z", "cost", "status"}:
+            raise bad("nominal", "null or {sequence, z, cost, status}", nominal)
+        if not isinstance(nominal["sequence"], list) or not all(
+            isinstance(g, str) for g in nominal["sequence"]
+        ):
+            raise bad("nominal.sequence", "a list of guard names", nominal["sequence"])
+        if not isinstance(nominal["z"], list) or not all(map(_is_number, nominal["z"])):
+            raise bad("nominal.z", "a list of finite numbers", nominal["z"])
+        if not _is_number(nominal["cost"]):
+            raise bad("nominal.cost", "a finite number", nominal["cost"])
+        if not isinstance(nominal["status"], str):
+            raise bad("nominal.status", "a status", nominal["status"])
+    if not complete:
+        return manifest
+    samples = st["samples"]
+    if not isinstance(manifest["sha256"], str) or not _SHA256.fullmatch(manifest["sha256"]):
+        raise bad("sha256", "a SHA-256 in hex", manifest["sha256"])
+    for key in ("counts", "methods"):
+        v = manifest[key]
+        if not _counts(v) or sum(v.values()) != samples:
+            raise bad(key, f"counts of the {samples} draws by name", v)
+    cols = manifest["columns"]
+    if (
+        not isinstance(cols, dict)
+        or set(cols) != COLUMNS
+        or not all(
+            isinstance(v, list) and v and v[0] == samples and all(_is_int(n) and n >= 0 for n in v)
+            for v in cols.values()
+        )
+    ):
+        raise bad("columns", f"the shapes of the columns ({samples} rows each)", cols)
+    if not isinstance(manifest["versions"], dict) or not all(
+        isinstance(k, str) and (v is None or isinstance(v, str))
+        for k, v in manifest["versions"].items()
+    ):
+        raise bad("versions", "package names and versions", manifest["versions"])
+    run = manifest["last_run"]
+    if (
+        not isinstance(run, dict)
+        or set(run) != {"engine", "workers", "wall_time_s"}
+        or not isinstance(run["engine"], str)
+        or not (_is_int(run["workers"]) and run["workers"] >= 1)
+        or not (_is_number(run["wall_time_s"]) and run["wall_time_s"] >= 0)
+    ):
+        raise bad("last_run", "{engine, workers, wall_time_s}", run)
+    return manifest
+
+
+def _read_manifest(mpath: Path) -> dict[str, Any]:
+    """The manifest at ``mpath``: a regular file (not a link), bounded JSON, schema-checked."""
+    from hybridoc.outputs import read_json
+
+    if mpath.is_symlink():
+        raise HybridocError(
+            f"{str(mpath)!r} is a symbolic link: a dataset's manifest is a file 'hybridoc "
+            "dataset' wrote; remove it or choose another --out"
+        )
+    manifest = read_json(mpath, f"dataset manifest {str(mpath)!r}", max_bytes=16 << 20)
+    return check_manifest(manifest, f"dataset manifest {str(mpath)!r}")
+
+
+def check_draws(ds: Dataset) -> None:
+    """Check a dataset's rows against its problem: the ``index`` column is ``0..M-1``, and
+    the initial states (and targets) are the draws of the distribution with the recorded
+    seed, recomputed here from the scene in the manifest and compared exactly (bit for
+    bit: the same code draws them). For a problem with a Python distribution, the initial
+    states hash to the recorded ``x0_sha256`` (redrawn and compared by
+    :func:`hybridoc.workflows.policies.validate_policy`, which has the problem).
+
+    Raises
+    ------
+    HybridocError
+        A row that is not its draw: one line naming the dataset, the first such draw and
+        by how much it differs.
+    """
+    st, cols = ds.manifest["settings"], ds.columns
+    where = f"the dataset in {str(ds.path)!r}"
+    M, seed = st["samples"], st["seed"]
+    x0 = np.asarray(cols["x0"])
+    if cols["index"].shape != (M,) or not np.array_equal(cols["index"], np.arange(M)):
+        raise HybridocError(f"{where}: its index column is not 0..{M - 1}")
+    if "scene" not in st:
+        if x0.shape != (M, len(st["nominal_x0"])):
+            raise HybridocError(f"{where}: its initial states have shape {x0.shape}")
+        if initial_states_sha256(x0) != st["x0_sha256"]:
+            raise HybridocError(
+                f"{where}: its initial states are not the ones its manifest records "
+                "(x0_sha256): they were changed after it was written"
+            )
+        return
+    import tomllib
+
+    from hybridoc.problems import Scene
+
+    try:
+        scene = Scene.from_dict(tomllib.loads(st["scene"]), default_name="scene")
+        if scene.distribution is None:
+            raise HybridocError("it has no [distribution]")
+        draws = [scene.distribution.draw(scene, i, seed) for i in range(M)]
+    except (HybridocError, tomllib.TOMLDecodeError) as exc:
+        raise HybridocError(f"{where}: the scene in its manifest cannot be drawn: {exc}") from None
+    want_x0 = np.array([d.initial_state() for d in draws], dtype=float).reshape(M, -1)
+    want_targets = np.array([d.targets() for d in draws], dtype=float)
+    for name, got, want in (("initial states", x0, want_x0),
+                            ("targets", np.asarray(cols["targets"]), want_targets)):  # fmt: skip
+        if got.shape != want.shape:
+            raise HybridocError(
+                f"{where}: its {name} have shape {got.shape}; the scene's draws {want.shape}"
+            )
+        same = (got == want) | (np.isnan(got) & np.isnan(want))
+        if not same.all():
+            rows = np.flatnonzero(~same.reshape(M, -1).all(axis=1))
+            diff = np.nanmax(np.abs(got[rows[0]] - want[rows[0]]))
+            raise HybridocError(
+                f"{where}: the {name} of {rows.size} draw(s) are not the draws of its scene's "
+                f"distribution with seed {seed} (draw {int(rows[0])} differs by up to "
+                f"{diff:.3g}): the data or the manifest were changed after it was written"
+            )
 
 
 def load_dataset(path: str | Path) -> Dataset:
@@ -1406,22 +1661,20 @@ def load_dataset(path: str | Path) -> Dataset:
     Raises
     ------
     HybridocError
-        Not a dataset, an incomplete one (run ``hybridoc dataset`` again to finish it), or
-        a data file that is not the one the manifest records (changed or damaged since it
-        was written: the message names it and both hashes).
+        Not a dataset, an incomplete one (run ``hybridoc dataset`` again to finish it), a
+        manifest that fails its schema (:func:`check_manifest`), a data file that is not
+        the one the manifest records (changed or damaged since it was written: the message
+        names it and both hashes), or rows that are not the draws of the problem the
+        manifest records (:func:`check_draws`: the initial states recomputed from the
+        seed and the distribution).
     """
     p = Path(path)
     if p.is_file():
         p = p.parent
     mpath, dpath = p / MANIFEST_FILE, p / DATA_FILE
-    if not mpath.exists():
+    if not mpath.exists() and not mpath.is_symlink():
         raise HybridocError(f"{str(p)!r} is not a dataset directory (no {MANIFEST_FILE})")
-    try:
-        manifest = json.loads(mpath.read_text())
-    except (OSError, ValueError) as exc:
-        raise HybridocError(f"cannot read {str(mpath)!r}: {exc}") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise HybridocError(f"{str(mpath)!r} is not a {FORMAT} manifest")
+    manifest = _read_manifest(mpath)
     if not manifest.get("complete") or not dpath.exists():
         raise HybridocError(
             f"the dataset in {str(p)!r} is incomplete: run the same 'hybridoc dataset' command "
@@ -1442,7 +1695,14 @@ def load_dataset(path: str | Path) -> Dataset:
         columns = _parse_npz(data)
     except Exception as exc:  # the recorded hash of an unreadable file: whatever numpy raises
         raise HybridocError(f"cannot read {str(dpath)!r}: {type(exc).__name__}: {exc}") from None
-    return Dataset(p, columns, manifest)
+    shapes = {k: list(v.shape) for k, v in sorted(columns.items())}
+    if shapes != manifest["columns"]:
+        raise HybridocError(
+            f"{str(dpath)!r} does not hold the columns its manifest records (names or shapes)"
+        )
+    ds = Dataset(p, columns, manifest)
+    check_draws(ds)  # the rows against the problem: a file rehashed after an edit fails here
+    return ds
 
 
 def iter_chunks(n: int, size: int) -> Iterator[tuple[int, list[int]]]:

@@ -58,7 +58,12 @@ from hybridoc.workflows.datasets import (
     source_seed,
     usable_cores,
 )
-from hybridoc.workflows.policy_format import CasadiPolicy, PolicyError, load_mlp_policy
+from hybridoc.workflows.policy_format import (
+    CasadiPolicy,
+    PolicyError,
+    check_policy_sizes,
+    load_mlp_policy,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
@@ -403,6 +408,10 @@ def validate_policy(
     check_dask(dask)
     spec_text = str(policy) if isinstance(policy, str | Path) else None
     pol = load_policy(policy)  # errors here, before any work
+    from hybridoc.problem import as_ocp
+
+    nominal = as_ocp(source)
+    check_policy_sizes(pol, nominal.nx, nominal.nu, f"policy {spec_text or repr(policy)}")
     if dask is not None and spec_text is None:
         raise HybridocError(
             "with dask, give the policy as a spec (model.pt or file.py:name) so that the "
@@ -513,7 +522,9 @@ def _check_references(ds: Dataset, source: Scene | HybridOCP, seed: int, samples
         same = settings.get("scene") == source.to_toml()
     else:  # the initial states of the dataset's draws, drawn again here
         x0 = draw_initial_states(source, int(settings.get("samples", 0)), seed)
-        same = initial_states_sha256(x0) == settings.get("x0_sha256")
+        same = initial_states_sha256(x0) == settings.get("x0_sha256") and np.array_equal(
+            x0, ds.columns["x0"]
+        )
     if not same or int(settings.get("seed", -1)) != seed:
         what = "scene" if isinstance(source, Scene) else "problem, distribution"
         raise HybridocError(

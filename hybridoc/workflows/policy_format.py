@@ -79,6 +79,7 @@ __all__ = [
     "MLP",
     "PolicyError",
     "SATURATIONS",
+    "check_policy_sizes",
     "load_mlp_policy",
     "saturation_bounds",
     "save_mlp_policy",
@@ -255,6 +256,11 @@ class MLP:
         """The controls ``(nu,)`` for one state ``(nx,)``, or ``(B, nu)`` for ``(B, nx)``
         (``t`` a number or ``(B,)``)."""
         s = np.asarray(state, dtype=float)
+        if s.ndim not in (1, 2) or s.shape[-1] != self.nx:
+            # never reshape another size into this one (8 states read as 2 rows of 4)
+            raise PolicyError(
+                f"this policy reads {self.nx} state entries, got a state of shape {s.shape}"
+            )
         single = s.ndim == 1
         S = s.reshape(-1, self.nx)
         z = (S - self.state_mean) / self.state_scale
@@ -470,6 +476,28 @@ def _float_array(value: Any, what: str) -> np.ndarray:
     return arr
 
 
+def check_policy_sizes(policy: Any, nx: int, nu: int, where: str = "the policy") -> None:
+    """Check a policy's input and output sizes against a problem's ``nx`` states and ``nu``
+    controls, before any rollout: for a policy that states them (``nx`` and ``nu``
+    integers: an :class:`MLP`, a :class:`CasadiPolicy`, a trained MLP policy). A callable
+    that does not state them is checked by the rollout, at its first call.
+
+    Raises
+    ------
+    PolicyError
+        Either size differs: one line with both.
+    """
+    sizes = [getattr(policy, k, None) for k in ("nx", "nu")]
+    if not all(isinstance(v, int | np.integer) and not isinstance(v, bool) for v in sizes):
+        return
+    pnx, pnu = (int(v) for v in sizes)
+    if (pnx, pnu) != (int(nx), int(nu)):
+        raise PolicyError(
+            f"{where} reads {pnx} states and returns {pnu} controls, but the problem has "
+            f"{nx} states and {nu} controls: it was made for another problem"
+        )
+
+
 # ---------------------------------------------------------------------------- files
 
 
@@ -500,16 +528,10 @@ def load_mlp_policy(path: str | Path) -> MLP:
     where = repr(str(path))
     if not path.is_file():
         raise PolicyError(f"policy file {where} does not exist")
-    try:
-        raw = path.read_bytes()[: _MAX_JSON_BYTES + 1]
-    except OSError as exc:
-        raise PolicyError(f"cannot read {where}: {exc.strerror or exc}") from None
-    if len(raw) > _MAX_JSON_BYTES:
-        raise PolicyError(f"{where} is larger than {_MAX_JSON_BYTES} bytes: not a policy file")
-    try:
-        spec = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise PolicyError(f"{where} is not valid JSON: {exc}") from None
+    from hybridoc.outputs import read_json
+
+    # bounded in size and nesting (a file nested 200 000 deep is one clear error)
+    spec = read_json(path, where, max_bytes=_MAX_JSON_BYTES, error=PolicyError)
     if not isinstance(spec, dict) or spec.get("format") != FORMAT:
         raise PolicyError(f"{where} is not a policy file: its 'format' must be {FORMAT!r}")
     if spec.get("version") != VERSION:
@@ -663,6 +685,9 @@ def save_mlp_policy(
     ------
     PolicyError
         A module that is not such an MLP (another layer kind, mixed activations).
+    hybridoc.errors.HybridocError
+        A link, or a file hybridoc did not write, at either name (:mod:`hybridoc.outputs`);
+        a file that cannot be written.
     """
     extra = {
         "input": input, "horizon": horizon, "state_mean": state_mean,
@@ -688,12 +713,13 @@ def save_mlp_policy(
         "sha256": hashlib.sha256(data).hexdigest(),
         **mlp.description(),
     }
-    try:
-        json_path.parent.mkdir(parents=True, exist_ok=True)
-        npz_path.write_bytes(data)
-        json_path.write_text(json.dumps(spec, indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise PolicyError(f"cannot write {str(json_path)!r}: {exc.strerror or exc}") from None
+    from hybridoc.outputs import check_targets, write_bytes, write_text
+
+    # by the rules of hybridoc.outputs (atomically, never through a link or over a user's
+    # file), both names checked before either is written
+    check_targets(npz_path, json_path)
+    write_bytes(npz_path, data)
+    write_text(json_path, json.dumps(spec, indent=2) + "\n")
     return json_path
 
 
@@ -817,6 +843,11 @@ class CasadiPolicy:
     def __call__(self, t: Any, state: Any) -> np.ndarray:
         """The controls ``(nu,)`` for one state ``(nx,)``, or ``(B, nu)`` for ``(B, nx)``."""
         s = np.asarray(state, dtype=float)
+        if s.ndim not in (1, 2) or s.shape[-1] != self.nx:
+            # never reshape another size into this one (8 states read as 2 rows of 4)
+            raise PolicyError(
+                f"this policy reads {self.nx} state entries, got a state of shape {s.shape}"
+            )
         single = s.ndim == 1
         S = s.reshape(-1, self.nx)
         tt = np.broadcast_to(np.asarray(t, dtype=float).reshape(-1), (S.shape[0],))
