@@ -126,7 +126,9 @@ def check_targets(*paths: str | Path) -> None:
             with _folder(p.parent, create=False, lock=False) as dfd:
                 _check(dfd, p)
         except FileNotFoundError:
-            continue
+            continue  # made when it is written
+        except OSError as exc:  # a parent that is a file, one that cannot be read
+            raise HybridocError(f"cannot write {str(p)!r}: {exc.strerror or exc}") from None
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:

@@ -183,6 +183,8 @@ def test_check_folder_refuses_a_file_and_an_unmakeable_folder(tmp_path: Path) ->
         check_folder(f)
     with pytest.raises(HybridocError, match="cannot create output directory"):
         check_folder(f / "sub")
+    with pytest.raises(HybridocError, match=r"cannot write .*x\.json'"):
+        check_targets(f / "x.json")  # one line, not an internal error
 
 
 def _unwritable(tmp_path: Path) -> Path:
