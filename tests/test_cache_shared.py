@@ -145,3 +145,21 @@ def test_read_own_opens_only_regular_files(tmp_path: Path) -> None:
         os.close(got[1])
     finally:
         os.close(dfd)
+
+
+@posix
+def test_cache_info_on_a_shared_folder_says_what_to_do(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from cli_here import run_here
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o1777)
+    monkeypatch.setenv("HYBRIDOC_CACHE", str(shared))
+    done = run_here("cache", "info")
+    assert done.returncode == 1
+    (line,) = done.stderr.strip().splitlines()
+    assert "not private" in line and "never changes a folder's mode" in line
+    assert "HYBRIDOC_CACHE" in line
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o1777

@@ -48,7 +48,9 @@ def _info(args: argparse.Namespace) -> int:
     if not info["safe"]:
         warn(
             f"the code cache {info['path']!r} is not private: {info['problem']}; no library "
-            "is loaded from it"
+            "is loaded from it, and hybridoc never changes a folder's mode (a shared one must "
+            "stay open to its users): 'chmod 700' a folder of your own, or set HYBRIDOC_CACHE "
+            "to another folder"
         )
         return 1
     return 0
