@@ -266,3 +266,20 @@ def test_fishing_real_run_dt_against_gd() -> None:
     assert report["baseline"] == cheap.method
     assert cheap.cost == pytest.approx(user_problems.LOTKA_VOLTERRA_OPTIMUM, abs=1e-5)
     assert report["status"] in ("best-found", "disagree")
+
+
+def test_dt_refinement_doubles_the_mesh_it_used() -> None:
+    """Check 'refinement' for dt: the transcription re-solved from J* on twice the mesh of
+    its projection (given, or the one the projection reports), judged like any dt answer;
+    the same cost as that solve made here."""
+    ocp = hybridoc.as_ocp("bouncing-ball")
+    ref = hybridoc.solve(ocp, "reference")
+    fine = validation.refined_projection(ocp, "dt", ref, options={"mesh": 4})
+    assert fine["refined"] == "dt re-solved from the reference on mesh 8"
+    again = hybridoc.solve(ocp, "dt", initial=ref, sequence=ref.sequence, mesh=8)
+    assert fine["refined_cost"] == pytest.approx(again.cost, rel=1e-12)
+    assert fine["refined_sequence_matches"] is True
+    assert abs(fine["refined_gap_relative"]) < 1e-6
+    used = validation.representable(ocp, "dt", ref)["representable_mesh"]
+    unset = validation.refined_projection(ocp, "dt", ref)
+    assert unset["refined"] == f"dt re-solved from the reference on mesh {2 * max(used)}"
