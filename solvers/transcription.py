@@ -29,6 +29,7 @@ reference to round-off.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import sys
 import time
@@ -59,9 +60,12 @@ from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_sco
 from hybridoc.solution import Solution, Status, lagrange_pieces
 
 __all__ = [
+    "DEFECT_TOL",
+    "MAX_ADAPTIVE_MESH",
     "MAX_DEGREE",
     "MAX_MESH",
     "MAX_NLP_SIZE",
+    "REFINE_RTOL",
     "METHOD",
     "DTOptions",
     "DTResult",
@@ -93,6 +97,21 @@ _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may f
 _GUESS_PERTURBATIONS = 3  # perturbed retries of a guess with simultaneous events
 _TERMINAL_REFINEMENTS = 4  # mesh doublings (default mesh 4 -> up to 64) for terminal constraints
 _NEAR_MISS_REFINEMENTS = 3  # mesh doublings (default mesh 4 -> up to 32) for a near miss
+_CHEAPER_RTOL = 1e-9  # a known control cheaper by more than this makes a result not-optimal
+REFINE_RTOL = 1e-7
+"""The default mesh is refined until the judged cost of the transcription's control and the
+NLP's objective agree within ``REFINE_RTOL * max(1, |J|)``, and so do the judged costs of
+the last two meshes (after a refinement), and the collocation defects between the
+collocation points stay within :data:`DEFECT_TOL` (:func:`error_estimate`)."""
+DEFECT_TOL = 1e-4
+"""The largest collocation defect between collocation points that the default mesh accepts:
+``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of each
+element, relative to ``max(1, max |x_i|)`` on the phase (the state's local error over one
+element)."""
+MAX_ADAPTIVE_MESH = 256
+"""The most elements per phase the error-driven refinement of the default mesh reaches (six
+doublings of the default 4); past it, or past :data:`MAX_NLP_SIZE`, a result whose error
+estimate is still above the tolerances is ``not-converged``."""
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
@@ -383,21 +402,45 @@ class _PhaseNLP:
         return np.clip(U, lo, hi)
 
 
+class _Stopped(HybridocError):
+    """A :func:`solve_dt` run stopped by its time limit (what :func:`solve_dt` raises when no
+    candidate was judged yet; otherwise it returns the best one as ``not-converged``)."""
+
+
 class _Monitor:
-    """Progress and the time limit of one :func:`solve_dt` run."""
+    """Progress, the time limit and the candidates judged so far of one :func:`solve_dt`
+    run (what a stopped or interrupted run returns)."""
 
     def __init__(self, progress: Progress, time_limit: float | None) -> None:
         self.progress = progress
         self.reporting = not isinstance(progress, NullProgress)
         self.time_limit = time_limit
         self.deadline = None if time_limit is None else time.perf_counter() + time_limit
+        self.interrupted = False  # SIGINT arrived in IPOPT's iteration callback
+        self.judged: list[_Judged] = []
+        self.tried: list[dict[str, Any]] = []
+        self.perturbation = 0.0
 
     def expired(self) -> bool:
         return self.deadline is not None and time.perf_counter() > self.deadline
 
+    def best(self) -> _Judged | None:
+        """The best candidate judged so far: the cheapest feasible one that reproduces its
+        events, else the cheapest that reproduces them, else the cheapest re-simulated."""
+        ranked = [j for j in self.judged if j.ev is not None]
+        if not ranked:
+            return None
+
+        def rank(j: _Judged) -> tuple[int, float]:
+            assert j.ev is not None
+            ok = _sequence_matches(j.result._nlp.ocp, j.result, j.ev)
+            return (0 if ok and j.feasible else 1 if ok else 2, float(j.ev.cost))
+
+        return min(ranked, key=rank)
+
     def stop(self, where: str) -> HybridocError:
         """The error of a run stopped by its time limit ``where``."""
-        return HybridocError(
+        return _Stopped(
             f"dt: stopped at the time limit of {self.time_limit:g} s {where}; raise "
             "--time-limit, or make the NLP smaller and easier: a smaller --mesh, fewer events "
             "(--sequence, another --initial), fewer bodies, or --method gd"
@@ -442,6 +485,17 @@ class _IterationCallback(ca.Callback):
         return ca.Sparsity(0, 0)
 
     def eval(self, arg: list[Any]) -> list[int]:
+        try:
+            return self._eval(arg)
+        except KeyboardInterrupt:
+            # SIGINT during IPOPT surfaces here, the first Python code it runs: ask IPOPT
+            # to stop, and let the run return what it has judged (solve_dt)
+            if self.monitor is None:
+                raise
+            self.monitor.interrupted = True
+            return [1]
+
+    def _eval(self, arg: list[Any]) -> list[int]:
         self.iteration += 1
         mon = self.monitor
         if mon is None:
@@ -812,6 +866,8 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
         nlp.callback.monitor = None
     stats = solver.stats()
     status = str(stats.get("return_status", ""))
+    if monitor is not None and status == "User_Requested_Stop" and monitor.interrupted:
+        raise KeyboardInterrupt
     if monitor is not None and status == "User_Requested_Stop" and monitor.expired():
         raise monitor.stop(
             f"in IPOPT iteration {nlp.callback.iteration} of the {P - 1}-event sequence "
@@ -821,9 +877,19 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
         g = np.asarray(res["g"]).ravel()
         viol = float(np.max(np.maximum(nlp.lbg - g, g - nlp.ubg), initial=0.0))
         what = "did not converge"
-        if status in ("Infeasible_Problem_Detected", "Restoration_Failed"):
-            what = "found its constraints infeasible"
         hint = "try another initial guess or event sequence"
+        if status in ("Infeasible_Problem_Detected", "Restoration_Failed"):
+            # IPOPT's infeasibility is local: it stopped at a point that minimises the
+            # constraint violation nearby, which proves nothing about the constraints
+            what = (
+                "stopped at a point of local infeasibility (IPOPT converged to a local "
+                "minimum of the constraint violation: a local failure, not a proof that "
+                "the constraints cannot be met)"
+            )
+            hint = (
+                "start it elsewhere: another --initial guess (one whose simulation has these "
+                "events, e.g. another method's solution), a finer --mesh, or another --sequence"
+            )
         if _terminal_count(ocp) or ocp.horizon_bounds is not None:
             hint = (
                 "the terminal constraints may be unreachable with these events, bounds and "
@@ -1001,12 +1067,16 @@ def _lagrange_basis(pts: np.ndarray, s: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refined(ocp: HybridOCP, r: DTResult, verbose: bool) -> DTResult:
-    """Re-solve ``r``'s sequence with twice the elements per phase, started from ``r``'s
-    state and control polynomials."""
+def _refined(
+    ocp: HybridOCP, r: DTResult, verbose: bool, phases: Sequence[int] | None = None
+) -> DTResult:
+    """Re-solve ``r``'s sequence with twice the elements in the ``phases`` (default: every
+    phase), started from ``r``'s state and control polynomials."""
     coarse = r._nlp
     d, rad = coarse.d, coarse.rad
-    fine = _nlp_for(ocp, coarse.guards, d, [2 * m for m in coarse.mesh])
+    which = range(coarse.P) if phases is None else set(phases)
+    fine_mesh = [2 * m if k in which else m for k, m in enumerate(coarse.mesh)]
+    fine = _nlp_for(ocp, coarse.guards, d, fine_mesh)
     h, Xc, Uc = coarse.unpack(r._w)
     X, U = [], []
     for k in range(coarse.P):
@@ -1024,6 +1094,86 @@ def _refined(ocp: HybridOCP, r: DTResult, verbose: bool) -> DTResult:
         U.append(fine.clip_controls(np.einsum("nj,unj->un", bu, Uc[k][:, ucols])))
     V = coarse.unpack_v(r._w) if coarse.reset_events else None
     return _solve_nlp(fine, fine.pack(h, X, U, V), list(r.sequence), verbose)
+
+
+_NUDGES = (1e-9, 1e-7)
+"""Extensions (relative to ``T``) of each phase's last control piece past its event that
+:func:`_nudged` tries, in order, on a candidate whose re-simulation misses its events."""
+
+
+def _nudged(r: DTResult, delta: float) -> DTResult | None:
+    """``r`` with each phase's last control polynomial extended ``delta`` past its event.
+
+    The NLP puts each event exactly at a phase end: the guard is zero there and the next
+    phase's control starts. Re-simulated, the control reaches the guard to within the
+    integrator's and the collocation's errors; where the next phase's control stops the
+    approach (a clock driven before a switch and frozen after it), a state that stopped
+    ``1e-12`` short of the guard never crosses it. Extending the approaching phase's
+    control polynomial over ``[gamma, gamma + delta]`` (one more element) and starting the
+    next phase's at ``gamma + delta`` (its first element shrunk, the same polynomial in time)
+    lets the trajectory cross the guard transversally, as the NLP's approach condition says
+    it does. What this control does is judged like any other: it must reproduce the
+    modelled events, and its cost is the judge's. ``None`` when ``delta`` is not below half
+    of every phase's first element.
+    """
+    nlp = r._nlp
+    if not r.sequence:
+        return None
+    rad, d, nu = nlp.rad, nlp.d, nlp.ocp.nu
+    eb = np.asarray(r.element_bounds, dtype=float)
+    vals = np.concatenate(r.controls, axis=1).reshape(nu, -1, d)
+    nodes = rad.tau[1:]
+    # the index of each phase's last element in the global element list
+    ends = np.cumsum([c.shape[1] // d for c in r.controls])
+    bounds, per_phase = [eb[0]], []
+    for k in range(len(r.controls)):
+        first = 0 if k == 0 else int(ends[k - 1])
+        last = int(ends[k])
+        phase_bounds, phase_vals = [], []
+        for e in range(first, last):
+            a, b, v = eb[e], eb[e + 1], vals[:, e, :]
+            if k > 0 and e == first:
+                # the extension of the previous phase's last piece, then this piece shrunk
+                pa, pb, pv = eb[e - 1], eb[e], vals[:, e - 1, :]
+                if not delta < 0.5 * (b - a):
+                    return None
+                t_ext = a + delta * nodes
+                ext = pv @ _lagrange_basis(nodes, (t_ext - pa) / (pb - pa)).T
+                phase_bounds.append(a + delta)
+                phase_vals.append(ext)
+                t_new = a + delta + (b - a - delta) * nodes
+                v = v @ _lagrange_basis(nodes, (t_new - a) / (b - a)).T
+            phase_bounds.append(b)
+            phase_vals.append(v)
+        bounds += phase_bounds
+        per_phase.append(np.concatenate(phase_vals, axis=1))
+    controls = [nlp.clip_controls(c) for c in per_phase]
+    element_bounds = np.array(bounds)
+    control_times = []
+    i = 0
+    for c in controls:
+        n = c.shape[1] // d
+        loc = element_bounds[i : i + n]
+        he = element_bounds[i + 1 : i + n + 1] - loc
+        control_times.append((loc[:, None] + he[:, None] * nodes[None, :]).ravel())
+        i += n
+    return dataclasses.replace(
+        r, controls=controls, control_times=control_times, element_bounds=element_bounds
+    )
+
+
+def _nudge(ocp: HybridOCP, r: DTResult, terminal_tol: float) -> tuple[_Judged, float] | None:
+    """The first of :data:`_NUDGES` whose :func:`_nudged` control reproduces ``r``'s events
+    (judged), with the extension used; ``None`` if none does."""
+    for rel in _NUDGES:
+        rn = _nudged(r, rel * r.horizon)
+        if rn is None:
+            return None
+        jn = _judge(ocp, rn, terminal_tol)
+        if jn.ev is not None and _sequence_matches(ocp, rn, jn.ev):
+            jn.nudge = rel * r.horizon
+            return jn, jn.nudge
+    return None
 
 
 def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndarray, float]:
@@ -1062,6 +1212,8 @@ class _Judged:
     ev: Evaluation | None
     error: str = ""
     terminal_tol: float = TERMINAL_TOL
+    nudge: float = 0.0  # the extension of :func:`_nudged` that made it reproduce its events
+    estimate: dict[str, Any] | None = None  # :func:`error_estimate`, where computed
 
     @property
     def feasible(self) -> bool:
@@ -1128,8 +1280,8 @@ class DTOptions:
     )
     time_limit: float | None = option(
         None,
-        "stop IPOPT and exit 2 after this much wall time (default: no limit; at most "
-        f"{_MAX_ITER} IPOPT iterations per candidate sequence)",
+        "stop after this much wall time and exit 2, returning the best candidate judged so "
+        f"far (default: no limit; at most {_MAX_ITER} IPOPT iterations per NLP)",
         parse=positive_float,
         metavar="SECONDS",
     )
@@ -1187,10 +1339,14 @@ def solve_dt(
         cubic, so 3 is exact).
     mesh
         Collocation elements per phase (one int, or one per phase), 1 to :data:`MAX_MESH`
-        each; default 4. With the
-        default, a candidate whose re-simulated events are the modelled ones at times off by
-        a little (more than ``1e-6 T``, at most ``1e-3 T``) is solved once more with twice
-        the elements.
+        each; default 4, refined: a candidate whose re-simulated events are the modelled
+        ones at times off by a little (more than ``1e-6 T``, at most ``1e-3 T``) is solved
+        once more with twice the elements, and a candidate that reproduces its events is
+        refined until its error estimate is within the tolerances (:data:`REFINE_RTOL`,
+        :data:`DEFECT_TOL`: the judged cost against the NLP objective and against the
+        previous mesh, the collocation defects between the collocation points), the phases
+        with too large defects doubled, up to :data:`MAX_ADAPTIVE_MESH` elements per phase.
+        A mesh given here is kept (its estimate is reported in ``info["error_estimate"]``).
     verbose
         Print IPOPT's log and the candidates to stderr.
     progress
@@ -1199,10 +1355,12 @@ def solve_dt(
         IPOPT's iteration; ``False``/``None``: silent; or a caller's
         :class:`~hybridoc.progress.Progress`.
     time_limit
-        Seconds of wall time: past them IPOPT is stopped and a
-        :class:`~hybridoc.errors.HybridocError` names the limit (``None``: no limit; the
-        work is at most one NLP of at most 500 IPOPT iterations per candidate, and a
-        refinement).
+        Seconds of wall time: past them IPOPT (or the refinement) is stopped and the best
+        candidate judged so far is returned as ``not-converged``; before any candidate is
+        judged a :class:`~hybridoc.errors.HybridocError` names the limit (``None``: no
+        limit; the work is at most one NLP of at most 500 IPOPT iterations per candidate,
+        and the refinements). An interrupt (``KeyboardInterrupt``, SIGINT) returns the same
+        way once a candidate has been judged.
     terminal_tol
         The judged terminal-constraint violation (of the re-simulated control) above which
         the result is :attr:`~hybridoc.solution.Status.INFEASIBLE`. The NLP meets the
@@ -1225,8 +1383,21 @@ def solve_dt(
 
         The NLP honours the control bounds at its Radau points (``u(t)`` is the Radau
         polynomial clipped into the bounds) and the path constraints at the Radau points and
-        phase starts. ``status`` is :attr:`~hybridoc.solution.Status.SUCCESS` when the
-        re-simulation reproduces the modelled events and is feasible;
+        phase starts. When the re-simulation reproduces the modelled events and is
+        feasible, ``status`` says what was compared (docs/solvers.rst, "dt: what its status
+        claims"): :attr:`~hybridoc.solution.Status.EXTREMAL` for a given ``sequence`` (its
+        optimum, not compared with other sequences);
+        :attr:`~hybridoc.solution.Status.BEST_FOUND` for the default discovery on a problem
+        with guards (the best of the guess's sequence and those with one event dropped,
+        nothing more); :attr:`~hybridoc.solution.Status.SUCCESS` on a problem without
+        guards (one sequence); :attr:`~hybridoc.solution.Status.NOT_OPTIMAL` instead of any
+        of these when a cheaper feasible control is known (``info["cheaper"]``: the initial
+        guess, an initial Solution's control, a candidate that re-simulated to other
+        events); :attr:`~hybridoc.solution.Status.NOT_CONVERGED` when the default mesh's
+        error estimate is still above the tolerances where the refinement stopped, or the
+        time limit or an interrupt stopped the run (``info["stopped"]``). A candidate that
+        misses its events by a hair is judged again with each phase's control extended
+        ``1e-9 T`` (then ``1e-7 T``) past its event (``info["nudge"]``). Otherwise
         :attr:`~hybridoc.solution.Status.INFEASIBLE` when it reproduces them but violates
         the bounds (by more than ``1e-9``), the path constraints (by more than ``1e-6``) or
         the terminal constraints (by more than ``terminal_tol``) (a feasible candidate is
@@ -1241,7 +1412,7 @@ def solve_dt(
         or ``time_limit`` is out of range, or a candidate's NLP would have more than
         :data:`MAX_NLP_SIZE` variables and constraints (:func:`nlp_size`).
     HybridocError
-        The run passed ``time_limit``.
+        The run passed ``time_limit`` before any candidate was judged.
     ConvergenceError
         No candidate sequence's NLP converged (the message names IPOPT's status for each,
         e.g. ``Infeasible_Problem_Detected`` for terminal constraints it cannot meet).
@@ -1273,8 +1444,60 @@ def solve_dt(
                 t_start,
                 float(terminal_tol),
             )
+        except (_Stopped, KeyboardInterrupt) as exc:
+            stopped = _stopped_solution(ocp, monitor, exc, degree, mesh, sequence, t_start)
+            if stopped is None:
+                raise
+            return stopped
         finally:
             _MONITOR.reset(token)
+
+
+def _stopped_solution(
+    ocp: HybridOCP,
+    monitor: _Monitor,
+    exc: BaseException,
+    degree: int,
+    mesh: Any,
+    sequence: list[str] | None,
+    t_start: float,
+) -> Solution | None:
+    """The best candidate judged before the time limit or an interrupt (SIGINT), as a
+    ``not-converged`` Solution whose message says why it stopped; ``None`` when nothing
+    was judged yet (the error or the interrupt then goes on)."""
+    best = monitor.best()
+    if best is None:
+        return None
+    assert best.ev is not None
+    why = (
+        "interrupted (SIGINT)"
+        if isinstance(exc, KeyboardInterrupt)
+        else " ".join(str(exc).split()).removeprefix("dt: ")
+    )
+    ok = _sequence_matches(ocp, best.result, best.ev)
+    if ok and best.feasible:
+        what = "reproduces its events and is feasible"
+    elif ok:
+        what = "reproduces its events but violates a constraint"
+    else:
+        what = f"re-simulates to other events ({_resimulated_names(ocp, best.ev)})"
+    message = (
+        f"{why}: the best candidate judged so far is returned (sequence "
+        f"{_short_sequence(best.result.sequence)}, mesh {list(best.result._nlp.mesh)}; it "
+        f"{what}), without the comparison or refinement the run had left"
+    )
+    sol = _assemble(
+        ocp,
+        best,
+        degree,
+        mesh,
+        sequence,
+        monitor.tried,
+        monitor.perturbation,
+        time.perf_counter() - t_start,
+    )
+    sol.info["stopped"] = why
+    return sol.set_status(Status.NOT_CONVERGED, message)
 
 
 def _summary_lines(sol: Solution) -> list[tuple[str, str]]:
@@ -1334,15 +1557,144 @@ def _solve_dt(
     else:
         observed = seq_from_initial or [ocp.guards[e.guard].name for e in guess.events]
         cands, skipped = _admissible_candidates(ocp, _candidates(observed))
+    monitor.perturbation = perturbation
     results, tried = _solve_candidates(ocp, cands, guess, u0, degree, mesh, verbose, monitor)
     tried += skipped
     matched, differ = _judge_candidates(
         ocp, results, tried, mesh, verbose, monitor.progress, terminal_tol
     )
     best_j, status, message = _choose(ocp, matched, differ, tried)
+    status, message = _claim(ocp, best_j, status, message, sequence, cands, mesh)
+    cheaper = _cheaper_known(ocp, best_j, guess, initial, differ)
+    if cheaper is not None:
+        what = (
+            f"{cheaper['source']} costs {cheaper['cost']:.10g} (judged; events "
+            f"{cheaper['sequence']}), less than this result's {best_j.ev.cost:.10g}"  # type: ignore[union-attr]
+        )
+        if status in (Status.SUCCESS, Status.EXTREMAL, Status.BEST_FOUND):
+            status = Status.NOT_OPTIMAL
+            message = (
+                f"{what}: a cheaper control is known, so this is not the optimum; try "
+                "--initial with that control, another --sequence, or --method reference"
+            )
+        else:
+            message = f"{message}; {what}" if message else what
     solve_time = time.perf_counter() - t_start
     sol = _assemble(ocp, best_j, degree, mesh, sequence, tried, perturbation, solve_time)
+    if best_j.estimate is not None:
+        sol.info["error_estimate"] = _jsonable_estimate(best_j.estimate)
+    sol.info["nudge"] = float(best_j.nudge)
+    sol.info["cheaper"] = cheaper
     return sol.set_status(status, message)
+
+
+def _claim(
+    ocp: HybridOCP,
+    j: _Judged,
+    status: Status,
+    message: str,
+    sequence: list[str] | None,
+    cands: list[list[str]],
+    mesh: Any,
+) -> tuple[Status, str]:
+    """What a feasible candidate that reproduces its events may claim (module notes of
+    :func:`solve_dt`, "Statuses"): ``not-converged`` when the default mesh's refinement
+    stopped before its error estimate met the tolerances; ``extremal`` for a given
+    sequence; ``best-found`` when the discovery did not compare every sequence the problem
+    admits (any problem with a guard); ``success`` otherwise (no guard: the only sequence
+    is the empty one). Other statuses pass unchanged."""
+    if status is not Status.SUCCESS:
+        return status, message
+    est = j.estimate
+    if est is not None and not est["converged"]:
+        text = _estimate_text(est)
+        if mesh is None:
+            return Status.NOT_CONVERGED, (
+                f"the error estimate is above the tolerance: {text}; the refinement stopped "
+                f"at {est.get('stopped', 'its bound')} (try --degree 5, a --time-limit, or "
+                "a --mesh of your own; the judged cost is that of the returned control)"
+            )
+        note = f"at the given --mesh the error estimate is above the tolerance: {text}"
+    else:
+        note = ""
+    if sequence is not None:
+        status, message = (
+            Status.EXTREMAL,
+            (
+                f"the transcription's optimum for the given sequence {_short_sequence(sequence)}, "
+                "not compared with other sequences (without --sequence dt compares its initial "
+                "guess's sequences; --method reference searches for the optimum)"
+            ),
+        )
+    elif ocp.guards:
+        shown = ", ".join(_short_sequence(c) for c in cands[:4])
+        more = f" and {len(cands) - 4} more" if len(cands) > 4 else ""
+        status, message = (
+            Status.BEST_FOUND,
+            (
+                f"the best of the {len(cands)} event sequence(s) compared ({shown}{more}: the "
+                "initial guess's and those with one of its events dropped); other sequences were "
+                "not compared, so a cheaper control may exist (--method reference searches for "
+                "the optimum; --initial or --sequence start dt elsewhere)"
+            ),
+        )
+    if note:
+        message = f"{message}; {note}" if message else note
+    return status, message
+
+
+def _cheaper_known(
+    ocp: HybridOCP, j: _Judged, guess: Evaluation, initial: Any, differ: list[_Judged]
+) -> dict[str, Any] | None:
+    """The cheapest feasible control dt knows that costs less than ``j``'s (judged, by more
+    than ``1e-9`` relative), or ``None``: the initial guess (as simulated), an initial
+    Solution's own control, and the controls of candidates whose re-simulation gave other
+    events. Feasible: within the bounds, the path and the terminal constraints (and the
+    required final mode) by dt's tolerances; a cheaper control that violates them is no
+    rival."""
+    assert j.ev is not None
+
+    def feasible(ev: Evaluation) -> bool:
+        return _Judged(j.result, ev, terminal_tol=j.terminal_tol).feasible
+
+    known: list[dict[str, Any]] = []
+    is_solution = isinstance(initial, Solution)
+    if feasible(guess):
+        known.append(
+            {
+                "source": "the initial solution's controls on the grid"
+                if is_solution
+                else "the initial guess",
+                "cost": float(guess.cost),
+                "sequence": _resimulated_names(ocp, guess),
+            }
+        )
+    if is_solution:
+        try:
+            own = evaluate(ocp, initial)
+        except HybridocError:
+            own = None
+        if own is not None and feasible(own):
+            known.append(
+                {
+                    "source": f"the initial solution ({initial.method})",
+                    "cost": float(own.cost),
+                    "sequence": _resimulated_names(ocp, own),
+                }
+            )
+    for d in differ:
+        if d.ev is not None and d.feasible:
+            known.append(
+                {
+                    "source": f"the transcription's control for "
+                    f"{_short_sequence(d.result.sequence)} (re-simulated to other events)",
+                    "cost": float(d.ev.cost),
+                    "sequence": _resimulated_names(ocp, d.ev),
+                }
+            )
+    bound = float(j.ev.cost) * (1 - _CHEAPER_RTOL) - 1e-15
+    cheaper = [k for k in known if k["cost"] < bound]
+    return min(cheaper, key=lambda k: k["cost"]) if cheaper else None
 
 
 def _solve_candidates(
@@ -1358,7 +1710,7 @@ def _solve_candidates(
     """The NLP of each candidate sequence solved from the guess: the converged results, and
     a record of every candidate tried."""
     results: list[DTResult] = []
-    tried: list[dict[str, Any]] = []
+    tried: list[dict[str, Any]] = monitor.tried
     names = [g.name for g in ocp.guards]
     for i, cand in enumerate(cands):
         if monitor.expired():
@@ -1390,11 +1742,16 @@ def _solve_candidates(
 
 
 def _judge(ocp: HybridOCP, r: DTResult, terminal_tol: float = TERMINAL_TOL) -> _Judged:
-    """``r`` with the judge's re-simulation of its control (or the reason it failed)."""
+    """``r`` with the judge's re-simulation of its control (or the reason it failed); the
+    run in progress keeps it (what a stopped run returns)."""
     try:
-        return _Judged(r, _resimulate(ocp, r), terminal_tol=terminal_tol)
+        j = _Judged(r, _resimulate(ocp, r), terminal_tol=terminal_tol)
     except EvaluationError as exc:
-        return _Judged(r, None, str(exc), terminal_tol=terminal_tol)
+        j = _Judged(r, None, str(exc), terminal_tol=terminal_tol)
+    monitor = _MONITOR.get()
+    if monitor is not None:
+        monitor.judged.append(j)
+    return j
 
 
 def _refine_terminal(
@@ -1442,10 +1799,22 @@ def _judge_or_refine(
     terminal constraints (:func:`_refine_terminal`)."""
     j = _judge(ocp, r, terminal_tol)
     ok = j.ev is not None and _sequence_matches(ocp, r, j.ev)
-    if ok and mesh is None and ocp.has_terminal_constraints:
-        j, refined = _refine_terminal(ocp, j, verbose, progress)
-        return j, ok, refined
-    if ok or mesh is not None or j.ev is None:
+    if not ok and j.ev is not None:
+        # missed by a hair where the next phase's control stops the approach: judged again
+        # with the approaching control extended past the event
+        nudged = _nudge(ocp, r, terminal_tol)
+        if nudged is not None:
+            j, ok = nudged[0], True
+    if ok and mesh is None:
+        refined = False
+        if ocp.has_terminal_constraints:
+            j, refined = _refine_terminal(ocp, j, verbose, progress)
+        j, adapted = _adapt(ocp, j, verbose, progress)
+        return j, ok, refined or adapted
+    if ok:  # the user's mesh: its error estimate is reported, not acted on
+        j.estimate = _error_estimate(ocp, j)
+        return j, ok, False
+    if mesh is not None or j.ev is None:
         return j, ok, False
     gap = _event_time_gap(ocp, r, j.ev)
     if gap is None or not gap <= _NEAR_MISS * ocp.horizon:
@@ -1472,7 +1841,155 @@ def _judge_or_refine(
     ok_f = _sequence_matches(ocp, best.result, best.ev)
     if ok_f and ocp.has_terminal_constraints:
         best = _refine_terminal(ocp, best, verbose, progress)[0]
+    if ok_f:
+        best = _adapt(ocp, best, verbose, progress)[0]
     return best, ok_f, True
+
+
+def _defects(ocp: HybridOCP, r: DTResult) -> list[float]:
+    """Per phase, the largest collocation defect between the collocation points:
+    ``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of
+    every element (``x`` the state polynomial, ``u`` the control polynomial clipped into the
+    bounds), each state relative to ``max(1, max |x_i|)`` on the phase. The NLP makes the
+    defect zero at the collocation points only; between them it is the local error of one
+    element, which shrinks as ``h^(d+1)`` where the solution is smooth."""
+    nlp = r._nlp
+    d, rad = nlp.d, nlp.rad
+    mids = 0.5 * (rad.tau[:-1] + rad.tau[1:])
+    bx = _lagrange_basis(rad.tau, mids)  # (d, d + 1)
+    dbx = np.zeros_like(bx)
+    for j in range(d + 1):
+        others = np.delete(rad.tau, j)
+        poly = np.poly1d(others, r=True) / np.prod(rad.tau[j] - others)
+        dbx[:, j] = np.polyder(poly)(mids)
+    bu = _lagrange_basis(rad.tau[1:], mids)  # (d, d)
+    lo = np.asarray(ocp.u_min, dtype=float)[:, None]
+    hi = np.asarray(ocp.u_max, dtype=float)[:, None]
+    h = np.diff(np.concatenate([[0.0], r.event_times, [r.horizon]]))
+    f = ocp.f.map(d)
+    out = []
+    for k in range(nlp.P):
+        M = nlp.mesh[k]
+        he = h[k] / M
+        X, U = r.states[k], r.controls[k]
+        scale = np.maximum(1.0, np.max(np.abs(X), axis=1))
+        worst = 0.0
+        for e in range(M):
+            Xe, Ue = X[:, e * d : e * d + d + 1], U[:, e * d : e * d + d]
+            xm = Xe @ bx.T
+            fm = np.asarray(f(xm, np.clip(Ue @ bu.T, lo, hi)), dtype=float)
+            dev = np.abs(Xe @ dbx.T - he * fm) / scale[:, None]
+            worst = max(worst, float(np.max(dev, initial=0.0)))
+        out.append(worst)
+    return out
+
+
+def _error_estimate(
+    ocp: HybridOCP, j: _Judged, previous_cost: float | None = None
+) -> dict[str, Any]:
+    """The error estimate of a judged candidate that reproduces its events: what the default
+    mesh's refinement acts on (:data:`REFINE_RTOL`, :data:`DEFECT_TOL`).
+
+    Returns
+    -------
+    dict
+        ``cost_gap``: ``|judged cost - NLP objective| / max(1, |J|)``; ``refinement_change``:
+        the same of the judged costs of this mesh and the previous one (``None`` before a
+        refinement); ``defects``: :func:`_defects` per phase; ``event_time_gap``: the
+        largest gap between modelled and re-simulated event times; ``phases``: the phases
+        whose defect is above :data:`DEFECT_TOL`; ``converged``: all within tolerance.
+    """
+    r, ev = j.result, j.ev
+    assert ev is not None
+    scale = max(1.0, abs(float(ev.cost)))
+    gap = abs(float(ev.cost) - r.nlp_cost) / scale
+    change = None if previous_cost is None else abs(float(ev.cost) - previous_cost) / scale
+    defects = _defects(ocp, r)
+    phases = [k for k, x in enumerate(defects) if not x <= DEFECT_TOL]
+    time_gap = _event_time_gap(ocp, r, ev)
+    converged = gap <= REFINE_RTOL and (change is None or change <= REFINE_RTOL) and not phases
+    return {
+        "cost_gap": gap,
+        "refinement_change": change,
+        "defects": defects,
+        "event_time_gap": time_gap,
+        "phases": phases,
+        "converged": bool(converged),
+        "mesh": list(r._nlp.mesh),
+    }
+
+
+def _estimate_text(est: dict[str, Any]) -> str:
+    """The error estimate for a message."""
+    parts = [f"judged cost vs NLP objective {est['cost_gap']:.2e} (relative)"]
+    if est.get("refinement_change") is not None:
+        parts.append(f"change from the previous mesh {est['refinement_change']:.2e}")
+    parts.append(f"largest collocation defect {max(est['defects'], default=0.0):.2e}")
+    return (
+        ", ".join(parts)
+        + f" at mesh {est['mesh']} (tolerances {REFINE_RTOL:g}, {REFINE_RTOL:g}, {DEFECT_TOL:g})"
+    )
+
+
+def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tuple[_Judged, bool]:
+    """Refine the mesh of a candidate that reproduces its events until its error estimate
+    (:func:`_error_estimate`) is within the tolerances, as hp-adaptive direct methods do:
+    the phases whose collocation defects are too large get twice the elements (every phase
+    when only the costs disagree), the refined NLP is solved from the coarse solution and
+    judged, and the estimate compares it with the previous mesh too. Stops at
+    :data:`MAX_ADAPTIVE_MESH` elements per phase, at :data:`MAX_NLP_SIZE`, or when a refined
+    NLP fails or its control no longer reproduces the events; ``j.estimate`` then says what
+    was not met (``stopped``). Returns the last candidate and whether it was refined."""
+    refined = False
+    previous: float | None = None
+    while True:
+        est = _error_estimate(ocp, j, previous)
+        j.estimate = est
+        if est["converged"]:
+            return j, refined
+        mesh = j.result._nlp.mesh
+        phases = [
+            k for k in (est["phases"] or range(len(mesh))) if 2 * mesh[k] <= MAX_ADAPTIVE_MESH
+        ]
+        if not phases:
+            est["stopped"] = f"the mesh bound MAX_ADAPTIVE_MESH = {MAX_ADAPTIVE_MESH} per phase"
+            return j, refined
+        monitor = _MONITOR.get()
+        if monitor is not None and monitor.expired():
+            raise monitor.stop(f"while refining the mesh ({_estimate_text(est)})")
+        progress.stage(
+            f"refining phase(s) {phases} of the {len(j.result.sequence)}-event candidate: "
+            + _estimate_text(est)
+        )
+        try:
+            rf = _refined(ocp, j.result, verbose, phases)
+        except SceneError:
+            est["stopped"] = f"the NLP size bound MAX_NLP_SIZE = {MAX_NLP_SIZE}"
+            return j, refined
+        except ConvergenceError as exc:
+            est["stopped"] = f"IPOPT failed on the refined mesh ({exc})"
+            return j, refined
+        jf = _judge(ocp, rf, j.terminal_tol)
+        if jf.ev is None or not _sequence_matches(ocp, rf, jf.ev):
+            nudged = None if jf.ev is None else _nudge(ocp, rf, j.terminal_tol)
+            if nudged is None:
+                est["stopped"] = "the refined mesh's control does not reproduce the events"
+                return j, refined
+            jf = nudged[0]
+            jf.nudge = nudged[1]
+        assert j.ev is not None
+        previous = float(j.ev.cost)
+        j, refined = jf, True
+
+
+def _jsonable_estimate(est: dict[str, Any]) -> dict[str, Any]:
+    """An error estimate with plain floats and lists, for ``info``."""
+    out = dict(est)
+    out["defects"] = [float(x) for x in est["defects"]]
+    for key in ("cost_gap", "refinement_change", "event_time_gap"):
+        if out.get(key) is not None:
+            out[key] = float(out[key])
+    return out
 
 
 def _record(
@@ -1493,6 +2010,10 @@ def _record(
                 t["judged_cost"] = float(j.ev.cost)
                 t["terminal_violation"] = float(j.ev.terminal_violation)
                 t["mesh"] = list(j.result._nlp.mesh)
+            if j.nudge:
+                t["nudge"] = j.nudge
+            if j.estimate is not None:
+                t["error_estimate"] = _jsonable_estimate(j.estimate)
 
 
 def _judge_candidates(

@@ -250,7 +250,8 @@ def test_dt_reaches_the_independent_optimum_with_its_own_reset_control(tmp_path)
     best = fixed_restitution_optimum(E_HI)
     # the box minimum of lambda+^T g over r: the restitution at its upper bound is best
     assert best < fixed_restitution_optimum(0.85) < fixed_restitution_optimum(E_LO)
-    assert sol.success, sol.message
+    # the best of the guess's sequences: dt does not claim the global optimum
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert abs(sol.cost - best) <= 1e-9 * best
     np.testing.assert_allclose(sol.event_controls[:, 1], [1.0], atol=1e-8)
     assert sol.cost == hybridoc.evaluate(ocp, sol).cost  # the judge applies v_k, bit for bit

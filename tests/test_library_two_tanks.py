@@ -186,7 +186,8 @@ def test_reference_on_the_optimal_sequence(opt) -> None:
 
 def test_dt_with_no_option_agrees_to_its_mesh(opt) -> None:
     dt = hybridoc.solve("two-tanks", "dt")
-    assert dt.success, dt.message
+    # the best of the guess's sequences (dt compares no others): best-found (issue #29)
+    assert dt.status is hybridoc.Status.BEST_FOUND, dt.message
     assert dt.sequence == SEQ and dt.modes == MODES
     # cubic collocation on 4 intervals per grid cell: 6e-6 above the optimum, never below
     assert opt["cost"] * (1 - 1e-12) <= dt.cost <= opt["cost"] * (1 + 1e-5)

@@ -245,7 +245,8 @@ def offset_striker() -> tuple[hybridoc.Solution, hybridoc.Solution]:
 
 def test_offset_striker_reference_and_dt_agree(offset_striker: Any) -> None:
     ref, dt = offset_striker
-    assert ref.success and dt.success, (ref.message, dt.message)
+    assert ref.success, ref.message
+    assert dt.status is hybridoc.Status.BEST_FOUND, dt.message  # dt compares its guess's sequences
     assert ref.sequence == dt.sequence == ["striker|a", "striker|b"]
     assert ref.cost == pytest.approx(0.230452162318, abs=1e-11)
     assert abs(ref.cost - dt.cost) <= 1e-6
@@ -505,7 +506,12 @@ def test_blocker_reference_is_cheapest(blocker: dict[str, hybridoc.Solution]) ->
 def test_blocker_given_the_transcriptions_sequence(blocker: dict[str, hybridoc.Solution]) -> None:
     sc = _scene("blocker")
     dt = blocker["dt"]
-    assert dt.success and dt.sequence == ["striker|ball", "ball|blocker"]
+    # the best of the guess's sequences, not the optimum (the reference's three events are
+    # cheaper): dt says best-found, where it said success (issue #29)
+    assert dt.status is hybridoc.Status.BEST_FOUND and dt.sequence == [
+        "striker|ball",
+        "ball|blocker",
+    ]
     speeds = [e.approach_speed for e in hybridoc.evaluate(sc, dt.controls).events]
     assert max(speeds) < -0.5  # transversal impacts
     ref = hybridoc.solve(sc, "reference", sequence=dt.sequence, initial=dt)
