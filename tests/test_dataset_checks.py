@@ -61,11 +61,18 @@ M = 4
 def _columns(scene: Scene, samples: int, seed: int) -> dict[str, np.ndarray]:
     """The rows of a dataset of ``scene`` drawn with ``seed`` (placeholder results)."""
     draws = [scene.distribution.draw(scene, i, seed) for i in range(samples)]
-    nx, nu, n, k = 8, 2, 4, 1
+    x0 = np.array([d.initial_state() for d in draws], dtype=float)
+    return _rows(x0, np.array([d.targets() for d in draws], dtype=float), nu=2)
+
+
+def _rows(x0: np.ndarray, targets: np.ndarray, nu: int) -> dict[str, np.ndarray]:
+    """A dataset's columns for these initial states and targets (placeholder results)."""
+    samples, nx = x0.shape
+    n, k = 4, 1
     cols: dict[str, np.ndarray] = {
         "index": np.arange(samples),
-        "x0": np.array([d.initial_state() for d in draws], dtype=float),
-        "targets": np.array([d.targets() for d in draws], dtype=float),
+        "x0": x0,
+        "targets": targets,
         "status": np.array(["success"] * samples),
         "method": np.array(["warm"] * samples),
         "message": np.array([""] * samples),
@@ -104,16 +111,7 @@ def _write(out: Path, cols: dict[str, np.ndarray], manifest: dict[str, Any]) -> 
 
 
 def _manifest(scene: Scene, samples: int, seed: int) -> dict[str, Any]:
-    return {
-        "format": FORMAT,
-        "complete": True,
-        "settings": dsmod._settings(scene, samples, seed, 1e-10, False),
-        "nominal": None,
-        "versions": {"hybridoc": "test"},
-        "counts": {"success": samples},
-        "methods": {"warm": samples},
-        "last_run": {"engine": "serial", "workers": 1, "wall_time_s": 0.5},
-    }
+    return _manifest_of(dsmod._settings(scene, samples, seed, 1e-10, False), samples)
 
 
 @pytest.fixture(scope="module")
@@ -280,3 +278,61 @@ def test_dataset_rerun_refuses_an_edited_complete_dataset(
         "five": "'settings.samples' must be an integer",
     }[edit]
     assert line.startswith("hybridoc: error:") and want in line, line
+
+
+# ---------------------------------------------------------------------------- a Python distribution
+
+
+def _spread(rng: np.random.Generator, m: int) -> np.ndarray:
+    return np.array([1.0, 0.0]) + rng.uniform(-0.05, 0.05, (m, 2))
+
+
+@pytest.fixture(scope="module")
+def ball() -> Any:
+    import hybridoc
+
+    return hybridoc.as_ocp("bouncing-ball").replace(name="ball-dist", distribution=_spread)
+
+
+def _problem_dataset(out: Path, ball: Any, x0: np.ndarray, recorded: np.ndarray) -> None:
+    """A dataset of ``ball`` whose rows hold ``x0`` and whose settings record ``recorded``."""
+    manifest = _manifest_of(dsmod._settings(ball, len(x0), 0, 1e-10, False, recorded), len(x0))
+    _write(out, _rows(x0, np.zeros((len(x0), 0, 2)), nu=ball.nu), manifest)
+
+
+def _manifest_of(settings_: dict[str, Any], samples: int) -> dict[str, Any]:
+    return {
+        "format": FORMAT,
+        "complete": True,
+        "settings": settings_,
+        "nominal": None,
+        "versions": {"hybridoc": "test"},
+        "counts": {"success": samples},
+        "methods": {"warm": samples},
+        "last_run": {"engine": "serial", "workers": 1, "wall_time_s": 0.5},
+    }
+
+
+def test_a_python_distributions_rows_must_hash_to_the_record(tmp_path: Path, ball: Any) -> None:
+    x0 = dsmod.draw_initial_states(ball, M, 0)
+    _problem_dataset(tmp_path / "good", ball, x0, x0)
+    assert np.array_equal(load_dataset(tmp_path / "good")["x0"], x0)
+    moved = x0.copy()
+    moved[2, 0] += 0.1  # the data file rehashed, the settings' x0_sha256 left as it was
+    _problem_dataset(tmp_path / "moved", ball, moved, x0)
+    with pytest.raises(HybridocError, match="not the ones its manifest records"):
+        load_dataset(tmp_path / "moved")
+
+
+def test_validate_policy_checks_a_dataset_object_too(tmp_path: Path, scene: Scene) -> None:
+    from hybridoc.workflows.datasets import Dataset
+    from hybridoc.workflows.policies import validate_policy
+
+    cols = _columns(scene, M, 7)
+    _write(tmp_path / "ds", cols, _manifest(scene, M, 7))
+    ds = load_dataset(tmp_path / "ds")
+    ds.columns["x0"][3, 4] += 0.1  # edited in memory, after its load
+    moved = Dataset(ds.path, ds.columns, ds.manifest)
+    with pytest.raises(HybridocError, match="draw 3 differs by up to 0.1"):
+        validate_policy(scene, lambda t, s: np.zeros(2), 2, dataset=moved, workers=1,
+                        progress=False)  # fmt: skip

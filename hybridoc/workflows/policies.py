@@ -45,6 +45,8 @@ from hybridoc.workflows.datasets import (
     Dataset,
     check_count,
     check_dask,
+    check_draws,
+    check_manifest,
     distribution_problem,
     draw_context,
     draw_initial_states,
@@ -505,7 +507,12 @@ def _references(
             dataset_out = tmp.name
         ds = make_dataset(source, samples, dataset_out, seed=seed, progress=progress, **engine)
     else:
-        ds = dataset if hasattr(dataset, "columns") else load_dataset(dataset)
+        if hasattr(dataset, "columns"):  # a Dataset object: the checks of load_dataset too
+            check_manifest(dataset.manifest, f"the manifest of {str(dataset.path)!r}")
+            check_draws(dataset)
+            ds = dataset
+        else:
+            ds = load_dataset(dataset)
         _check_references(ds, source, seed, samples)
     ref = {k: v[:samples] for k, v in ds.columns.items()}
     ref_settings = dict(ds.manifest.get("settings", {}))
