@@ -57,6 +57,7 @@ The pieces of a run
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import math
 import numbers
@@ -275,6 +276,13 @@ class GDOptions:
         "terminal constraints: the augmented Lagrangian's outer iterations, at most (default 30)",
         parse=positive_int,
     )
+    time_limit: float | None = option(
+        None,
+        "stop after this much wall time and return the best iterate so far as not-converged "
+        "(judged; exit 2 in the CLI; default: no limit)",
+        parse=positive_float,
+        metavar="SECONDS",
+    )
 
 
 def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
@@ -475,6 +483,12 @@ def checked_options(ocp: HybridOCP, options: GDOptions) -> GDOptions:
         )
     if not _whole(o.terminal_iters, 1):
         raise SceneError(f"terminal_iters must be an integer >= 1, got {o.terminal_iters!r}")
+    if o.time_limit is not None and not _positive(o.time_limit):
+        raise SceneError(f"time_limit must be a positive number of seconds, got {o.time_limit!r}")
+    smoothing = o.smoothing
+    if smoothing is None:
+        smoothing = DEFAULT_SMOOTHING if o.optimizer == "lbfgs" else ()
+    _check_memory(ocp, o.starts, iters, o.hops, smoothing, o.terminal_iters)
     return dataclasses.replace(
         o, contact=model, toi=None, integrator=integrator, iters=int(iters), lr=float(lr),
         smoothing=_checked_smoothing(o.smoothing), starts=int(o.starts), hops=int(o.hops),
@@ -516,6 +530,7 @@ def solve_gd(
     terminal_tol: float = 1e-8,
     terminal_rho: float = 10.0,
     terminal_iters: int = 30,
+    time_limit: float | None = None,
 ) -> Solution:
     """Minimise the discrete objective by gradient descent through the simulation.
 
@@ -593,6 +608,12 @@ def solve_gd(
         Problems with terminal constraints or a free final time (module notes):
         the largest terminal violation the judge may find for a success, the augmented
         Lagrangian's initial penalty and its number of outer iterations at most.
+    time_limit
+        Seconds of wall time after which the run stops where it is (checked at every
+        evaluation of the loss) and returns its best iterate so far, judged, as
+        ``not-converged`` (``info["stopped"] = "time-limit"``); default: no limit. A
+        ``KeyboardInterrupt`` (Ctrl-C, SIGINT) does the same (``"interrupted"``); a second
+        one during the judging of that iterate propagates.
 
     Returns
     -------
@@ -610,7 +631,9 @@ def solve_gd(
     Raises
     ------
     hybridoc.errors.SceneError
-        For options out of range or that do not apply to the problem (one line).
+        For options out of range or that do not apply to the problem (one line), among them
+        sizes (``starts``, ``iters``, ``hops``) whose memory estimate exceeds
+        :func:`memory_limit`.
     """
     ocp = as_ocp(problem)
     opts = checked_options(
@@ -620,10 +643,213 @@ def solve_gd(
             smoothing=smoothing, iters=iters, lr=lr, starts=starts, seed=seed, hops=hops,
             callback=callback, path=path, max_step=max_step, path_weight=path_weight,
             terminal_tol=terminal_tol, terminal_rho=terminal_rho, terminal_iters=terminal_iters,
+            time_limit=time_limit,
         ),
     )  # fmt: skip
-    with progress_scope(progress, "gd") as meter:
-        return _dispatch(ocp, opts, initial, meter)
+    watch = _Watch(opts.time_limit)
+    token = _WATCH.set(watch)
+    try:
+        with progress_scope(progress, "gd") as meter:
+            try:
+                return _dispatch(ocp, opts, initial, meter)
+            except (_OutOfTime, KeyboardInterrupt) as exc:
+                why = "time-limit" if isinstance(exc, _OutOfTime) else "interrupted"
+                return _stopped_solution(ocp, opts, initial, watch, why)
+    finally:
+        _WATCH.reset(token)
+
+
+# ---------------------------------------------------------------------- limits
+class _OutOfTime(Exception):
+    """The run passed its ``time_limit``."""
+
+
+class _Watch:
+    """The time limit of one :func:`solve_gd` run and its best iterate so far, which a stop
+    at the limit or by an interrupt returns."""
+
+    def __init__(self, time_limit: float | None) -> None:
+        self.t0 = time.perf_counter()
+        self.time_limit = time_limit
+        self.deadline = None if time_limit is None else self.t0 + time_limit
+        self.loss = math.inf
+        self.u: np.ndarray | None = None
+        self.horizon: float | None = None
+        self.evaluations = 0
+        self.iterations = 0  # of the optimisers that report them (not the batched ones)
+        self.history: list[float] = []
+
+    def check(self) -> None:
+        """Raise :class:`_OutOfTime` past the deadline."""
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            raise _OutOfTime
+
+    def offer(self, loss: float, u: np.ndarray, horizon: float | None = None, *,
+              latest: bool = False) -> None:  # fmt: skip
+        """An iterate of the problem's grid and its loss (without smoothing penalties):
+        kept when it is the lowest so far, or always (``latest``: the augmented
+        Lagrangian's, whose lower values may be infeasible)."""
+        self.evaluations += 1
+        if math.isfinite(loss) and (latest or loss < self.loss):
+            self.loss, self.u, self.horizon = float(loss), np.array(u, dtype=float), horizon
+            self.history.append(float(loss))
+
+
+_WATCH: contextvars.ContextVar[_Watch | None] = contextvars.ContextVar("gd_watch", default=None)
+
+
+def _watch() -> _Watch | None:
+    return _WATCH.get()
+
+
+def _stopped_solution(
+    ocp: HybridOCP, opts: GDOptions, initial: Any, watch: _Watch, why: str
+) -> Solution:
+    """The best iterate of a run stopped at its time limit or by an interrupt, judged, as
+    ``not-converged``."""
+    elapsed = time.perf_counter() - watch.t0
+    if why == "time-limit":
+        head = f"stopped at the time limit of {watch.time_limit:g} s"
+    else:
+        head = f"interrupted after {elapsed:.3g} s"
+    if watch.u is None:
+        u, horizon = _initial(ocp, initial), None
+        if ocp.has_bounds:
+            u = np.clip(u, ocp.u_min, ocp.u_max)
+        text = f"{head}, before the first iterate: the controls are the initial guess"
+    else:
+        u, horizon = watch.u, watch.horizon
+        hint = "raise the time limit" if why == "time-limit" else "let it run"
+        text = (
+            f"{head}: returning the best iterate so far (discrete loss {watch.loss:.10g}, "
+            f"after {watch.iterations} iteration(s)); {hint} to converge"
+        )
+    judged = ocp.replace(horizon=horizon) if horizon is not None and ocp.free_horizon else ocp
+    ev = evaluate(judged, u)
+    info: dict[str, Any] = {
+        "loss": watch.loss if watch.u is not None else float("nan"),
+        "iterations": watch.iterations,
+        "loss_evaluations": watch.evaluations,
+        "nan_stop": False,
+        "diverged": False,
+        "converged": False,
+        "message": text,
+        "stopped": why,
+    }
+    if horizon is not None and ocp.free_horizon:
+        info["horizon"] = float(horizon)
+    sol = Solution.from_evaluation(
+        ev,
+        method="gd",
+        scene=ocp.name,
+        settings={**_settings(ocp, opts, opts.path), "time_limit": opts.time_limit},
+        timings={"solve_time_s": elapsed, "optimization_time_s": elapsed},
+        info=info,
+        arrays={"loss_history": np.array(watch.history, dtype=float)},
+    )
+    return sol.set_status(Status.NOT_CONVERGED, text)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (``MemAvailable`` of /proc/meminfo,
+    else the free physical pages); ``None`` where neither can be read."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import os
+
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_AVPHYS_PAGES"))
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+MEMORY_FRACTION = 0.5
+"""The share of the available memory (:func:`available_memory`) that the memory estimate
+of a run's sizes may take (:func:`memory_limit`)."""
+
+
+def memory_limit() -> int | None:
+    """The bytes a run's sizes may take: :data:`MEMORY_FRACTION` of the available memory,
+    or the ``HYBRIDOC_MEMORY_LIMIT`` environment variable (bytes) where set."""
+    import os
+
+    env = os.environ.get("HYBRIDOC_MEMORY_LIMIT", "").strip()
+    if env:
+        try:
+            return int(float(env))
+        except ValueError:
+            raise SceneError(
+                f"HYBRIDOC_MEMORY_LIMIT must be a number of bytes, got {env!r}"
+            ) from None
+    avail = available_memory()
+    return None if avail is None else int(MEMORY_FRACTION * avail)
+
+
+#: bytes per stored float in a Python list (a pointer and a float object)
+_LIST_FLOAT = 32
+
+
+def _size_estimates(
+    ocp: HybridOCP, starts: int, iters: int, hops: int, smoothing: Any, terminal_iters: int
+) -> list[tuple[str, int, int, str]]:
+    """``(argument, value, bytes, per-unit text)`` of each size argument of a run: what its
+    value allocates at least (``smoothing``: the continuation's weights, resolved).
+
+    - ``starts``: each start of the multi-start holds its starting controls on the
+      problem's grid (twice: the pool and its stack), on the coarse grid of at most
+      :data:`MULTISTART_STEPS` steps its iterate, the batched L-BFGS's 20 curvature pairs,
+      trial points and gradients (48 arrays in all) and the rollout's states and adjoints
+      (6 per state and step), in float64, and its row of the report (1 KiB);
+    - ``iters``: the loss history, a float per iteration and stage;
+    - ``hops``: a record per round and the batch of :data:`HOP_BATCH` perturbations;
+    - ``terminal_iters``: a record per outer iteration.
+    """
+    coarse = min(ocp.steps, MULTISTART_STEPS)
+    per_start = 16 * ocp.steps * ocp.nu + 8 * coarse * (48 * ocp.nu + 6 * ocp.nx) + 1024
+    stages = 1 + len(tuple(smoothing or ()))
+    return [
+        ("starts", starts, starts * per_start, f"{_fmt_bytes(per_start)} per start"),
+        ("iters", iters, iters * stages * _LIST_FLOAT,
+         f"{_LIST_FLOAT} B per iteration of each of {stages} stage(s)"),
+        ("hops", hops, hops * 512, "512 B per round"),
+        ("terminal_iters", terminal_iters, terminal_iters * 512, "512 B per outer iteration"),
+    ]  # fmt: skip
+
+
+def _fmt_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.3g} PiB"  # pragma: no cover
+
+
+def _check_memory(
+    ocp: HybridOCP, starts: Any, iters: Any, hops: Any, smoothing: Any, terminal_iters: Any
+) -> None:
+    """Refuse sizes whose memory estimate (:func:`_size_estimates`) passes
+    :func:`memory_limit` (a :class:`SceneError` naming the argument, the estimate and the
+    limit); ``HYBRIDOC_MEMORY_LIMIT`` overrides the limit."""
+    if not all(_whole(v, 0) for v in (starts, iters, hops, terminal_iters)):
+        return  # the range checks report those
+    limit = memory_limit()
+    if limit is None:
+        return
+    for name, value, need, unit in _size_estimates(
+        ocp, starts, iters, hops, _checked_smoothing(smoothing), terminal_iters
+    ):
+        if need > limit:
+            raise SceneError(
+                f"{name}={value} would need about {_fmt_bytes(need)} of memory ({unit}), above "
+                f"the limit of {_fmt_bytes(limit)} (half the memory available; "
+                "HYBRIDOC_MEMORY_LIMIT=bytes sets another): use a smaller "
+                f"{name.replace('_', '-')}"
+            )
 
 
 def _dispatch(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progress) -> Solution:
@@ -962,8 +1188,15 @@ def _hop(
     if ocp.has_bounds:
         lower, upper = ocp.u_min, ocp.u_max
 
+    watch = _watch()
+
     def vg(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if watch is not None:
+            watch.check()
         J, gU, _ = loss_obj.value_and_grad_batch(U)
+        if watch is not None and len(J):
+            b = int(np.argmin(np.where(np.isfinite(J), J, np.inf)))
+            watch.offer(float(J[b]), U[b])
         return J / dt, gU / dt  # the batched L-BFGS's scaling, as in the multi-start
 
     x = np.array(base.controls, dtype=float)
@@ -1057,10 +1290,15 @@ def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution
     coarse = min(ocp.steps, MULTISTART_STEPS)
     rows: list[dict[str, Any]] = []
     progress.stage(f"multi-start: {opts.starts} starts on {coarse} steps")
+    watch = _watch()
     found = explore(
         ocp, opts.starts, seed=opts.seed, steps=coarse, iters=MULTISTART_ITERS, report=rows,
-        loss_for=exploration_loss,
+        loss_for=exploration_loss, deadline=None if watch is None else watch.deadline,
     )  # fmt: skip
+    if watch is not None:
+        for r in found:  # judged on the problem's grid: the exact loss is the judged cost
+            watch.offer(float(r["cost"]), r["controls"])
+        watch.check()
     t_explore = time.perf_counter() - t0
     single = dataclasses.replace(opts, starts=1)
     # the batched phase has found the basin: one light smoothing stage for the kinks
@@ -1136,6 +1374,7 @@ class _Run:
         self.scale = 1.0
         self.best: dict[str, Any] = {"loss": math.inf, "u": None}
         self.last: tuple[np.ndarray, float] | None = None
+        self.watch = _watch()
         if hasattr(loss_obj, "value_and_grad"):
             self.loss_grad: Callable[[np.ndarray], tuple[float, np.ndarray]] = lambda u: (
                 loss_obj.value_and_grad(u)[:2]
@@ -1147,10 +1386,14 @@ class _Run:
         """The objective (with the smoothing and path penalties) of controls ``u`` and its
         gradient; keeps the best and the last evaluation."""
         self.n_evals += 1
+        if self.watch is not None:
+            self.watch.check()
         if not np.isfinite(u).all():
             raise _NonFinite("the controls became NaN or infinite")
         value, grad = self.loss_grad(u)
         value = float(value)
+        if self.watch is not None:
+            self.watch.offer(value, u)
         if self.penalty:
             dt = self.ocp.dt
             diff = u[1:] - u[:-1]
@@ -1183,6 +1426,8 @@ class _Run:
         """Iteration ``k`` is done: count it, call the callback; whether the callback stops."""
         # the iteration limit is no total (a stage stops at convergence): no bar to it
         self.progress.count(k, None, f"iterations, loss {loss:.6g}")
+        if self.watch is not None:
+            self.watch.iterations += 1
         return self.callback is not None and bool(self.callback(k, loss, controls()))
 
     def optimise(self, u0: np.ndarray) -> _Result:
@@ -1407,6 +1652,7 @@ class _Augmented:
         self.iterations = 0
         self.history: list[float] = []
         self.marks: list[list[Any]] = []  # [start in history, name] of each stage
+        self.watch = _watch()
 
     def pack(self, u: np.ndarray, T: float) -> np.ndarray:
         z = [(T - self.T0) / self.sz] if self.free else []
@@ -1427,10 +1673,14 @@ class _Augmented:
 
     def fun(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         self.n_evals += 1
+        if self.watch is not None:
+            self.watch.check()
         if not np.isfinite(x).all():
             raise _NonFinite("the controls or the final time became NaN or infinite")
         u, T = self.unpack(x)
         J, A, _, gU, gT = self.loss.evaluate(u, T, self.nu, self.mu, self.rho)
+        if self.watch is not None:  # the latest: a lower J may violate the constraints
+            self.watch.offer(float(J), u, T, latest=True)
         value = J + A
         if self.penalty:
             diff = u[1:] - u[:-1]
@@ -1454,6 +1704,8 @@ class _Augmented:
 
         def cb(x: np.ndarray) -> None:
             self.iterations += 1
+            if self.watch is not None:
+                self.watch.iterations += 1
             u, _ = self.unpack(x)
             value = self.fun(x)[0] * self.dt0
             self.history.append(value)
