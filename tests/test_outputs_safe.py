@@ -342,3 +342,23 @@ def test_a_link_at_a_datasets_file_is_refused(tmp_path: Path, outside: Path, sce
                     "--no-progress", "--out", str(out)])  # fmt: skip
     assert done.returncode == 2
     assert outside.read_bytes() == PRECIOUS
+
+
+def test_writers_in_one_folder_take_turns_on_the_record(tmp_path: Path) -> None:
+    # each write reads, extends and replaces the folder's record under its flock: writers
+    # side by side lose no entry, so every file stays replaceable by hybridoc
+    import threading
+
+    def writer(k: int) -> None:
+        for j in range(5):
+            outputs.write_bytes(tmp_path / f"w{k}-{j}.bin", bytes([k, j]))
+
+    threads = [threading.Thread(target=writer, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k in range(8):
+        for j in range(5):
+            outputs.write_bytes(tmp_path / f"w{k}-{j}.bin", b"again")  # recorded: replaced
+    assert len(list(tmp_path.glob("w*.bin"))) == 40
