@@ -223,7 +223,7 @@ def test_a_write_that_fails_at_the_end_still_prints_the_answer(
     def full(*args: object, **kwargs: object) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(outputs.os, "replace", full)
+    monkeypatch.setattr(outputs, "_replace", full)  # the rename of every output fails
     done = run_here(*["evaluate", "bouncing-ball", "--json", "--out", str(tmp_path)])
     assert done.returncode == 2
     import json
