@@ -37,8 +37,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
-import numpy as np
-
 from hybridoc.errors import HybridocError
 
 try:
@@ -203,6 +201,8 @@ _JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
 
 def _json_depth(raw: bytes) -> int:
     """The deepest nesting of ``[``/``{`` in JSON text, outside strings (no recursion)."""
+    import numpy as np  # here: the command line's parser imports this module, not numpy
+
     skeleton = np.frombuffer(_JSON_STRING.sub(b'""', raw), dtype=np.uint8)
     steps = np.zeros(skeleton.shape, dtype=np.int64)
     steps[(skeleton == ord("[")) | (skeleton == ord("{"))] = 1
