@@ -134,7 +134,8 @@ scenes have aimed starts, hence more of them."""
 
 GD_HOPS = 8
 """Hops (batched restarts, :func:`solve_gd`) of gradient descent in cross-validation on the
-paper's symplectic Euler objective, whose kinks stall a plain descent."""
+paper's symplectic Euler objective, whose kinks (a contact moving to another step) stall a
+plain descent and are not taken past by :func:`_past_kinks` (exact integrator only)."""
 
 DISCRETE_TOLERANCE = 1e-6
 """Relative gap of gd's discrete loss to the optimum of its own discrete objective within
@@ -234,8 +235,9 @@ class GDOptions:
     )
     hops: int = option(
         0,
-        "up to K rounds of batched restarts around the result, to get past the kinks of the "
-        "symplectic Euler loss (default 0)",
+        "up to K rounds of batched restarts around the result, to leave a shallow local "
+        "minimum or a kink where the descent stalled (any loss with a batched compiled "
+        "rollout; default 0)",
         parse=nonnegative_int,
         metavar="K",
     )
@@ -584,9 +586,11 @@ def solve_gd(
     seed
         Seed of the random starts (and of the hops' perturbations).
     hops
-        Batched restarts after the descent, for losses with kinks (the symplectic Euler
-        loss kinks wherever a contact moves to another step, and gradient descent stalls at
-        a kink that is not a minimum, or in a shallow local minimum beside a lower one): in
+        Batched restarts after the descent, for losses with kinks and shallow local minima
+        (any loss kinks where an event crosses a grid time, the symplectic Euler loss
+        wherever a contact moves to another step, and gradient descent stalls at a kink that
+        is not a minimum, or in a shallow local minimum beside a lower one; on the exact
+        integrator a converged descent is taken past its kinks anyway, see Returns): in
         each round, :data:`HOP_BATCH` perturbations of the best control, at sizes spread
         geometrically from 1e-3 to 1 of its largest value, descend together by the batched
         L-BFGS of :mod:`hybridoc.solvers.multistart`; the lowest replaces the best when it is
@@ -625,8 +629,18 @@ def solve_gd(
         L-BFGS could make no further progress, or the loss stalled, to :data:`STALL_RTOL`
         over :func:`stall_window` iterations, at the iteration limit), ``not-converged``
         (the iteration limit without meeting it, ``iters=0``, a stop by the callback, a
-        non-finite or rising loss) or ``infeasible``. ``settings`` holds the contact model's
-        own (:meth:`~hybridoc.solvers.contacts.ContactModel.settings`) and the run's.
+        non-finite or rising loss, a stall at a kink, ``time_limit`` or an interrupt) or
+        ``infeasible``. Kinks: with the exact integrator and unbounded controls, a converged
+        descent with an event within :data:`KINK_BAND` of a step of a grid time is taken on
+        by a nonsmooth BFGS (:func:`_past_kinks`), and ``success`` needs its certificate
+        (:data:`KINK_GTOL`); otherwise the status is ``not-converged``, "stalled at a kink:
+        event k pinned at grid time t_j", and ``info["kinks"]`` holds the events near grid
+        times, the certificate and the iterations. ``info["stages"]`` (the smoothing stages)
+        and ``info["final_stage"]`` give each stage's iterations, loss evaluations and
+        optimisation time; ``iterations``, ``loss_evaluations``, ``ms_per_iteration`` and
+        ``timings["optimization_time_s"]`` are over all of them.
+        ``settings`` holds the contact model's own
+        (:meth:`~hybridoc.solvers.contacts.ContactModel.settings`) and the run's.
 
     Raises
     ------
@@ -909,7 +923,8 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
         u0 = stage.controls
         histories.append(stage.arrays["loss_history"])
         its += stage.info["iterations"]
-        stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost})
+        stages.append({"mu": mu, "loss": stage.info["loss"], "cost": stage.cost,
+                       **_stage_counts(stage)})  # fmt: skip
         # a stage need not converge (the next one starts from it), but NaN or a rising
         # loss ends the continuation
         if stage.info["nan_stop"] or stage.info["diverged"]:
@@ -917,7 +932,16 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
     progress.stage(f"stage {n} of {n}, descent ({opts.optimizer}) after smoothing")
     sol = _descend(ocp, opts, loss_obj, u0, settings, progress)
     sol.settings["smoothing"] = list(smoothing)
+    last = _stage_counts(sol)
+    # every count over all stages (issue #34: the evaluations and time were the last one's)
+    sol.info["final_stage"] = last
     sol.info["iterations"] += its
+    sol.info["loss_evaluations"] = last["loss_evaluations"] + sum(
+        st["loss_evaluations"] for st in stages)  # fmt: skip
+    sol.timings["optimization_time_s"] = last["optimization_time_s"] + sum(
+        st["optimization_time_s"] for st in stages)  # fmt: skip
+    sol.info["ms_per_iteration"] = 1e3 * sol.timings["optimization_time_s"] / max(
+        sol.info["iterations"], 1)  # fmt: skip
     sol.info["stages"] = stages
     sol.arrays["loss_history"] = np.concatenate(histories + [sol.arrays["loss_history"]])
     # where each stage starts in loss_history: the curve jumps there as the loss changes
@@ -926,6 +950,15 @@ def _continuation(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progr
     sol.info["history_stages"] = [[int(k), name] for k, name in zip(starts, names, strict=True)]
     sol.timings["solve_time_s"] = time.perf_counter() - t_start
     return sol
+
+
+def _stage_counts(sol: Solution) -> dict[str, Any]:
+    """The iterations, loss evaluations and optimisation time of one descent."""
+    return {
+        "iterations": int(sol.info["iterations"]),
+        "loss_evaluations": int(sol.info["loss_evaluations"]),
+        "optimization_time_s": float(sol.timings["optimization_time_s"]),
+    }
 
 
 def _descend(

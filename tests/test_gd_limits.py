@@ -38,9 +38,10 @@ def test_time_limit_returns_the_best_iterate_judged(kw):
 def test_time_limit_keeps_the_lowest_loss_seen():
     """The returned iterate has the lowest loss of the iterates the run went through."""
     ocp = thermostat(40)
+    gd.solve_gd(ocp, optimizer="adam", iters=1)  # the loss built (kept per structure)
     seen: list[float] = []
     sol = gd.solve_gd(
-        ocp, optimizer="adam", iters=10**7, time_limit=0.5,
+        ocp, optimizer="adam", iters=10**7, time_limit=1.0,
         callback=lambda k, loss, u: seen.append(loss),
     )  # fmt: skip
     assert sol.info["stopped"] == "time-limit"
@@ -138,3 +139,32 @@ def test_cli_time_limit_and_memory_refusal(tmp_path):
     assert res.returncode == 2
     (line,) = res.stderr.strip().splitlines()
     assert line.startswith("hybridoc: error: starts=1000000000 would need about ")
+
+
+def test_counts_are_over_every_stage(monkeypatch):
+    """Issue #34: ``iterations`` counted every stage but ``loss_evaluations`` and the
+    optimisation time only the last; now each stage has its own and the top level the
+    totals, ``loss_evaluations`` equal to the calls of the loss counted here."""
+    calls = {"n": 0}
+    real = gd.make_loss
+
+    class Counted:
+        def __init__(self, loss):
+            self.loss = loss
+
+        def __getattr__(self, name):
+            return getattr(self.loss, name)
+
+        def value_and_grad(self, u, x0=None):
+            calls["n"] += 1
+            return self.loss.value_and_grad(u, x0)
+
+    monkeypatch.setattr(gd, "make_loss", lambda *a, **k: (Counted(real(*a, **k)[0]), "compiled"))
+    sol = gd.solve_gd(thermostat(40))
+    stages = [*sol.info["stages"], sol.info["final_stage"]]
+    assert len(stages) == 4
+    assert sol.info["loss_evaluations"] == calls["n"] == sum(s["loss_evaluations"] for s in stages)
+    assert sol.info["iterations"] == sum(s["iterations"] for s in stages)
+    total = sum(s["optimization_time_s"] for s in stages)
+    assert sol.timings["optimization_time_s"] == pytest.approx(total, rel=1e-12)
+    assert all(s["loss_evaluations"] > 0 for s in stages)

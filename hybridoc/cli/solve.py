@@ -112,8 +112,14 @@ def cmd_solve(args: argparse.Namespace) -> int:
         print_solution(args, sol, ocp, method.summary_lines(sol))
         for p in written:
             say(args, f"wrote {p}")
-    # the result is out; the reason for a non-zero exit stays the last line on stderr
-    _finish_compilations()
+    # the result is out; the reason for a non-zero exit stays the last line on stderr. An
+    # interrupted run does not wait for compilations, and a Ctrl-C during the wait ends it
+    # (the compiler's process group is ended at exit: hybridoc.compiled)
+    if sol.info.get("stopped") != "interrupted":
+        try:
+            _finish_compilations()
+        except KeyboardInterrupt:
+            pass
     return exit_code(sol.status, sol.message)
 
 
