@@ -362,3 +362,56 @@ def test_writers_in_one_folder_take_turns_on_the_record(tmp_path: Path) -> None:
         for j in range(5):
             outputs.write_bytes(tmp_path / f"w{k}-{j}.bin", b"again")  # recorded: replaced
     assert len(list(tmp_path.glob("w*.bin"))) == 40
+
+
+def _writers() -> dict[str, tuple[str, object]]:
+    """Every library function that writes a file: (the file name, a call writing it)."""
+    import hybridoc
+    from hybridoc.io import save_controls
+    from hybridoc.plotting import save_figure
+    from hybridoc.workflows.policy_format import MLP, save_mlp_policy
+
+    def solution(p: Path) -> object:
+        from hybridoc.solution import Solution
+
+        ocp = hybridoc.as_ocp("bouncing-ball")
+        ev = hybridoc.evaluate(ocp, ocp.u_guess)
+        return Solution.from_evaluation(ev, method="evaluate", scene=ocp.name).save(p)
+
+    def figure(p: Path) -> object:
+        from matplotlib.figure import Figure
+
+        return save_figure(Figure(), p)
+
+    def policy(p: Path) -> object:
+        mlp = MLP((np.ones((2, 3)), np.ones((1, 2))), (np.zeros(2), np.zeros(1)))
+        return save_mlp_policy(mlp, p)
+
+    return {
+        "Solution.save": ("s.json", solution),
+        "save_controls npy": ("u.npy", lambda p: save_controls(p, np.zeros((4, 1)))),
+        "save_controls csv": ("u.csv", lambda p: save_controls(p, np.zeros((4, 1)))),
+        "save_figure": ("f.png", figure),
+        "save_mlp_policy": ("p.json", policy),
+    }
+
+
+@posix
+@pytest.mark.parametrize("writer", sorted(_writers()))
+def test_every_library_writer_follows_the_rules(tmp_path: Path, outside: Path, writer: str) -> None:
+    name, write = _writers()[writer]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / name).symlink_to(outside)
+    with pytest.raises(OutputRefused, match="symbolic link"):
+        write(out / name)
+    assert outside.read_bytes() == PRECIOUS and (out / name).is_symlink()
+    (out / name).unlink()
+    (out / name).write_bytes(PRECIOUS)
+    with pytest.raises(OutputRefused, match="not written by hybridoc"):
+        write(out / name)
+    assert (out / name).read_bytes() == PRECIOUS
+    (out / name).unlink()
+    write(out / name)
+    write(out / name)  # its own file: replaced
+    assert (out / name).read_bytes() != PRECIOUS
