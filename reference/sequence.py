@@ -35,6 +35,7 @@ from hybridoc.reference.sources import PhaseCostates, SequenceStarter
 
 __all__ = [
     "BOUND_SIGN_TOL",
+    "COST_FLOOR",
     "COST_RTOL",
     "JUDGE_RETRIES",
     "SCREEN_NLP_ITER",
@@ -51,6 +52,9 @@ __all__ = [
 COST_RTOL = DEFAULT_RTOL
 """The default relative agreement of the shooting cost and the judge's cost of the same
 control (``rtol``)."""
+COST_FLOOR = 1e-14
+"""Costs below this are zero to rounding: the judge's re-simulation must agree with the
+shooting cost to ``rtol`` relative, or to ``rtol * COST_FLOOR`` absolutely below it."""
 #: Constraint violation above which the search drops a sequence whose NLP failed.
 SCREEN_INFEASIBILITY = 1e-3
 #: IPOPT iterations of a disc scene's NLP when the search screens many sequences.
@@ -441,7 +445,9 @@ def _compare(
         return False, sim, msg, None, False
     if times.size and np.max(np.abs(times - res.event_times)) > 1e-7 * ocp.horizon:
         return False, sim, "re-simulated event times differ from the modelled ones", None, True
-    rel = abs(sim.cost - res.cost) / max(abs(res.cost), 1e-300)
+    # a cost that is zero to rounding (a ball left to bounce to its target: 5e-31 shot, 1e-28
+    # judged) has no relative accuracy: below COST_FLOOR the costs are compared absolutely
+    rel = abs(sim.cost - res.cost) / max(abs(res.cost), COST_FLOOR)
     viol = judged_violation(ocp, sim)
     if viol > TERMINAL_TOL:
         # the integration moved s(T): refined like a cost disagreement (judged_reference)

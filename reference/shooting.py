@@ -2148,11 +2148,14 @@ def newton(
         if not np.all(np.isfinite(dz)):
             break
         alpha = 1.0
-        n2 = float(R @ R)
+        with np.errstate(over="ignore"):  # a huge residual is a failed trial, not an error
+            n2 = float(R @ R)
         while True:
             zn = z + alpha * dz
             Rn, Jn = system.residual(zn)
-            if np.all(np.isfinite(Rn)) and float(Rn @ Rn) <= (1 - 1e-4 * alpha) * n2:
+            with np.errstate(over="ignore", invalid="ignore"):
+                ok = np.all(np.isfinite(Rn)) and float(Rn @ Rn) <= (1 - 1e-4 * alpha) * n2
+            if ok:
                 break
             alpha *= 0.5
             if alpha < min_step or norm <= tol:  # at rounding level: no line search

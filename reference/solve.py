@@ -574,6 +574,10 @@ class _Book:
     # perf_counter() time of the hard time limit (time_limit), and what stopped the search
     hard_deadline: float = math.inf
     stopped: str = ""
+    # the sequences the enumeration screened from the guess (_search_one)
+    screened: set[tuple[str, ...]] = field(default_factory=set)
+    # the given sequence (sequence=), whose verification error is the answer
+    seq_given: tuple[str, ...] | None = None
 
     def check_limit(self) -> None:
         """Raise :class:`_Stopped` once the hard time limit is reached."""
@@ -720,9 +724,15 @@ class _Book:
         if key not in self.verdicts:
             self.progress.stage(f"re-simulating the {len(key)}-event extremal with the judge")
             t0 = time.perf_counter()
-            res, ok, sim, msg = judged_reference(
-                self.results[key], rtol=self.rtol, tol=self.tol, verbose=self.verbose
-            )
+            try:
+                res, ok, sim, msg = judged_reference(
+                    self.results[key], rtol=self.rtol, tol=self.tol, verbose=self.verbose
+                )
+            except ConvergenceError as exc:
+                if self.seq_given == key:
+                    raise  # the given sequence's own answer: the error is the answer
+                # an extremal the judge cannot confirm is no answer; the search goes on
+                res, ok, sim, msg = self.results[key], False, None, str(exc)
             self.results[key] = res  # refined where the judge asked for it
             self.verify_time += time.perf_counter() - t0
             self.verdicts[key] = (ok, msg)
@@ -1141,6 +1151,7 @@ def _solve(ocp: HybridOCP, run: _Run, progress: Progress) -> Solution:
         ocp, run.tol, run.verbose, starters, run.rtol, progress=progress,
         deadline=min(run.t_start + run.budget, hard), hard_deadline=hard,
     )  # fmt: skip
+    book.seq_given = None if run.seq is None else tuple(run.seq)
     for s in run.starters:
         if s not in starters:
             book.say(f"warm start {s.name!r}: not used, {_lacks_reason(source_lacks(ocp, s))}")
@@ -1657,6 +1668,8 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
             break
     key = tuple(best.sequence)
     n = book.agreeing_starts(key)
+    if _convex(book.ocp, key) and n >= 1:
+        n = max(n, PROOF_STARTS)  # one extremal: the unique minimum
     if n < PROOF_STARTS:
         others = sorted(
             {f"{c:.10g}" for c in book.start_costs.get(key, ()) if c != best.cost}
@@ -1668,7 +1681,16 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
         )
     if why:
         return False, "; ".join(why)
+    if _convex(book.ocp, key):
+        return True, f"{covered}; its extremal is the unique minimum (no event: a convex problem)"
     return True, f"{covered}; its extremal reached from {n} starts of Newton"
+
+
+def _convex(ocp: HybridOCP, key: tuple[str, ...]) -> bool:
+    """Whether the sequence's problem has one extremal, its minimum, whatever the start: a
+    disc scene without events (double integrators, a quadratic cost, linear control bounds:
+    a strictly convex problem)."""
+    return not key and is_disc_scene(ocp) and ocp.path is None
 
 
 def _uncovered(run: _Run, book: _Book, length: int) -> str:
@@ -1697,10 +1719,12 @@ def _second_start(
     """The best sequence solved from other starts until :data:`PROOF_STARTS` of them reach
     its extremal (each start once): the known controls with its events (their costate
     estimates), then on a disc scene the NLP from evenly spread event times and no control,
-    elsewhere the warm starts and the zero costate from the guess. Returns the cheapest
-    verified extremal then (a start may find a cheaper one)."""
+    elsewhere the warm starts and the zero costate from the guess (unless the enumeration's
+    screen already started it so). A disc scene's no-event extremal needs none
+    (:func:`_convex`). Returns the cheapest verified extremal then (a start may find a
+    cheaper one)."""
     key = tuple(best.sequence)
-    if book.agreeing_starts(key) >= PROOF_STARTS:
+    if book.agreeing_starts(key) >= PROOF_STARTS or _convex(ocp, key):
         return best
     same = [k for k in book.known if tuple(k.sequence) == key and k.evaluation is not None]
     tries: list[tuple[Any, ...]] = [
@@ -1713,7 +1737,8 @@ def _second_start(
             (guess_times(ocp, key, None), np.zeros_like(guess.controls),
              "second start (the NLP from evenly spread event times)", False, None, None)
         )  # fmt: skip
-    else:
+    elif key not in book.screened:
+        # (the enumeration's screen started it so already)
         tries.append(
             (guess_times(ocp, key, guess.evaluation), guess.controls,
              "second start (the warm starts from the guess)", False, None, guess.evaluation)
@@ -2488,6 +2513,8 @@ def _enumerate(
         solved += len(outcomes)
         for seq, z, levels, why, took, horizon in outcomes:
             _record(ocp, book, seq, z, levels, why, took, horizon)
+        if len(outcomes) == len(todo):
+            _retry_failed(ocp, run, book, guess, [tuple(q) for q in seqs_todo], bounded)
         if len(outcomes) < len(todo):
             book.check_limit()
             book.budget_stopped = True
@@ -2503,6 +2530,45 @@ def _enumerate(
         else:
             book.best_verified()
     _note_source(book, "enumeration", "reference", solved, t0, depth=depth)
+
+
+def _retry_failed(
+    ocp: HybridOCP,
+    run: _Run,
+    book: _Book,
+    guess: _Guess,
+    keys: list[tuple[str, ...]],
+    bounded: bool,
+) -> None:
+    """A second start for the enumerated sequences of a disc scene whose screen found no
+    extremal, while the proof may still need them (no longer than the best verified
+    extremal plus one): the full solve (:func:`~hybridoc.reference.sequence.solve_sequence` without
+    ``screen``: the disc NLP to convergence, then the warm starts from the guess, such as
+    the transcription with the sequence fixed). Multiple-collision's ``ball1|ball2`` has no
+    screened extremal, and one from the full solve. Stops when the budget is spent (a
+    length beyond ``search``) or at the time limit."""
+    if not is_disc_scene(ocp):
+        return  # a generic problem's screen already ran the warm starts from the guess
+    best = book.best_verified()
+    if best is None:
+        return
+    need = len(best.sequence) + 1
+    ev = guess.evaluation
+    for key in keys:
+        if key in book.results or key in book.pruned or len(key) > need:
+            continue
+        if bounded and book.left() <= 0:
+            book.budget_stopped = True
+            return
+        lb, bound = lower_bound(ocp, key), book.best_bound()
+        if lb >= bound:  # excluded by what was found since its screen
+            book.pruned.add(key)
+            book.reasons[key] = f"pruned: its cost is at least {lb:.6g} >= {bound:.6g}"
+            continue
+        book.attempt(
+            key, guess_times(ocp, key, ev), guess.controls, "enumeration (full solve)",
+            estimate=False, guess_ev=ev, retry=True,
+        )  # fmt: skip
 
 
 def _by_length(ocp: HybridOCP, book: _Book, depth: int) -> list[list[list[str]]]:
@@ -2529,6 +2595,7 @@ def _record(
     here, in one step, at the worker's steps per phase and final time) or the reason it has
     none."""
     key = tuple(seq)
+    book.screened.add(key)
     book.origins.setdefault(key, "enumeration")
     book.times[key] = book.times.get(key, 0.0) + took
     if z is None:

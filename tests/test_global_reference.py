@@ -115,7 +115,11 @@ def test_default_reference_reaches_the_optimum(name: str) -> None:
 
     sequence, cost, _ = OPTIMA[name]
     ref = solve_reference(load_scene(SCENES / f"{name}.toml"))
-    assert ref.status == Status.SUCCESS, (ref.status, ref.message)
+    # issue #29: the optimum, called success only where the coverage proves it (bank-shot:
+    # sequences of 3 events fail; channel: 7 events, beyond the enumeration; the others
+    # where the budget ends before every sequence of 3 events is covered)
+    assert ref.status in (Status.SUCCESS, Status.BEST_FOUND), (ref.status, ref.message)
+    assert (ref.status is Status.SUCCESS) == ref.info["coverage"]["proven"]
     assert ref.cost == pytest.approx(cost, rel=RTOL), (ref.cost, ref.sequence)
     assert list(ref.sequence) == sequence
 
@@ -137,7 +141,10 @@ def test_wall_behind_a_disc_does_not_crash_the_reference() -> None:
     from hybridoc.reference import solve_reference
 
     ref = solve_reference(_bank_variant())
-    assert ref.status in (Status.SUCCESS, Status.NOT_OPTIMAL), (ref.status, ref.message)
+    assert ref.status in (Status.SUCCESS, Status.BEST_FOUND, Status.NOT_OPTIMAL), (
+        ref.status,
+        ref.message,
+    )
     assert np.isfinite(ref.cost)
 
 
@@ -229,12 +236,17 @@ def test_every_result_carries_its_coverage() -> None:
 
     sol = solve_reference("multiple-collision")
     cov = _check_coverage(sol, depth_at_least=2)
-    assert sol.status is Status.SUCCESS and not cov["budget_stopped"]
+    # issue #29: best-found: the optimum has 3 events, and ball1|ball2 alone has no extremal
+    # that re-simulates (nor do some sequences of 2 events), so the sequences of up to 4
+    # events are not all covered
+    assert sol.status is Status.BEST_FOUND and cov["proven"] is False, sol.message
     # every length the enumeration went through is covered, but for the lengths of
     # sequences whose solve failed (multiple-collision: ball1|ball2 alone has no extremal
     # that Newton reaches, so not even one event is covered)
     failed = cov["failed"]
-    if failed["count"]:
+    if cov["budget_stopped"]:
+        pass  # a loaded machine: the lengths the budget left unsolved are not covered either
+    elif failed["count"]:
         shortest = min(len(q) for q in failed["sequences"])
         assert cov["exhaustive_length"] == (min(shortest - 1, cov["depth"]) if shortest else None)
     else:
@@ -257,10 +269,10 @@ def test_a_tiny_budget_stops_early_and_says_so() -> None:
     skipped = [s["name"] for s in sol.info["sources"] if "skipped" in s]
     assert skipped and not set(skipped) & set(cov["sources"])
     assert cov["exhaustive_length"] is None or cov["exhaustive_length"] < cov["depth"]
-    # honest: the best over that coverage, confirmed by the HMP (or a cheaper control named)
-    assert sol.status in (Status.SUCCESS, Status.NOT_OPTIMAL)
-    if sol.status is Status.SUCCESS:
-        assert "budget" in sol.message
+    # honest: the best found, not proven (issue #29; or a cheaper control named)
+    assert sol.status in (Status.BEST_FOUND, Status.NOT_OPTIMAL)
+    if sol.status is Status.BEST_FOUND:
+        assert "budget" in sol.message and not cov["proven"]
     with pytest.raises(Exception, match="budget must be"):
         solve_reference("single-collision", budget=0)
 

@@ -193,6 +193,7 @@ def test_saved_generic_solution_rebuilds_the_same_control(
 def test_masked_hopper_default_reference(hopper: HybridOCP, hopper_dt: float) -> None:
     # issue #15, "Done when": succeeds with no option (it used to fail after 34 s)
     sol = solve_reference(hopper)
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found (the no-event sequence has no extremal: no length is covered)
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert sol.info["sequence"] == HOPPER_SEQUENCE
     assert abs(sol.cost - hopper_dt) <= 1e-7 * sol.cost

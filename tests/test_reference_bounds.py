@@ -90,7 +90,9 @@ def test_reference_solves_the_bounded_shuttle(shuttle) -> None:
     ocp, sol = shuttle
     cf = shuttle_closed_form()
     gamma, _, _ = _shuttle_simulation(cf)
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found, not success: the no-event sequence has no extremal that meets the
+    # end conditions within the bound, so no length of the search is covered
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert sol.info["sequence"] == ["wall"] == ocp.meta["claimed_sequence"]
     assert sol.cost == pytest.approx(cf["cost"], rel=1e-9)
     assert sol.info["event_times"][0] == pytest.approx(gamma, abs=1e-9)
@@ -133,7 +135,8 @@ def test_bouncing_ball_with_an_active_thrust_limit() -> None:
     to its cost (measured: mesh 8, 32, 128 off by 2.4e-4, 6.0e-6, 1.9e-8 relative)."""
     ocp = _ball(2.0)
     sol = hybridoc.solve(ocp, "reference")
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found (the no-event sequence has no extremal within the bound)
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert ocp.bound_violation(sol.controls) == 0.0 and np.abs(sol.controls).max() == 2.0
     ref = sol.reference
     assert ref.system.core.n_switch >= 1
@@ -158,7 +161,9 @@ def test_disc_scene_with_an_active_force_limit() -> None:
     base = hybridoc.as_ocp("single-collision")
     ocp = base.replace(u_min=[-4.5] * base.nu, u_max=[4.5] * base.nu)
     sol = hybridoc.solve(ocp, "reference")
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found (ball1|ball2 twice has no extremal within the bound: the sequences
+    # of two events are not all covered)
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert sol.info["sequence"] == ["ball1|ball2"]
     assert ocp.bound_violation(sol.controls) == 0.0
     ref = sol.reference

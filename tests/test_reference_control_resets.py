@@ -171,9 +171,12 @@ def test_unbounded_nonlinear_reset_control_against_dt() -> None:
     """``v+ = -(0.8 + 0.15 tanh(u)) v- + 0.3 u`` with ``u`` unbounded (the thrust): the
     reset's control is a root of ``d/dv lambda+^T g = 0`` alone."""
     ocp = tanh_ball()
-    sol = hybridoc.solve(ocp, "reference", multistart=0)
+    # the one-bounce extremal (issue #29: the search now also covers two bounces, whose free
+    # reset controls bring the cost to zero, 5e-31, confirmed by the judge: the one-bounce
+    # extremal was a success it had not earned)
+    sol = hybridoc.solve(ocp, "reference", multistart=0, sequence=["floor"])
     dt = hybridoc.solve(ocp, "dt")
-    assert sol.status is Status.SUCCESS, sol.message
+    assert sol.status is Status.EXTREMAL, sol.message
     assert abs(sol.cost - dt.cost) <= 1e-9 * abs(dt.cost)
     np.testing.assert_allclose(sol.event_controls, dt.event_controls, atol=1e-6)
     ref = sol.reference
@@ -201,7 +204,10 @@ def test_a_stationary_maximum_is_not_optimal_and_the_search_leaves_it(best: floa
     rival = event_control_rival(ocp, res)
     assert rival is not None and rival["component"] == 1 and rival["cost"] < res.cost
     sol = hybridoc.solve(ocp, "reference", multistart=0)
-    assert sol.status is Status.SUCCESS, sol.message
+    # issue #29: best-found, not success: starts of Newton reach different extremals of the
+    # sequence (the stationary maximum among them), and floor twice has none
+    assert sol.status is Status.BEST_FOUND, sol.message
+    assert "other starts reached" in sol.info["coverage"]["why_not_proven"]
     assert abs(sol.event_controls[0, 1]) == 1.0
     assert abs(sol.cost - best) <= 1e-9 * best
     assert event_control_rival(ocp, sol.reference) is None

@@ -167,7 +167,8 @@ def test_bouncing_ball_with_mixed_constraints_agrees_with_dt() -> None:
     from above (measured: mesh 8 and 32 off by 2.0e-3 and 1.3e-4 relative)."""
     ocp = _ball()
     sol = hybridoc.solve(ocp, "reference", transcription=False, multistart=0)
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found (the no-event sequence has no extremal that meets the rows)
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert sol.info["sequence"] == ["floor"]
     ref = sol.reference
     free, active = (-math.inf, math.inf), (0.0, 0.0)

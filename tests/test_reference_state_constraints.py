@@ -154,7 +154,8 @@ def test_bouncing_ball_under_a_state_envelope_agrees_with_dt() -> None:
     between their nodes by 5e-7 and 1e-8)."""
     ocp = _ball()
     sol = hybridoc.solve(ocp, "reference", transcription=False, multistart=0)
-    assert sol.status is hybridoc.Status.SUCCESS, sol.message
+    # issue #29: best-found (the no-event sequence has no extremal under the envelope)
+    assert sol.status is hybridoc.Status.BEST_FOUND, sol.message
     assert sol.info["sequence"] == ["floor"]
     ref = sol.reference
     S = ref.system

@@ -250,7 +250,10 @@ def test_friction_patch_against_an_independent_optimum(free: bool) -> None:
     problem = _friction_patch(free)
     sol = solve_reference(problem)
     J, T, nu = _independent_optimum(free)
-    assert sol.status.value == "success", sol.message
+    # issue #29: best-found, not success: the no-event extremal is cheaper but crosses the
+    # patch when re-simulated, so that sequence's own optimum is not known to the reference
+    assert sol.status.value == "best-found", sol.message
+    assert "does not re-simulate" in sol.info["coverage"]["why_not_proven"]
     assert sol.sequence == ["enter"]
     assert sol.cost == pytest.approx(J, rel=1e-9)
     if free:
@@ -274,7 +277,8 @@ def test_library_friction_patch(name: str) -> None:
     problem = LIBRARY[name]()
     sol = solve_reference(problem)
     J, _, _ = _independent_optimum(problem.free_horizon)
-    assert sol.status.value == "success", sol.message
+    # issue #29: best-found (the cheaper no-event extremal crosses the patch)
+    assert sol.status.value == "best-found", sol.message
     assert sol.cost == pytest.approx(J, rel=1e-7)
     _judged(problem, sol)
 

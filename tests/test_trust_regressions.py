@@ -66,9 +66,11 @@ def _assert_trusted(ref: hybridoc.Solution, *others: hybridoc.Solution) -> None:
     says that it is not the optimum and names a cheaper cost: never a worse result called
     a success."""
     best = min(o.cost for o in others)
-    if ref.status == Status.SUCCESS:
+    # best-found (issue #29: the coverage does not prove it) claims less than success, but
+    # nothing cheaper may be known either
+    if ref.status in (Status.SUCCESS, Status.BEST_FOUND):
         assert ref.cost <= best * (1 + 1e-9) + 1e-15, (
-            f"reference {ref.cost!r} (success) but {best!r} is cheaper"
+            f"reference {ref.cost!r} ({ref.status.value}) but {best!r} is cheaper"
         )
         return
     assert ref.status == Status.NOT_OPTIMAL, (ref.status, ref.message)
