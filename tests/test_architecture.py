@@ -36,6 +36,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hybridoc.events",
             "hybridoc.evaluation",
             "hybridoc.solution",
+            "hybridoc.outputs",
             "hybridoc.progress",
             "hybridoc.cores",
             "hybridoc.compiled",

@@ -34,11 +34,9 @@ __all__ = ["register"]
 
 
 def _write_json(path: Path, obj: Any) -> Path:
-    try:
-        path.write_text(json.dumps(to_jsonable(obj), indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise HybridocError(f"cannot write {str(path)!r}: {exc.strerror or exc}") from None
-    return path
+    from hybridoc.outputs import write_text
+
+    return write_text(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
 def _events_text(events: list[dict[str, Any]]) -> str:
