@@ -102,16 +102,17 @@ REFINE_RTOL = 1e-7
 """The default mesh is refined until the judged cost of the transcription's control and the
 NLP's objective agree within ``REFINE_RTOL * max(1, |J|)``, and so do the judged costs of
 the last two meshes (after a refinement), and the collocation defects between the
-collocation points stay within :data:`DEFECT_TOL` (:func:`error_estimate`)."""
+collocation points stay within :data:`DEFECT_TOL` (``info["error_estimate"]``)."""
 DEFECT_TOL = 1e-4
 """The largest collocation defect between collocation points that the default mesh accepts:
 ``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of each
 element, relative to ``max(1, max |x_i|)`` on the phase (the state's local error over one
 element)."""
 MAX_ADAPTIVE_MESH = 256
-"""The most elements per phase the error-driven refinement of the default mesh reaches (six
-doublings of the default 4); past it, or past :data:`MAX_NLP_SIZE`, a result whose error
-estimate is still above the tolerances is ``not-converged``."""
+"""The most elements per phase the error-driven refinement of the default mesh reaches (the
+default's 4 elements doubled six times); past it, or past :data:`MAX_NLP_SIZE`, a result
+whose error estimate is still above the tolerances is ``not-converged``."""
+_MAX_ADAPTIONS = 12  # refinements of one candidate
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
@@ -184,11 +185,22 @@ class _Constraints:
 class _PhaseNLP:
     """The transcribed NLP of one event sequence (built once, reused for warm starts)."""
 
-    def __init__(self, ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]):
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        guards: Sequence[int],
+        degree: int,
+        mesh: Sequence[int],
+        fractions: Sequence[np.ndarray | None] | None = None,
+    ):
         self.ocp = ocp
         self.guards = list(guards)
         self.d = degree
         self.mesh = list(mesh)
+        # per phase: the elements' shares of the phase duration (None: M equal elements)
+        self.fractions: list[np.ndarray | None] = (
+            [None] * len(self.mesh) if fractions is None else list(fractions)
+        )
         self.rad = _Radau.make(degree)
         nx, nu, d = ocp.nx, ocp.nu, degree
         P = len(self.guards) + 1
@@ -259,8 +271,9 @@ class _PhaseNLP:
         bounded = np.flatnonzero(np.isfinite(u_lo) | np.isfinite(u_hi))
         lo_b, hi_b = np.tile(u_lo[bounded], d - 1), np.tile(u_hi[bounded], d - 1)
         D = ca.DM(self.rad.D)
-        he = hk / M
+        frac = self.fractions[k]
         for e in range(M):
+            he = hk / M if frac is None else hk * float(frac[e])
             Xe = X[:, e * d : e * d + d + 1]
             Ue = U[:, e * d : e * d + d]
             Fe = f.map(d)(Xe[:, 1:], Ue)
@@ -386,11 +399,30 @@ class _PhaseNLP:
         starts = np.concatenate([[0.0], np.cumsum(h)[:-1]])
         out = []
         for k in range(self.P):
-            M = self.mesh[k]
-            he = h[k] / M
-            loc = (np.arange(M)[:, None] + self.rad.tau[None, 1:]).ravel()
-            out.append(starts[k] + he * np.concatenate([[0.0], loc]))
+            M, frac = self.mesh[k], self.fractions[k]
+            if frac is None:
+                he = h[k] / M
+                loc = (np.arange(M)[:, None] + self.rad.tau[None, 1:]).ravel()
+                out.append(starts[k] + he * np.concatenate([[0.0], loc]))
+            else:
+                edges = self.edges(k)
+                loc = (edges[:-1, None] + frac[:, None] * self.rad.tau[None, 1:]).ravel()
+                out.append(starts[k] + h[k] * np.concatenate([[0.0], loc]))
         return out
+
+    def shares(self, k: int) -> np.ndarray:
+        """Phase ``k``'s element shares of its duration (summing to 1)."""
+        frac = self.fractions[k]
+        return np.full(self.mesh[k], 1.0 / self.mesh[k]) if frac is None else frac
+
+    def edges(self, k: int) -> np.ndarray:
+        """Phase ``k``'s element boundaries as fractions of its duration, ``0`` to ``1``."""
+        frac = self.fractions[k]
+        if frac is None:
+            return np.arange(self.mesh[k] + 1) / self.mesh[k]
+        edges = np.concatenate([[0.0], np.cumsum(frac)])
+        edges[-1] = 1.0
+        return edges
 
     def mult(self, lam_g: np.ndarray, name: str) -> list[np.ndarray]:
         return [lam_g[s] for s in self.g_index.get(name, [])]
@@ -575,12 +607,25 @@ def _check_size(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequen
         )
 
 
-def _nlp_for(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequence[int]) -> _PhaseNLP:
+def _nlp_for(
+    ocp: HybridOCP,
+    guards: Sequence[int],
+    degree: int,
+    mesh: Sequence[int],
+    fractions: Sequence[np.ndarray | None] | None = None,
+) -> _PhaseNLP:
     cache = _NLPS.setdefault(ocp, {})
-    key = (tuple(guards), degree, tuple(mesh))
+    shape = (
+        None
+        if fractions is None
+        else tuple(None if f is None else tuple(float(x) for x in f) for f in fractions)
+    )
+    key = (tuple(guards), degree, tuple(mesh), shape)
     if key not in cache:
         _check_size(ocp, guards, degree, mesh)  # before minutes of building
-        cache[key] = _PhaseNLP(ocp, guards, degree, mesh)
+        if len(cache) >= 64:  # the refinement's meshes: keep the newest
+            cache.pop(next(iter(cache)))
+        cache[key] = _PhaseNLP(ocp, guards, degree, mesh, fractions)
     return cache[key]
 
 
@@ -1067,24 +1112,64 @@ def _lagrange_basis(pts: np.ndarray, s: np.ndarray) -> np.ndarray:
     return out
 
 
+def _split_mesh(
+    coarse: _PhaseNLP, split: Sequence[np.ndarray | None]
+) -> tuple[list[int], list[np.ndarray | None]]:
+    """The mesh with the elements ``split[k]`` (booleans per element of phase ``k``; ``None``:
+    none) of each phase halved: its element counts and shares (``None`` where equal)."""
+    mesh, fractions = [], []
+    for k, which in enumerate(split):
+        frac = coarse.fractions[k]
+        if which is None or not np.any(which):
+            mesh.append(coarse.mesh[k])
+            fractions.append(frac)
+            continue
+        if frac is None and np.all(which):
+            mesh.append(2 * coarse.mesh[k])  # uniform doubling: still equal elements
+            fractions.append(None)
+            continue
+        shares = coarse.shares(k)
+        new = np.concatenate(
+            [[x / 2, x / 2] if w else [x] for x, w in zip(shares, which, strict=True)]
+        )
+        mesh.append(int(new.size))
+        fractions.append(new)
+    return mesh, fractions
+
+
 def _refined(
-    ocp: HybridOCP, r: DTResult, verbose: bool, phases: Sequence[int] | None = None
+    ocp: HybridOCP,
+    r: DTResult,
+    verbose: bool,
+    phases: Sequence[int] | None = None,
+    split: Sequence[np.ndarray | None] | None = None,
 ) -> DTResult:
-    """Re-solve ``r``'s sequence with twice the elements in the ``phases`` (default: every
-    phase), started from ``r``'s state and control polynomials."""
+    """Re-solve ``r``'s sequence on a finer mesh, started from ``r``'s state and control
+    polynomials: the elements ``split`` (per phase, booleans per element) halved, or with
+    ``split=None`` every element of the ``phases`` (default: every phase)."""
     coarse = r._nlp
     d, rad = coarse.d, coarse.rad
-    which = range(coarse.P) if phases is None else set(phases)
-    fine_mesh = [2 * m if k in which else m for k, m in enumerate(coarse.mesh)]
-    fine = _nlp_for(ocp, coarse.guards, d, fine_mesh)
+    if split is None:
+        which = range(coarse.P) if phases is None else set(phases)
+        split = [np.full(m, k in which) for k, m in enumerate(coarse.mesh)]
+    fine_mesh, fine_fractions = _split_mesh(coarse, split)
+    uniform = all(f is None for f in fine_fractions)
+    fine = _nlp_for(ocp, coarse.guards, d, fine_mesh, None if uniform else fine_fractions)
     h, Xc, Uc = coarse.unpack(r._w)
     X, U = [], []
     for k in range(coarse.P):
         Mc, Mf = coarse.mesh[k], fine.mesh[k]
-        loc = (np.arange(Mf)[:, None] + rad.tau[None, 1:]).ravel() / Mf  # in (0, 1]
-        sigma = np.concatenate([[0.0], loc]) * Mc  # node positions in coarse elements
-        e = np.clip(np.floor(sigma).astype(int), 0, Mc - 1)
-        s = sigma - e
+        if coarse.fractions[k] is None and fine.fractions[k] is None:
+            loc = (np.arange(Mf)[:, None] + rad.tau[None, 1:]).ravel() / Mf  # in (0, 1]
+            sigma = np.concatenate([[0.0], loc]) * Mc  # node positions in coarse elements
+            e = np.clip(np.floor(sigma).astype(int), 0, Mc - 1)
+            s = sigma - e
+        else:
+            fe, ce = fine.edges(k), coarse.edges(k)
+            loc = (fe[:-1, None] + fine.shares(k)[:, None] * rad.tau[None, 1:]).ravel()
+            pos = np.concatenate([[0.0], loc])  # node positions in the phase, 0 to 1
+            e = np.clip(np.searchsorted(ce, pos, side="right") - 1, 0, Mc - 1)
+            s = (pos - ce[e]) / coarse.shares(k)[e]
         bx = _lagrange_basis(rad.tau, s)  # (n, d + 1)
         cols = e[:, None] * d + np.arange(d + 1)[None, :]
         X.append(np.einsum("nr,xnr->xn", bx, Xc[k][:, cols]))
@@ -1344,9 +1429,11 @@ def solve_dt(
         once more with twice the elements, and a candidate that reproduces its events is
         refined until its error estimate is within the tolerances (:data:`REFINE_RTOL`,
         :data:`DEFECT_TOL`: the judged cost against the NLP objective and against the
-        previous mesh, the collocation defects between the collocation points), the phases
-        with too large defects doubled, up to :data:`MAX_ADAPTIVE_MESH` elements per phase.
-        A mesh given here is kept (its estimate is reported in ``info["error_estimate"]``).
+        previous mesh, the collocation defects between the collocation points), the
+        elements with too large defects halved, up to :data:`MAX_ADAPTIVE_MESH` elements
+        per phase.
+        A mesh given here is kept (its estimate is reported in ``info["error_estimate"]``;
+        above the tolerances the result is ``not-converged``).
     verbose
         Print IPOPT's log and the candidates to stderr.
     progress
@@ -1597,9 +1684,10 @@ def _claim(
     cands: list[list[str]],
     mesh: Any,
 ) -> tuple[Status, str]:
-    """What a feasible candidate that reproduces its events may claim (module notes of
-    :func:`solve_dt`, "Statuses"): ``not-converged`` when the default mesh's refinement
-    stopped before its error estimate met the tolerances; ``extremal`` for a given
+    """What a feasible candidate that reproduces its events may claim (docs/solvers.rst,
+    "dt: what its status claims"): ``not-converged`` when its error estimate is above the
+    tolerances (where the default mesh's refinement stopped, or at the user's mesh);
+    ``extremal`` for a given
     sequence; ``best-found`` when the discovery did not compare every sequence the problem
     admits (any problem with a guard); ``success`` otherwise (no guard: the only sequence
     is the empty one). Other statuses pass unchanged."""
@@ -1611,12 +1699,15 @@ def _claim(
         if mesh is None:
             return Status.NOT_CONVERGED, (
                 f"the error estimate is above the tolerance: {text}; the refinement stopped "
-                f"at {est.get('stopped', 'its bound')} (try --degree 5, a --time-limit, or "
-                "a --mesh of your own; the judged cost is that of the returned control)"
+                f"at {est.get('stopped', 'its bound')} (try --degree 5 or a --time-limit; "
+                "the judged cost is that of the returned control)"
             )
-        note = f"at the given --mesh the error estimate is above the tolerance: {text}"
-    else:
-        note = ""
+        # the user's mesh is kept, and what it claims is only what its estimate supports
+        return Status.NOT_CONVERGED, (
+            f"at the given mesh the error estimate is above the tolerance: {text}; without "
+            "--mesh dt refines the mesh until it is met (the judged cost is that of the "
+            "returned control)"
+        )
     if sequence is not None:
         status, message = (
             Status.EXTREMAL,
@@ -1638,8 +1729,6 @@ def _claim(
                 "the optimum; --initial or --sequence start dt elsewhere)"
             ),
         )
-    if note:
-        message = f"{message}; {note}" if message else note
     return status, message
 
 
@@ -1846,8 +1935,8 @@ def _judge_or_refine(
     return best, ok_f, True
 
 
-def _defects(ocp: HybridOCP, r: DTResult) -> list[float]:
-    """Per phase, the largest collocation defect between the collocation points:
+def _defects(ocp: HybridOCP, r: DTResult) -> list[np.ndarray]:
+    """Per phase and element, the largest collocation defect between the collocation points:
     ``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of
     every element (``x`` the state polynomial, ``u`` the control polynomial clipped into the
     bounds), each state relative to ``max(1, max |x_i|)`` on the phase. The NLP makes the
@@ -1870,17 +1959,18 @@ def _defects(ocp: HybridOCP, r: DTResult) -> list[float]:
     out = []
     for k in range(nlp.P):
         M = nlp.mesh[k]
-        he = h[k] / M
+        shares = nlp.shares(k)
         X, U = r.states[k], r.controls[k]
         scale = np.maximum(1.0, np.max(np.abs(X), axis=1))
-        worst = 0.0
+        per = np.zeros(M)
         for e in range(M):
+            he = h[k] * float(shares[e])
             Xe, Ue = X[:, e * d : e * d + d + 1], U[:, e * d : e * d + d]
             xm = Xe @ bx.T
             fm = np.asarray(f(xm, np.clip(Ue @ bu.T, lo, hi)), dtype=float)
             dev = np.abs(Xe @ dbx.T - he * fm) / scale[:, None]
-            worst = max(worst, float(np.max(dev, initial=0.0)))
-        out.append(worst)
+            per[e] = float(np.max(dev, initial=0.0))
+        out.append(per)
     return out
 
 
@@ -1904,7 +1994,8 @@ def _error_estimate(
     scale = max(1.0, abs(float(ev.cost)))
     gap = abs(float(ev.cost) - r.nlp_cost) / scale
     change = None if previous_cost is None else abs(float(ev.cost) - previous_cost) / scale
-    defects = _defects(ocp, r)
+    per_element = _defects(ocp, r)
+    defects = [float(np.max(x, initial=0.0)) for x in per_element]
     phases = [k for k, x in enumerate(defects) if not x <= DEFECT_TOL]
     time_gap = _event_time_gap(ocp, r, ev)
     converged = gap <= REFINE_RTOL and (change is None or change <= REFINE_RTOL) and not phases
@@ -1916,6 +2007,7 @@ def _error_estimate(
         "phases": phases,
         "converged": bool(converged),
         "mesh": list(r._nlp.mesh),
+        "_split": [~(x <= DEFECT_TOL) for x in per_element],
     }
 
 
@@ -1933,24 +2025,29 @@ def _estimate_text(est: dict[str, Any]) -> str:
 
 def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tuple[_Judged, bool]:
     """Refine the mesh of a candidate that reproduces its events until its error estimate
-    (:func:`_error_estimate`) is within the tolerances, as hp-adaptive direct methods do:
-    the phases whose collocation defects are too large get twice the elements (every phase
-    when only the costs disagree), the refined NLP is solved from the coarse solution and
+    (:func:`_error_estimate`) is within the tolerances, as h-adaptive direct methods do:
+    the elements whose collocation defects are too large are halved (every element when
+    only the costs disagree), the refined NLP is solved from the coarse solution and
     judged, and the estimate compares it with the previous mesh too. Stops at
-    :data:`MAX_ADAPTIVE_MESH` elements per phase, at :data:`MAX_NLP_SIZE`, or when a refined
-    NLP fails or its control no longer reproduces the events; ``j.estimate`` then says what
-    was not met (``stopped``). Returns the last candidate and whether it was refined."""
+    :data:`MAX_ADAPTIVE_MESH` elements per phase, after :data:`_MAX_ADAPTIONS` refinements,
+    at :data:`MAX_NLP_SIZE`, or when a refined NLP fails or its control no longer
+    reproduces the events; ``j.estimate`` then says what was not met (``stopped``).
+    Returns the last candidate and whether it was refined."""
     refined = False
     previous: float | None = None
-    while True:
+    for _ in range(_MAX_ADAPTIONS + 1):
         est = _error_estimate(ocp, j, previous)
         j.estimate = est
         if est["converged"]:
             return j, refined
-        mesh = j.result._nlp.mesh
-        phases = [
-            k for k in (est["phases"] or range(len(mesh))) if 2 * mesh[k] <= MAX_ADAPTIVE_MESH
-        ]
+        nlp = j.result._nlp
+        if est["phases"]:
+            split = [x if k in est["phases"] else None for k, x in enumerate(est["_split"])]
+        else:  # only the costs disagree: every element
+            split = [np.ones(m, dtype=bool) for m in nlp.mesh]
+        counts, _ = _split_mesh(nlp, split)
+        split = [None if n > MAX_ADAPTIVE_MESH else x for n, x in zip(counts, split, strict=True)]
+        phases = [k for k, x in enumerate(split) if x is not None and np.any(x)]
         if not phases:
             est["stopped"] = f"the mesh bound MAX_ADAPTIVE_MESH = {MAX_ADAPTIVE_MESH} per phase"
             return j, refined
@@ -1962,7 +2059,7 @@ def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tup
             + _estimate_text(est)
         )
         try:
-            rf = _refined(ocp, j.result, verbose, phases)
+            rf = _refined(ocp, j.result, verbose, split=split)
         except SceneError:
             est["stopped"] = f"the NLP size bound MAX_NLP_SIZE = {MAX_NLP_SIZE}"
             return j, refined
@@ -1980,11 +2077,14 @@ def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tup
         assert j.ev is not None
         previous = float(j.ev.cost)
         j, refined = jf, True
+    assert j.estimate is not None
+    j.estimate["stopped"] = f"the most refinements, _MAX_ADAPTIONS = {_MAX_ADAPTIONS}"
+    return j, refined
 
 
 def _jsonable_estimate(est: dict[str, Any]) -> dict[str, Any]:
     """An error estimate with plain floats and lists, for ``info``."""
-    out = dict(est)
+    out = {k: v for k, v in est.items() if not k.startswith("_")}
     out["defects"] = [float(x) for x in est["defects"]]
     for key in ("cost_gap", "refinement_change", "event_time_gap"):
         if out.get(key) is not None:

@@ -143,27 +143,39 @@ def test_refinement_meets_the_tolerance_on_a_fast_lqr() -> None:
     # mesh 4 is 8.9e-4 off: the estimate sees it (and a given mesh is kept)
     assert coarse.cost > optimum * (1 + 5e-4)
     assert not coarse.info["error_estimate"]["converged"]
-    assert "error estimate is above the tolerance" in coarse.message
+    assert coarse.status is Status.NOT_CONVERGED
+    assert "at the given mesh the error estimate is above the tolerance" in coarse.message
     sol = solve_dt(ocp)
     assert sol.status is Status.SUCCESS, sol.message  # no guard: one sequence, exhaustive
     assert sol.info["mesh"][0] > 4
     est = sol.info["error_estimate"]
     assert est["converged"] and est["cost_gap"] <= tr.REFINE_RTOL
     assert max(est["defects"]) <= tr.DEFECT_TOL
-    assert abs(sol.cost - optimum) <= 1e-9 * optimum, (sol.cost, optimum)
+    # measured 4.7e-9 relative, with 19 elements, the smallest near t = 0 (the fast decay)
+    assert abs(sol.cost - optimum) <= 2e-8 * optimum, (sol.cost, optimum)
+    widths = np.diff(sol.arrays["element_bounds"])
+    assert widths[0] < widths[-1] / 4  # refined where the error is
 
 
 def test_refinement_bound_is_not_converged(monkeypatch) -> None:
     monkeypatch.setattr(tr, "MAX_ADAPTIVE_MESH", 8)
     sol = solve_dt(_lqr())
     assert sol.status is Status.NOT_CONVERGED, sol.message
-    assert sol.info["mesh"] == [8]
+    assert 4 < sol.info["mesh"][0] <= 8  # the next halving would pass the bound
     assert "MAX_ADAPTIVE_MESH = 8" in sol.message and "collocation defect" in sol.message
 
 
-@pytest.mark.slow
+def test_lotka_volterra_given_mesh_is_not_a_success() -> None:
+    # issue #29: --mesh 16 said success 0.30% above the optimum; its estimate says otherwise
+    sol = solve_dt(lotka_volterra_relaxed(), mesh=16)
+    assert sol.cost > LOTKA_VOLTERRA_OPTIMUM * 1.002
+    assert sol.status is Status.NOT_CONVERGED, sol.message
+    assert sol.info["mesh"] == [16] and not sol.info["error_estimate"]["converged"]
+
+
 def test_lotka_volterra_default_within_1e_5() -> None:
-    # issue #29: success 1.5491 at the default mesh (NLP 1.6595), 15% above 1.34408
+    # issue #29: success 1.5491 at the default mesh (NLP 1.6595), 15% above 1.34408; now
+    # 54 elements, 1.3440817697 (1.7 s CPU for dt, ~4 s with scipy's check)
     ocp = lotka_volterra_relaxed()
     sol = solve_dt(ocp)
     assert sol.status is Status.SUCCESS, sol.message
