@@ -1256,7 +1256,13 @@ def _hop(
             stale += 1
             if stale >= HOP_PATIENCE:
                 break
-    return _hopped_solution(ocp, base, x, f, rounds, stale, opts.hops, t0)
+    kink = None
+    improved = any(r["improved"] for r in rounds)
+    if improved and _kinks_apply(ocp, opts):
+        # the batched L-BFGS stalls at kinks as the single descent does
+        run = _Run(ocp, loss_obj, opts, 0.0, progress)
+        x, f, _, kink = _past_kinks(ocp, run, x, f, evaluate(ocp, x), progress)
+    return _hopped_solution(ocp, base, x, f, rounds, stale, opts.hops, t0, kink)
 
 
 def _hopped_solution(
@@ -1268,8 +1274,10 @@ def _hopped_solution(
     stale: int,
     hops: int,
     t0: float,
+    kink: dict[str, Any] | None = None,
 ) -> Solution:
-    """The Solution of the hops: the best control ``x`` (loss ``f``), judged."""
+    """The Solution of the hops: the best control ``x`` (loss ``f``), judged; ``kink`` the
+    record of :func:`_past_kinks` on it."""
     ev = evaluate(ocp, x)
     # converged: the descent met its own test, or the hops moved it and then found nothing
     # lower in HOP_PATIENCE rounds (a descent stopped at its iteration limit that no hop
@@ -1280,6 +1288,8 @@ def _hopped_solution(
         base.info, loss=f, hops=rounds, loss_before_hops=base.info.get("loss"),
         converged=converged,
     )  # fmt: skip
+    if kink is not None:
+        info["kinks"] = kink
     sol = Solution.from_evaluation(
         ev,
         method="gd",
@@ -1291,7 +1301,10 @@ def _hopped_solution(
         arrays=dict(base.arrays),
     )  # fmt: skip
     status, message = Status.SUCCESS, ""
-    if not converged:
+    if kink is not None and kink["stalled"]:
+        sol.info["converged"] = False
+        status, message = Status.NOT_CONVERGED, f"after the hops, {kink['message']}"
+    elif not converged:
         status, message = Status.NOT_CONVERGED, (
             f"{base.message}; and the hops did not settle either" if base.message else
             "the hops did not settle"
