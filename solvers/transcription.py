@@ -31,7 +31,9 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
+import signal
 import sys
+import threading
 import time
 import weakref
 from collections.abc import Callable, Sequence
@@ -911,7 +913,9 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
         nlp.callback.monitor = None
     stats = solver.stats()
     status = str(stats.get("return_status", ""))
-    if monitor is not None and status == "User_Requested_Stop" and monitor.interrupted:
+    if monitor is not None and monitor.interrupted:
+        # CasADi turns SIGINT inside IPOPT into NonIpopt_Exception_Thrown and swallows the
+        # KeyboardInterrupt: the run's handler (solve_dt) set the flag
         raise KeyboardInterrupt
     if monitor is not None and status == "User_Requested_Stop" and monitor.expired():
         raise monitor.stop(
@@ -1519,6 +1523,7 @@ def solve_dt(
     with progress_scope(progress, "dt") as meter:
         monitor = _Monitor(meter, time_limit)
         token = _MONITOR.set(monitor)
+        previous = _flag_interrupts(monitor)
         try:
             return _solve_dt(
                 ocp,
@@ -1537,7 +1542,32 @@ def solve_dt(
                 raise
             return stopped
         finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
             _MONITOR.reset(token)
+
+
+def _flag_interrupts(monitor: _Monitor) -> Any:
+    """Make SIGINT set ``monitor.interrupted`` before the handler in place runs (Python's
+    raises ``KeyboardInterrupt``), so that an interrupt CasADi swallows inside IPOPT is still
+    seen (:func:`_solve_nlp`). Returns the handler to restore, or ``None`` outside the main
+    thread (where signal handlers cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum: int, frame: Any) -> None:
+        monitor.interrupted = True
+        if callable(previous):
+            previous(signum, frame)
+        else:
+            raise KeyboardInterrupt
+
+    try:
+        signal.signal(signal.SIGINT, handler)
+    except ValueError:  # pragma: no cover - not the main interpreter
+        return None
+    return previous
 
 
 def _stopped_solution(

@@ -227,3 +227,24 @@ def test_interrupt_returns_the_best_judged_candidate(clock, monkeypatch) -> None
     monkeypatch.setattr(tr, "_solve_nlp", interrupted)
     with pytest.raises(KeyboardInterrupt):
         solve_dt(clock)
+
+
+def test_sigint_inside_ipopt_returns_the_best_judged_candidate(monkeypatch) -> None:
+    # a real SIGINT, sent from IPOPT's iteration callback during the first refinement
+    import os
+    import signal
+
+    own = tr._IterationCallback._eval
+
+    def eval_and_interrupt(self, arg):
+        mon = self.monitor
+        if mon is not None and mon.judged and self.iteration == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return own(self, arg)
+
+    monkeypatch.setattr(tr._IterationCallback, "_eval", eval_and_interrupt)
+    before = signal.getsignal(signal.SIGINT)
+    sol = solve_dt(lotka_volterra_relaxed())
+    assert sol.status is Status.NOT_CONVERGED and sol.info["stopped"] == "interrupted (SIGINT)"
+    assert sol.info["mesh"] == [4] and sol.cost == pytest.approx(1.549061354637, rel=1e-9)
+    assert signal.getsignal(signal.SIGINT) is before  # the run's handler is gone
