@@ -2,11 +2,12 @@
 
 For a given event sequence ``gamma_1 < ... < gamma_K`` (guard names) the problem splits into
 ``K + 1`` phases with free durations ``h_k > 0``, ``sum h_k = T``. Each phase is divided into
-``M`` equal elements; on each element the state is a polynomial of degree ``d`` through the
-element start and the ``d`` Radau points (the last one is the element end), the dynamics are
-collocated at the Radau points and the running cost is integrated by the ``d``-point Radau
-rule (exact for polynomials of degree ``2 d - 2``). Phases are linked by the guard
-``psi(s(gamma-)) = 0``, the approach condition ``d psi/dt <= 0`` and the reset
+``M`` elements (equal, until the default mesh's error-driven refinement halves those where
+the collocation defects are large); on each element the state is a polynomial of degree
+``d`` through the element start and the ``d`` Radau points (the last one is the element
+end), the dynamics are collocated at the Radau points and the running cost is integrated by
+the ``d``-point Radau rule (exact for polynomials of degree ``2 d - 2``). Phases are linked
+by the guard ``psi(s(gamma-)) = 0``, the approach condition ``d psi/dt <= 0`` and the reset
 ``s(gamma+) = g(s(gamma-))``; every other guard stays non-negative at the nodes, so the
 transcribed trajectory has no collision outside the sequence. IPOPT (bundled with CasADi)
 solves the NLP with exact second derivatives.
