@@ -61,14 +61,15 @@ __all__ = [
 FAMILIES = ("chain", "bank", "dodge", "break", "intercept", "inelastic", "no-contact")
 """The families :func:`generate` draws from, in the order of ``index % len(FAMILIES)``."""
 
-MAX_EVENTS = 12
+MAX_EVENTS = 24
 """More events than this in one simulation (a disc pushed into another with ``e < 1``
 chatters) make the control invalid for the optimiser (its cost is returned as infinite)."""
 
 ACCEPT_EVENTS = 6
-""":func:`accepted` redraws a scene whose optimum found has more events than this: there a
-longer push (chattering contacts, beyond :data:`MAX_EVENTS`) may well be cheaper still, so
-the optimum would not be known."""
+""":func:`accepted` redraws a scene where a control with more events than this was found
+cheaper than the optimum's (:attr:`Optimum.long_best`): there a longer push (chattering
+contacts, beyond :data:`MAX_EVENTS`) may well be cheaper still, so the optimum would not be
+known."""
 
 
 @dataclass
@@ -401,13 +402,15 @@ def generate_many(n: int, seed: int = 0) -> list[GenScene]:
 
 def accepted(index: int, seed: int = 0, **options: Any) -> tuple[GenScene, Optimum, list[str]]:
     """Scene ``index`` with its optimum: the first draw (``draw = 0, 1, ...``) whose optimum
-    found has at most :data:`ACCEPT_EVENTS` events; also the names of the draws rejected.
+    found has at most :data:`ACCEPT_EVENTS` events and no control seen with more events is
+    cheaper (a push that chatters would be); also the names of the draws rejected.
     ``options`` go to :func:`optimum`."""
     rejected = []
     for draw in range(20):
         sc = generate(index, seed, draw=draw)
         opt = optimum(sc, **options)
-        if len(opt.sequence) <= ACCEPT_EVENTS:
+        pushes = opt.long_best is not None and opt.long_best < opt.cost
+        if len(opt.sequence) <= ACCEPT_EVENTS and not pushes:
             return sc, opt, rejected
         rejected.append(sc.name)
     raise RuntimeError(f"scene {index}: 20 draws, each with a chattering optimum")
@@ -470,7 +473,7 @@ def _first_crossing(coeffs: list[float], tmax: float, scale: float) -> float:
     """The first time in ``(0, tmax]`` at which the polynomial (highest power first, value at
     0 >= about 0) crosses zero downwards; ``inf`` if none. Roots from the companion matrix,
     polished by Newton's method on the polynomial; a root at 0 (a contact that just fired and
-    now separates) is skipped by its rising slope."""
+    now separates) is skipped by its rising slope, one at 0 that approaches fires at once."""
     c = list(coeffs)
     while c and c[0] == 0.0:
         c.pop(0)
@@ -490,6 +493,8 @@ def _first_crossing(coeffs: list[float], tmax: float, scale: float) -> float:
     else:
         rts = np.roots(c)
         roots = rts[np.abs(rts.imag) <= 1e-6 * (1 + np.abs(rts.real))].real.tolist()
+    if abs(c[-1]) <= 1e-11 and c[-2] < 0:
+        return 0.0  # at contact and approaching: a push fires again at once (chatter)
     best = math.inf
     for t in sorted(roots):
         if t < -1e-9 or t > tmax + 1e-9:
@@ -610,7 +615,20 @@ def simulate(sc: GenScene, params: np.ndarray, *, sim: _Sim | None = None) -> Si
                 starts.append(t)
             # beyond K phases the last row's affine force continues
     res = _residuals(s, params, starts, P)
-    return SimResult(float(res @ res), res, events, starts, P, V, True)
+    return SimResult(float(res @ res), res, events, starts, P, V, _apart(s, P))
+
+
+def _apart(s: _Sim, P: np.ndarray) -> bool:
+    """No disc inside another or behind a wall (by more than 1e-9): a safeguard, since every
+    crossing is an event."""
+    for kind, i, j, _ in s.guards:
+        if kind == "pair":
+            gap = math.hypot(*(P[i] - P[j])) - s.r[i] - s.r[j]
+        else:
+            gap = (P[i] - s.wp[j]) @ s.wn[j] - s.r[i]
+        if gap < -1e-9:
+            return False
+    return True
 
 
 def _nres(s: _Sim, K: int) -> int:
@@ -649,8 +667,10 @@ class Optimum:
 
     ``cost``, ``sequence`` (guard names), ``event_times``, ``params`` (the
     :func:`simulate` force rows) and ``phase_starts``; ``starts`` run, ``hits`` (starts within
-    a relative ``1e-7`` of the best cost), ``runner_up`` (the best cost of another event
-    sequence, ``None`` if none), ``seconds`` of CPU.
+    a relative ``1e-6`` of the best cost with its sequence), ``runner_up`` (the best cost of
+    another event sequence, ``None`` if none), ``seconds`` of CPU, ``local_minima`` (up to 8
+    distinct costs and sequences found), ``long_best`` (the cheapest control seen with more
+    than :data:`ACCEPT_EVENTS` events, ``None`` if none).
     """
 
     cost: float
@@ -664,6 +684,7 @@ class Optimum:
     runner_up_sequence: list[str] | None
     seconds: float
     local_minima: list[tuple[float, list[str]]] = field(default_factory=list)
+    long_best: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able fields."""
@@ -909,8 +930,12 @@ def optimum(
     seen: dict[tuple[str, ...], tuple[float, np.ndarray, list[float]]] = {}
     first_seen: dict[tuple[str, ...], tuple[float, np.ndarray, list[float]]] = {}
 
+    long_best = [math.inf]  # the cheapest control seen with more than ACCEPT_EVENTS events
+
     def record(x: np.ndarray, res: SimResult) -> None:
         key = tuple(res.sequence)
+        if res.valid and len(key) > ACCEPT_EVENTS:
+            long_best[0] = min(long_best[0], res.cost)
         if not res.valid or len(key) > 8:
             return
         entry = (res.cost, x.copy(), [t for t, _ in res.events])
@@ -1011,4 +1036,5 @@ def optimum(
         runner_up_sequence=others[0][1] if others else None,
         seconds=time.process_time() - t0,
         local_minima=minima[:8],
+        long_best=None if math.isinf(long_best[0]) else long_best[0],
     )
