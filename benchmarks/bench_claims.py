@@ -62,7 +62,10 @@ import scene_generator as sg  # noqa: E402  (tests/: numpy and scipy only, no hy
 TOLERANCE = {"reference": 1e-6, "dt": 1e-6, "gd": 1e-3}
 """Relative gap to the independent optimum within which a method has reached it."""
 DEFAULT_OPTIMA = ROOT / "benchmarks" / "bench_claims_optima.json"
-JUDGE_RTOL = 1e-8
+JUDGE_RTOL = 1e-7
+"""Relative agreement of hybridoc's judge with the independent cost of the independent
+optimum's control (a dodge's optimum may graze the guard disc: its events then differ by a
+contact at zero speed, and its costs by ~1e-8)."""
 
 
 # ----------------------------------------------------------------------------- worker
@@ -190,24 +193,39 @@ def judge_optimum(toml_path: Path, entry: dict[str, Any]) -> dict[str, Any]:
         return params[k, :2] + params[k, 2:] * (t - starts[k])
 
     ev = hybridoc.evaluate_callable(str(toml_path), u, breakpoints=list(starts[1:]))
-    return {"cost": float(ev.cost), "sequence": list(ev.sequence)}
+    # an upper bound of the best piecewise-constant control on the scene's grid (gd's
+    # space): the judged cost of the optimum's cell averages (64 midpoints per cell)
+    sc = entry["scene"]
+    N, T = sc["steps"], sc["horizon"]
+    mids = (np.arange(N * 64) + 0.5) * T / (N * 64)
+    cells = np.array([u(t) for t in mids]).reshape(N, 64, 2).mean(axis=1)
+    grid = hybridoc.evaluate(str(toml_path), cells)
+    return {"cost": float(ev.cost), "sequence": list(ev.sequence), "grid_bound": float(grid.cost)}
 
 
 # ----------------------------------------------------------------------------- report
 
 
-def classify(method: str, row: dict[str, Any], optimum: float) -> dict[str, Any]:
-    """Gap, reached, false success and beaten flags of one run."""
+def classify(
+    method: str, row: dict[str, Any], optimum: float, grid_bound: float | None = None
+) -> dict[str, Any]:
+    """Gap, reached, false success and beaten flags of one run; for gd also whether its
+    ``success`` costs more than a known control on its own grid (``grid_bound``: the judged
+    cost of the optimum's cell averages), which no grid can excuse."""
     tol = TOLERANCE[method]
     cost = row.get("cost")
     if cost is None or not math.isfinite(cost):
-        return {"gap": None, "reached": False, "false_success": False, "beaten": False}
+        return {"gap": None, "reached": False, "false_success": False, "beaten": False,
+                "false_on_grid": False}  # fmt: skip
     gap = (cost - optimum) / max(abs(optimum), 1e-12)
+    success = row["status"] == "success"
+    on_grid = grid_bound is not None and cost > grid_bound * (1 + 1e-6)
     return {
         "gap": gap,
         "reached": gap <= tol,
-        "false_success": row["status"] == "success" and gap > tol,
+        "false_success": success and gap > tol,
         "beaten": gap < -tol,
+        "false_on_grid": success and on_grid,
     }
 
 
@@ -218,6 +236,7 @@ def table(results: list[dict[str, Any]], methods: list[str]) -> str:
         "scenes",
         "success",
         "false success",
+        "false on own grid",
         "optimum reached",
         "beaten",
         "median s",
@@ -231,6 +250,7 @@ def table(results: list[dict[str, Any]], methods: list[str]) -> str:
             continue
         succ = sum(r["status"] == "success" for r in runs)
         false = sum(r["false_success"] for r in runs)
+        grid = "-" if m != "gd" else str(sum(r.get("false_on_grid", False) for r in runs))
         reached = sum(r["reached"] for r in runs)
         beaten = sum(r["beaten"] for r in runs)
         med = statistics.median(r["process_wall_s"] for r in runs)
@@ -241,6 +261,7 @@ def table(results: list[dict[str, Any]], methods: list[str]) -> str:
                 str(n),
                 str(succ),
                 f"{false} ({100 * false / n:.0f}%)",
+                grid,
                 f"{reached} ({100 * reached / n:.0f}%)",
                 str(beaten),
                 f"{med:.1f}",
@@ -250,6 +271,20 @@ def table(results: list[dict[str, Any]], methods: list[str]) -> str:
     widths = [max(len(h), *(len(r[k]) for r in rows)) for k, h in enumerate(head)]
     line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)).rstrip()  # noqa: E731
     return "\n".join([line(head), line(["-" * w for w in widths]), *map(line, rows)])
+
+
+def confirmed(results: list[dict[str, Any]]) -> str:
+    """How many independent optima hybridoc's judge confirmed, and their confidence."""
+    ok = sum(r["judge_agrees"] for r in results)
+    same = sum(r.get("judge_same_events", True) for r in results)
+    single = sum(r["optimum_hits"] <= 1 for r in results)
+    grid = [r["grid_bound_gap"] for r in results if "grid_bound_gap" in r]
+    worst = f"; the optimum's cell averages on the grid: at most {max(grid):+.1e}" if grid else ""
+    return (
+        f"independent optimum's cost confirmed by hybridoc's judge (relative {JUDGE_RTOL:g}) "
+        f"on {ok} of {len(results)} scenes, with the same events on {same} (the others "
+        f"graze); reached by a single descent on {single}{worst} (gd's space)"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -265,10 +300,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cap-gd", type=float, default=120.0)
     ap.add_argument("--optima", type=Path, default=DEFAULT_OPTIMA)
     ap.add_argument("--json", type=Path, default=None, help="per-scene results")
+    ap.add_argument(
+        "--summarize",
+        nargs="+",
+        type=Path,
+        metavar="JSON",
+        help="print the table of earlier --json files (runs of parts) and exit",
+    )
     ap.add_argument("--worker", nargs=3, metavar=("METHOD", "TOML", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
         worker(*args.worker, starts=args.starts)
+        return 0
+    if args.summarize:
+        results = [r for f in args.summarize for r in json.loads(f.read_text())["results"]]
+        print(f"{len(results)} scenes; tolerance (relative): {TOLERANCE}")
+        print(table(results, list(TOLERANCE)))
+        print(confirmed(results))
         return 0
     n = 5 if args.quick else args.scenes
     caps = {"reference": args.cap_reference, "dt": args.cap_dt, "gd": args.cap_gd}
@@ -300,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
             toml.write_text(sc.to_toml())
             judged = judge_optimum(toml, entry)
             rel = abs(judged["cost"] - opt["cost"]) / max(abs(opt["cost"]), 1e-12)
+            grid_gap = (judged["grid_bound"] - opt["cost"]) / max(abs(opt["cost"]), 1e-12)
             res: dict[str, Any] = {
                 "scene": sc.name,
                 "family": sc.family,
@@ -310,8 +359,11 @@ def main(argv: list[str] | None = None) -> int:
                 "optimum_hits": opt["hits"],
                 "optimum_starts": opt["starts"],
                 "runner_up": opt["runner_up"],
+                "runner_up_sequence": opt["runner_up_sequence"],
                 "judge_of_optimum": judged,
-                "judge_agrees": rel <= JUDGE_RTOL and judged["sequence"] == opt["sequence"],
+                "judge_agrees": rel <= JUDGE_RTOL,
+                "judge_same_events": judged["sequence"] == opt["sequence"],
+                "grid_bound_gap": grid_gap,
                 "methods": {},
             }
             if not res["judge_agrees"]:
@@ -322,7 +374,8 @@ def main(argv: list[str] | None = None) -> int:
                 )
             for m in methods:
                 row = run_method(m, toml, caps[m], args.starts)
-                row.update(classify(m, row, opt["cost"]))
+                grid = judged["grid_bound"] if m == "gd" else None
+                row.update(classify(m, row, opt["cost"], grid))
                 res["methods"][m] = row
                 if row["beaten"]:
                     loud.append(
@@ -342,6 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(f"{len(results)} scenes; tolerance (relative): {TOLERANCE}")
     print(table(results, methods))
+    print(confirmed(results))
     for msg in loud:
         print("!!! " + msg)
     return 1 if loud else 0
