@@ -61,6 +61,14 @@ def _agrees_with_oracle(scene: hybridoc.Scene, controls: np.ndarray) -> None:
     assert ev.cost == pytest.approx(ref.cost, rel=1e-7, abs=1e-10)
 
 
+def _found(ref: hybridoc.Solution) -> None:
+    """The default reference's answer: success where its coverage proves the optimum, else
+    best-found (issue #29: sequences within one event of the answer's that fail, or a
+    budget spent, leave it unproven), never another status."""
+    assert ref.status in (Status.SUCCESS, Status.BEST_FOUND), (ref.status, ref.message)
+    assert (ref.status is Status.SUCCESS) == ref.info["coverage"]["proven"], ref.message
+
+
 def _assert_trusted(ref: hybridoc.Solution, *others: hybridoc.Solution) -> None:
     """The reference is at least as cheap as every other method's result (to 1e-9), or it
     says that it is not the optimum and names a cheaper cost: never a worse result called
@@ -247,7 +255,7 @@ def offset_striker() -> tuple[hybridoc.Solution, hybridoc.Solution]:
 
 def test_offset_striker_reference_and_dt_agree(offset_striker: Any) -> None:
     ref, dt = offset_striker
-    assert ref.success, ref.message
+    _found(ref)
     assert dt.status is hybridoc.Status.BEST_FOUND, dt.message  # dt compares its guess's sequences
     assert ref.sequence == dt.sequence == ["striker|a", "striker|b"]
     assert ref.cost == pytest.approx(0.230452162318, abs=1e-11)
@@ -422,7 +430,7 @@ def test_documented_ball_reference_finds_the_two_bounce_optimum(
     # no CasADi/CVODES dumps on stderr (the fd, not only sys.stderr)
     assert len(err.splitlines()) < 5, err[:2000]
     cost, gammas = doc_ball_optimum[2]
-    assert ref.success, ref.message
+    _found(ref)
     assert ref.sequence == ["ground", "ground"]
     assert ref.cost == pytest.approx(cost, rel=1e-8)
     np.testing.assert_allclose(ref.info["event_times"], gammas, rtol=0, atol=1e-6)
@@ -441,7 +449,7 @@ def corner() -> dict[str, hybridoc.Solution]:
 
 def test_corner_bank_reference_is_not_beaten(corner: dict[str, hybridoc.Solution]) -> None:
     ref = corner["reference"]
-    assert ref.success, ref.message
+    _found(ref)
     assert ref.sequence == ["striker|ball", "ball|right"]  # the bank shot
     _assert_trusted(ref, corner["dt"], corner["gd"])
     assert ref.cost == pytest.approx(corner["dt"].cost, rel=1e-9)  # the same extremal
@@ -498,7 +506,7 @@ def blocker() -> dict[str, hybridoc.Solution]:
 def test_blocker_reference_is_cheapest(blocker: dict[str, hybridoc.Solution]) -> None:
     ref = blocker["reference"]
     _assert_trusted(ref, blocker["dt"], blocker["gd"])
-    assert ref.success, ref.message
+    _found(ref)
     # striker, ball, blocker, striker again: cheaper than the transcription's two events
     assert ref.sequence == ["striker|ball", "ball|blocker", "striker|ball"]
     assert ref.cost < blocker["dt"].cost - 0.1
@@ -545,7 +553,7 @@ LIBRARY = [
 def test_library_default_discovery_finds_the_independent_optimum(name: str) -> None:
     opt = independent_optimum(name)
     ref = hybridoc.solve(build(name), "reference")
-    assert ref.success, ref.message
+    _found(ref)
     assert ref.sequence == list(opt["sequence"])
     assert ref.cost == pytest.approx(opt["cost"], rel=1e-9)
     np.testing.assert_allclose(ref.info["event_times"], opt["event_times"], rtol=0, atol=1e-7)
@@ -594,7 +602,7 @@ def test_cart_independent_optimum_bounces_once(cart_optimum: Any) -> None:
 def test_cart_reference_from_a_guess_that_reaches_the_wall(cart_optimum: Any) -> None:
     cost, gammas = cart_optimum[1]
     ref = hybridoc.solve(_cart(push=2.0), "reference")
-    assert ref.success, ref.message
+    _found(ref)
     assert ref.sequence == ["wall"]
     assert ref.cost == pytest.approx(cost, rel=1e-9)
     np.testing.assert_allclose(ref.info["event_times"], gammas, rtol=0, atol=1e-7)
