@@ -141,6 +141,11 @@ def run_method(method: str, toml_path: Path, cap: float, starts: int) -> dict[st
                 "message": " ".join(tail)[:500],
             }
         row["process_wall_s"] = wall
+        # the code under test changes while a long run goes on: say which commit ran
+        head = ["git", "rev-parse", "--short", "HEAD"]
+        row["commit"] = subprocess.run(
+            head, cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip()
         return row
 
 
