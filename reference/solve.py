@@ -1635,7 +1635,9 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
     solved (an extremal found) or excluded by a valid lower bound (``exhaustive_length``);
     no extremal of those lengths that is cheaper than ``best`` fails to re-simulate to its
     own events (that sequence's optimum, with the extra contacts avoided, would be unknown);
-    and the optimum's extremal was reached from at least :data:`PROOF_STARTS` distinct
+    every longer sequence that a control met has (a feasible known control, a
+    re-simulation) has an extremal or is excluded by a bound; and the optimum's extremal
+    was reached from at least :data:`PROOF_STARTS` distinct
     starts of Newton that agree (:data:`START_RTOL`). Sequences longer than
     ``len(best) + 1`` are not covered: the proof is of the search's claim, not of an
     infinite enumeration (docs/reference.rst, "What success means")."""
@@ -1666,6 +1668,24 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
                 "contacts avoided is not known"
             )
             break
+    # a control met (known, or an extremal's re-simulation) with a longer sequence shows
+    # that sequence reachable: one whose extremal was not found leaves the claim open (a
+    # break whose relaxed one-strike extremal re-simulates to the cascade)
+    met = {tuple(k.sequence) for k in book.rivals()}
+    met |= {tuple(sim.sequence) for sim in book.resimulated.values()}
+    open_ = sorted(
+        (
+            q
+            for q in met
+            if need < len(q) <= MAX_EVENTS and q not in book.results and q not in book.pruned
+        ),
+        key=lambda q: (len(q), q),
+    )
+    if open_:
+        why.append(
+            f"{len(open_)} longer sequence(s) that a control met has, without an extremal "
+            f"(the first: {','.join(open_[0])})"
+        )
     key = tuple(best.sequence)
     n = book.agreeing_starts(key)
     if _convex(book.ocp, key) and n >= 1:
