@@ -182,3 +182,36 @@ def test_free_reset_controls_zero_cost_found_beyond_the_one_bounce_success() -> 
     assert abs(evaluate(ocp, sol).cost) < 1e-20
     one = [f for f in sol.info["coverage"]["families"] if f["events"] == 1]
     assert one and one[0]["best_cost"] == pytest.approx(0.03488947974729737, rel=1e-6)
+
+
+def test_a_longer_sequence_a_control_met_without_an_extremal_is_not_proven() -> None:
+    # the proof's rule on a book built by hand (bouncing-ball): every sequence of up to 2
+    # bounces solved, the one-bounce optimum from two agreeing starts: proven; a control met
+    # with three bounces whose sequence has no extremal (a break's cascade, in small) is
+    # territory the search shows reachable and did not solve: not proven
+    from hybridoc import as_ocp, evaluate
+    from hybridoc.reference.solve import _Book, _Known, _proof, _Run
+
+    ocp = as_ocp("bouncing-ball")
+    book = _Book(ocp, 1e-10, False)
+    for seq in ([], ["floor"], ["floor", "floor"]):
+        res = solve_reference(ocp, sequence=seq).reference
+        book.results[tuple(seq)] = res
+        book.start_costs[tuple(seq)] = [res.cost, res.cost]
+    book.enumerated = [[()], [("floor",)], [("floor", "floor")]]
+    book.exhaustive = book.depth = 2
+    best = book.best_verified()
+    assert best is not None and best.sequence == ["floor"]
+    run = _Run(
+        seq=None, initial=None, search=None, budget=30.0, verbose=False, tol=1e-10, rtol=1e-9,
+        verify=True, transcription=True, multistart=8, sources=None, proposers=(), starters=(),
+        kind="registered", t_start=0.0,
+    )  # fmt: skip
+    proven, text = _proof(run, book, best)
+    assert proven, text
+    u = ocp.u_guess
+    three = ("floor", "floor", "floor")
+    book.known.append(_Known("a control with three bounces", 1.0, list(three), u, evaluate(ocp, u)))
+    proven, text = _proof(run, book, best)
+    assert not proven
+    assert "longer sequence(s) that a control met has" in text and "floor,floor,floor" in text
