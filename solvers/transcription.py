@@ -103,9 +103,10 @@ _NEAR_MISS_REFINEMENTS = 3  # mesh doublings (default mesh 4 -> up to 32) for a 
 _CHEAPER_RTOL = 1e-9  # a known control cheaper by more than this makes a result not-optimal
 REFINE_RTOL = 1e-7
 """The default mesh is refined until the judged cost of the transcription's control and the
-NLP's objective agree within ``REFINE_RTOL * max(1, |J|)``, and so do the judged costs of
-the last two meshes (after a refinement), and the collocation defects between the
-collocation points stay within :data:`DEFECT_TOL` (``info["error_estimate"]``)."""
+NLP's objective agree within ``REFINE_RTOL * max(1, |J|)`` and, on the first mesh, the
+collocation defects between the collocation points stay within :data:`DEFECT_TOL`, or after
+a refinement the judged costs of the last two meshes agree within the same
+(``info["error_estimate"]``)."""
 DEFECT_TOL = 1e-4
 """The largest collocation defect between collocation points that the default mesh accepts:
 ``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of each
@@ -2018,7 +2019,9 @@ def _error_estimate(
         the same of the judged costs of this mesh and the previous one (``None`` before a
         refinement); ``defects``: :func:`_defects` per phase; ``event_time_gap``: the
         largest gap between modelled and re-simulated event times; ``phases``: the phases
-        whose defect is above :data:`DEFECT_TOL`; ``converged``: all within tolerance.
+        whose defect is above :data:`DEFECT_TOL` (where to refine); ``converged``: the cost
+        gap within :data:`REFINE_RTOL` and, on the first mesh, the defects within
+        :data:`DEFECT_TOL`, after a refinement the change within :data:`REFINE_RTOL`.
     """
     r, ev = j.result, j.ev
     assert ev is not None
@@ -2029,7 +2032,10 @@ def _error_estimate(
     defects = [float(np.max(x, initial=0.0)) for x in per_element]
     phases = [k for k, x in enumerate(defects) if not x <= DEFECT_TOL]
     time_gap = _event_time_gap(ocp, r, ev)
-    converged = gap <= REFINE_RTOL and (change is None or change <= REFINE_RTOL) and not phases
+    if change is None:  # the first mesh: its defects must be small too
+        converged = gap <= REFINE_RTOL and not phases
+    else:  # refined: the last two meshes agree (the defects only say where to refine)
+        converged = gap <= REFINE_RTOL and change <= REFINE_RTOL
     return {
         "cost_gap": gap,
         "refinement_change": change,
@@ -2066,7 +2072,7 @@ def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tup
     Returns the last candidate and whether it was refined."""
     refined = False
     previous: float | None = None
-    for _ in range(_MAX_ADAPTIONS + 1):
+    for _ in range(_MAX_ADAPTIONS):
         est = _error_estimate(ocp, j, previous)
         j.estimate = est
         if est["converged"]:
@@ -2108,8 +2114,11 @@ def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tup
         assert j.ev is not None
         previous = float(j.ev.cost)
         j, refined = jf, True
-    assert j.estimate is not None
-    j.estimate["stopped"] = f"the most refinements, _MAX_ADAPTIONS = {_MAX_ADAPTIONS}"
+    # the last refinement's candidate, judged by the same estimate
+    est = _error_estimate(ocp, j, previous)
+    j.estimate = est
+    if not est["converged"]:
+        est["stopped"] = f"the most refinements, {_MAX_ADAPTIONS}"
     return j, refined
 
 
