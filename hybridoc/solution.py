@@ -85,11 +85,11 @@ class Status(StrEnum):
         The method met its own convergence test and the judge confirms what it modelled
         (its events, its cost).
     ``EXTREMAL``
-        The verified extremal of an event sequence the user chose (the reference with
-        ``sequence=``): it satisfies the conditions of optimality for those events and
-        re-simulates to them, but it was not compared with other sequences, so it makes no
-        claim to be the optimum. Not a finding (exit code 0); a cheaper known control makes
-        it ``NOT_OPTIMAL``.
+        The verified extremal of an event sequence the user chose (the reference or dt with
+        ``sequence=``): it satisfies the conditions of optimality for those events (the HMP,
+        or the transcription's KKT conditions) and re-simulates to them, but it was not
+        compared with other sequences, so it makes no claim to be the optimum. Not a
+        finding (exit code 0); a cheaper known control makes it ``NOT_OPTIMAL``.
     ``NOT_OPTIMAL``
         A cheaper control is known (the initial guess, another method's solution): the
         result is not the optimum it would claim to be.

@@ -83,7 +83,7 @@ from hybridoc.errors import (
 )
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate, gradient
-from hybridoc.methods import FEATURES, Method, option, problem_features
+from hybridoc.methods import FEATURES, Method, option, positive_float, problem_features
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
@@ -144,7 +144,6 @@ __all__ = [
     "families_line",
     "parse_budget",
     "parse_search",
-    "parse_time_limit",
     "path_violation",
     "reference_supports",
     "solve_reference",
@@ -249,23 +248,6 @@ def parse_search(text: str) -> int:
     return k
 
 
-def parse_time_limit(text: str) -> float:
-    """The ``--time-limit SECONDS`` value: a positive number of seconds.
-
-    Raises
-    ------
-    ValueError
-        With a one-line reason.
-    """
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"time limit must be a number of seconds > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"time limit must be a number of seconds > 0, got {text!r}")
-    return value
-
-
 def parse_budget(text: str) -> float:
     """The ``--budget SECONDS`` value: a positive number of seconds.
 
@@ -313,7 +295,7 @@ class ReferenceOptions:
         "a hard wall-clock limit over the whole solve, sources included (checked between "
         "stages and sequences): the best verified extremal found by then is returned as "
         "not-converged; default none (the budget stays the search's soft limit)",
-        parse=parse_time_limit,
+        parse=positive_float,
         metavar="SECONDS",
     )
     verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
@@ -1593,6 +1575,11 @@ def _verdict(
         proven, text = _proof(run, book, best)
         if not proven:
             status, message = Status.BEST_FOUND, f"best found, not proven: {text}"
+            if skipped:  # what the search could not reach at all, said as with success
+                message += (
+                    f"; {len(skipped)} longer candidate(s), of up to {max(map(len, skipped))} "
+                    f"events, were not solved (MAX_EVENTS = {MAX_EVENTS})"
+                )
     if status in (Status.SUCCESS, Status.EXTREMAL, Status.BEST_FOUND):
         rival = event_control_rival(ocp, best)
         if rival is not None:

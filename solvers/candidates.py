@@ -242,8 +242,10 @@ class TranscriptionSource:
         # the judge's events of the continuous u(t): dt.sequence, at the judge's times
         judged = list(dt.sequence)
         judged_times = np.array([float(e["time"]) for e in dt.events])
-        if dt.success:
-            # the transcription's control itself (continuous u(t)): its judged cost
+        if dt.status.value in ("success", "best-found", "extremal"):
+            # the transcription's control itself (continuous u(t)): its judged cost (dt's
+            # default says best-found where it compared few sequences: the control is as
+            # good a known control as with success)
             out.append(
                 Proposal(self.name, judged, dt.controls, dt_ev, cost=dt.cost, label=which,
                          solve=False, event_times=judged_times)

@@ -10,6 +10,7 @@ rules are :mod:`hybridoc.outputs`'s.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import stat
 from pathlib import Path
@@ -264,8 +265,27 @@ def test_solve_dt_never_writes_through_a_link(tmp_path: Path, outside: Path) -> 
     link.symlink_to(outside)
     done = run_here(*["solve", "bouncing-ball", "--method", "dt", "--out", str(out)])
     assert done.returncode == 2
-    assert str(link) in done.stderr.strip().splitlines()[-1]
+    # refused before the solve: one line, no answer computed for nothing
+    (line,) = done.stderr.strip().splitlines()
+    assert str(link) in line and done.stdout == ""
     assert outside.read_bytes() == PRECIOUS and link.is_symlink()
+
+
+@posix
+def test_solve_prints_its_answer_when_writing_fails_at_the_end(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hybridoc import outputs
+    from hybridoc.errors import HybridocError
+
+    def refuse(*args: object, **kw: object) -> None:
+        raise HybridocError("cannot write 'x': disk full")
+
+    monkeypatch.setattr(outputs, "write_with", refuse)
+    done = run_here(*["solve", "bouncing-ball", "--method", "dt", "--json", "--out", str(tmp_path)])
+    assert done.returncode == 2
+    assert json.loads(done.stdout)["cost"] > 0  # the answer is out
+    assert done.stderr.strip().splitlines()[-1] == "hybridoc: error: cannot write 'x': disk full"
 
 
 @posix

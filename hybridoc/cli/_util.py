@@ -428,15 +428,11 @@ def load_substep_controls_arg(
 
 
 def ensure_dir(path: str | Path) -> Path:
-    """Create an output directory; an unwritable path is a user error."""
-    p = Path(path)
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HybridocError(f"cannot create output directory {str(p)!r}: {exc.strerror}") from None
-    if not p.is_dir():
-        raise HybridocError(f"output path {str(p)!r} is not a directory")
-    return p
+    """Create an output directory and check that a file can be created in it, before the
+    work (:func:`hybridoc.outputs.check_folder`); an unwritable path is a user error."""
+    from hybridoc.outputs import check_folder
+
+    return check_folder(path)
 
 
 def output_stem(out: Path, problem: str, command: str, method: str | None = None) -> Path:

@@ -46,13 +46,19 @@ def cmd_reference(args: argparse.Namespace) -> int:
     if args.initial is not None:
         initial, _ = load_controls_arg(args.initial, ocp)
     out_dir = None if args.out is None else ensure_dir(args.out)  # fail before the solve
+    if out_dir is not None:
+        from hybridoc.outputs import check_targets
+
+        stem = output_stem(out_dir, problem_slug(args.problem, ocp), "reference")
+        ends = (".npz", ".json", "_trajectory.png", "_controls.png", "_costates.png",
+                "_landscape.png")  # fmt: skip
+        check_targets(*(f"{stem}{end}" for end in ends))  # a link or a user's file: refused now
     sol = solve_reference(
         ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
         budget=args.budget, rtol=args.rtol, progress=True, time_limit=args.time_limit,
     )  # fmt: skip
     files: list[Path] = []
     if out_dir is not None:
-        stem = output_stem(out_dir, problem_slug(args.problem, ocp), "reference")
         files = write_reference_outputs(ocp, sol, stem)
     landscape = sol.info.get("landscape")
     if args.json:
@@ -208,14 +214,9 @@ def register(sub: Any) -> None:
 
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
+    from hybridoc.methods import positive_float
     from hybridoc.reference.sequence import COST_RTOL, RTOL_RANGE, check_rtol
-    from hybridoc.reference.solve import (
-        DEFAULT_BUDGET,
-        MAX_SEARCH,
-        ReferenceOptions,
-        parse_budget,
-        parse_time_limit,
-    )
+    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH, ReferenceOptions, parse_budget
 
     problem_arg(p)
     p.add_argument(
@@ -245,7 +246,7 @@ def _reference_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--time-limit",
         metavar="SECONDS",
-        type=option_type(parse_time_limit, "time limit"),
+        type=option_type(positive_float, "time limit"),
         default=None,
         help=ReferenceOptions.__dataclass_fields__["time_limit"].metadata["help"],
     )

@@ -30,6 +30,7 @@ from hybridoc.cli._util import (
     say,
     solution_payload,
 )
+from hybridoc.errors import HybridocError
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -73,7 +74,6 @@ def cmd_solve(args: argparse.Namespace) -> int:
     Every method reports the judge's true cost of its control, its events and a status; a
     result that is not what it claims to be exits with code 1.
     """
-    import numpy as np
 
     from hybridoc.methods import METHODS, get_method, solve
 
@@ -84,34 +84,29 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if args.initial is not None:
         initial, _ = load_controls_arg(args.initial, ocp)
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solve
-    sol = solve(ocp, method.name, initial=initial, progress=True, **options)
-    written: list[Path] = []
     if out is not None:
-        from hybridoc.cli.evaluate import save, write_figures
-        from hybridoc.evaluator import evaluate
+        from hybridoc.outputs import check_targets
 
         stem = output_stem(out, problem_slug(args.problem, ocp), "solve", method.name)
-        written += list(sol.save(stem))
-        written += write_figures(ocp, evaluate(ocp, sol.controls), stem, label=method.name)
-        if sol.info.get("landscape"):  # any method that reports extremals by sequence
-            from hybridoc.cli.reference import write_landscape
-
-            written += write_landscape(ocp, sol, stem)
-        hist = sol.arrays.get("loss_history")
-        if hist is not None and len(hist):
-            fig = _learning_curve_figure(
-                {method.name: np.asarray(hist)},
-                None,
-                f"{ocp.name}: learning curve",
-                sol.info.get("history_stages"),
-            )
-            written.append(save(fig, f"{stem}_learning_curve.png"))
+        ends = (".npz", ".json", "_trajectory.png", "_controls.png", "_landscape.png",
+                "_learning_curve.png")  # fmt: skip
+        check_targets(*(f"{stem}{end}" for end in ends))  # a link or a user's file: refused now
+    sol = solve(ocp, method.name, initial=initial, progress=True, **options)
+    written: list[Path] = []
+    write_error: HybridocError | None = None
+    try:
+        if out is not None:
+            written += _write_solve_outputs(ocp, sol, stem, method.name)
+    except HybridocError as exc:
+        write_error = exc  # the answer is still printed, then this one line (exit 2)
     if args.json:
         emit_json(solution_payload(sol, files=[str(p) for p in written]))
     else:
         print_solution(args, sol, ocp, method.summary_lines(sol))
         for p in written:
             say(args, f"wrote {p}")
+    if write_error is not None:
+        raise write_error
     # the result is out; the reason for a non-zero exit stays the last line on stderr. An
     # interrupted run does not wait for compilations, and a Ctrl-C during the wait ends it
     # (the compiler's process group is ended at exit: hybridoc.compiled)
@@ -121,6 +116,32 @@ def cmd_solve(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
     return exit_code(sol.status, sol.message)
+
+
+def _write_solve_outputs(ocp: Any, sol: Any, stem: Path, method: str) -> list[Path]:
+    """The files of ``hybridoc solve --out``: the Solution, its figures, a landscape and a
+    learning curve where the method has them."""
+    import numpy as np
+
+    from hybridoc.cli.evaluate import save, write_figures
+    from hybridoc.evaluator import evaluate
+
+    written = list(sol.save(stem))
+    written += write_figures(ocp, evaluate(ocp, sol.controls), stem, label=method)
+    if sol.info.get("landscape"):  # any method that reports extremals by sequence
+        from hybridoc.cli.reference import write_landscape
+
+        written += write_landscape(ocp, sol, stem)
+    hist = sol.arrays.get("loss_history")
+    if hist is not None and len(hist):
+        fig = _learning_curve_figure(
+            {method: np.asarray(hist)},
+            None,
+            f"{ocp.name}: learning curve",
+            sol.info.get("history_stages"),
+        )
+        written.append(save(fig, f"{stem}_learning_curve.png"))
+    return written
 
 
 #: how long ``hybridoc solve`` waits, after its output, for a C compilation still running
