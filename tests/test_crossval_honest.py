@@ -283,3 +283,26 @@ def test_dt_refinement_doubles_the_mesh_it_used() -> None:
     used = validation.representable(ocp, "dt", ref)["representable_mesh"]
     unset = validation.refined_projection(ocp, "dt", ref)
     assert unset["refined"] == f"dt re-solved from the reference on mesh {2 * max(used)}"
+
+
+def test_crossval_time_limit_reaches_every_method_that_has_one(monkeypatch, capsys) -> None:
+    # issue #29: --time-limit on every method, crossval included: it is each method's limit
+    from hybridoc.errors import SceneError
+
+    seen: dict[str, Any] = {}
+
+    def fake(ocp: Any, *, options: Any, **kw: Any) -> Any:
+        seen.update(options)
+        raise SceneError("stop here")
+
+    monkeypatch.setattr(validation, "crossval", fake)
+    assert main(["crossval", "bouncing-ball", "--time-limit", "7.5", "--no-progress"]) == 2
+    assert "stop here" in capsys.readouterr().err
+    assert {k: v.get("time_limit") for k, v in seen.items()} == {
+        "reference": 7.5,
+        "dt": 7.5,
+        "gd": 7.5,
+    }
+    with pytest.raises(SystemExit) as info:
+        main(["crossval", "bouncing-ball", "--time-limit", "0"])
+    assert info.value.code == 2

@@ -63,6 +63,7 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     then compared with each other), is status best-found, exit code 1. A method that fails
     is a row that says so; the others still run and the files are still written.
     """
+    from hybridoc.methods import METHODS
     from hybridoc.workflows.validation import crossval
 
     ocp = load_problem_arg(args.problem)
@@ -78,6 +79,11 @@ def cmd_crossval(args: argparse.Namespace) -> int:
         options["gd"]["starts"] = args.starts
     if args.mesh is not None:
         options["dt"]["mesh"] = args.mesh
+    if args.time_limit is not None:
+        # each method that has a time limit gets it (a limit per method, not for the whole)
+        for name in names:
+            if name in METHODS and any(s.name == "time_limit" for s in METHODS[name].specs()):
+                options.setdefault(name, {})["time_limit"] = args.time_limit
     report, sols = crossval(
         ocp, methods=methods, options=options, tolerances=tolerances,
         progress=not args.no_progress,
@@ -395,6 +401,7 @@ def _crossval_arguments(p: argparse.ArgumentParser) -> None:
     integrator = _method_option("gd", "integrator")
     starts = _method_option("gd", "starts")
     mesh = _method_option("dt", "mesh")
+    time_limit = _method_option("gd", "time_limit")
     problem_arg(p)
     p.add_argument(
         "--methods", default="reference,dt,gd", metavar="M,M",
@@ -415,6 +422,12 @@ def _crossval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mesh", type=option_type(mesh.parser, "mesh"), default=None, metavar="M",
         help="the transcription's collocation elements per phase (default: dt's)",
+    )  # fmt: skip
+    p.add_argument(
+        "--time-limit", type=option_type(time_limit.parser, "time limit"), default=None,
+        metavar="SECONDS",
+        help="each method's time limit (every method that has one: its best so far is "
+        "then a not-converged row); default none",
     )  # fmt: skip
     p.add_argument(
         "--tolerance", type=_tolerance_item, action="append", default=None,
