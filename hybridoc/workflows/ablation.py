@@ -9,8 +9,8 @@ iteration (between 0.480 and 0.499 over the last :data:`LAST_WINDOW` iterations)
 final loss is one draw from that range and the last bit of the update moves it. The
 paper's ``torch.optim.SGD`` adds ``-lr * g`` with one rounding (a fused multiply-add):
 0.48058; numpy's ``x - lr * g`` (two roundings, since commit 0b1d90b) gives 0.49471, and
-learning rates within two ulps of the paper's give 0.481 to 0.504 with either. Each row carries that range
-(``loss_last_min``, ``loss_last_max``) beside the final loss.
+learning rates within two ulps of the paper's give 0.481 to 0.504 with either. Each row
+carries that range (``loss_last_min``, ``loss_last_max``) beside the final loss.
 """
 
 from __future__ import annotations
