@@ -95,7 +95,10 @@ def test_the_reference_and_dt_meet_the_closed_form_in_the_required_mode() -> Non
     assert free.cost == pytest.approx(math.pi**2, rel=1e-9)
     p = _laps(final_mode="odd")
     ref = hybridoc.solve(p, method="reference")
-    assert ref.success, ref.message
+    # issue #29: the success must be proven; its extremal was reached from 1 start of Newton,
+    # 2 needed, so best-found (the closed-form cost and event time are checked)
+    assert ref.status in (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND), ref.message
+    assert (ref.status is hybridoc.Status.SUCCESS) == ref.info["coverage"]["proven"]
     assert ref.sequence == ["lap_even"] and ref.modes[-1] == "odd"
     assert ref.cost == pytest.approx(9 * math.pi**2, rel=1e-9)
     assert ref.events[0]["time"] == pytest.approx(2 / 3, abs=1e-9)
@@ -115,6 +118,10 @@ def test_a_method_that_ends_in_another_mode_is_infeasible_whatever_it_is() -> No
     assert gd.status == "infeasible" and not gd.success
     assert "the required final mode 'odd' (it ends in 'even')" in gd.message
     ref = hybridoc.solve(p, "reference")
-    assert ref.success and ref.modes[-1] == "odd"
+    # issue #29: best-found, not success: its extremal was reached from 1 start of Newton, 2
+    # needed for the proof (the closed-form cost below is checked)
+    assert ref.status in (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND), ref.message
+    assert (ref.status is hybridoc.Status.SUCCESS) == ref.info["coverage"]["proven"]
+    assert ref.modes[-1] == "odd"
     c = 30 * math.pi / 11
     assert ref.cost == pytest.approx(c**2 + 10 * (c - 3 * math.pi) ** 2, rel=1e-9)

@@ -227,11 +227,15 @@ def test_coulomb_block_every_fast_method_matches_its_independent_optimum() -> No
     assert a1 + b1 * gamma < -1.0 and a2 < -1.0
     p = hybridoc.as_ocp("coulomb-block")
     ref = hybridoc.solve(p, "reference", progress=False)
-    assert ref.success, ref.message
+    # issue #29: a success must be earned; here one sequence of 2 events fails to solve, so
+    # the reference's coverage does not prove the optimum: best-found (the cost is checked)
+    assert ref.status in (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND), ref.message
+    assert (ref.status is hybridoc.Status.SUCCESS) == ref.info["coverage"]["proven"]
     assert ref.cost == pytest.approx(opt["cost"], rel=1e-9)
     np.testing.assert_allclose(ref.info["event_times"], opt["event_times"], atol=1e-7)
     dt = hybridoc.solve(p, "dt")
-    assert dt.success, dt.message
+    # issue #29: dt compares only its guess's sequence and those with one event dropped
+    assert dt.status is hybridoc.Status.BEST_FOUND, dt.message
     assert dt.cost == pytest.approx(opt["cost"], rel=1e-9)
     assert ref.modes == dt.modes == ["right", "left"]
 
@@ -265,13 +269,18 @@ def test_hopper_every_method_with_no_option_and_crossval() -> None:
     opt = mode_optimum("hopper")
     p = hybridoc.as_ocp("hopper")
     ref = hybridoc.solve(p, "reference", progress=False)
-    assert ref.success, ref.message
+    # issue #29: the reference's success needs its coverage to prove the optimum; here the
+    # sequence of 0 events fails to solve, so it is best-found (the cost is checked)
+    assert ref.status in (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND), ref.message
+    assert (ref.status is hybridoc.Status.SUCCESS) == ref.info["coverage"]["proven"]
     assert ref.modes == HOP_MODES and ref.cost == pytest.approx(opt["cost"], rel=1e-9)
     gd = hybridoc.solve(p, "gd")
     assert gd.success and gd.modes == HOP_MODES
     assert gd.cost == pytest.approx(opt["cost"], rel=1e-2)
     dt16 = hybridoc.solve(p, "dt", mesh=16)
-    assert dt16.success and dt16.modes == HOP_MODES
+    # issue #29: dt compares only its guess's sequence and those with one event dropped
+    assert dt16.status is hybridoc.Status.BEST_FOUND, dt16.message
+    assert dt16.modes == HOP_MODES
     assert dt16.cost == pytest.approx(opt["cost"], rel=1e-6)
 
 
@@ -281,7 +290,10 @@ def test_hopper_dt_and_crossval_with_no_option() -> None:
     stance's oscillation needs it) and crossval on the library hopper with no option."""
     p = hybridoc.as_ocp("hopper")
     dt = hybridoc.solve(p, "dt")
-    assert dt.success, dt.message
+    # issue #29: dt compares only its guess's sequence and those with one event dropped
+    assert dt.status is hybridoc.Status.BEST_FOUND, dt.message
+    assert dt.modes == HOP_MODES
+    assert dt.cost == pytest.approx(mode_optimum("hopper")["cost"], rel=1e-6)
     report, sols = hybridoc.crossval(p)
     assert report["agree"], report["reasons"]
     assert all(s.modes == sols["reference"].modes for s in sols.values())
@@ -321,6 +333,9 @@ def test_masked_hopper_judge_matches_the_same_system_written_with_modes() -> Non
 @pytest.mark.slow
 def test_masked_hopper_dt_mesh_16_gives_the_issues_cost() -> None:
     sol = hybridoc.solve(_masked_hopper(), "dt", mesh=16)
-    assert sol.success, sol.message
+    # issue #29: at the user's mesh=16 dt's error estimate (judged cost vs NLP objective
+    # 1.6e-7 relative) is above its 1e-7 tolerance, and with a given mesh it does not refine
+    assert sol.status is hybridoc.Status.NOT_CONVERGED, sol.message
+    assert "error estimate is above the tolerance" in sol.message
     assert sol.sequence == ["touchdown", "liftoff"]
     assert sol.cost == pytest.approx(0.11611455, abs=1e-8)
