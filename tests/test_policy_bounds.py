@@ -24,7 +24,7 @@ import torch
 
 import hybridoc
 from hybridoc.cli import main
-from hybridoc.workflows.datasets import draw_initial_states, make_dataset
+from hybridoc.workflows.datasets import draw_initial_states, load_dataset, make_dataset
 from hybridoc.workflows.policies import PolicyError
 from hybridoc.workflows.policy_format import MLP, load_mlp_policy, save_mlp_policy
 from hybridoc.workflows.rollouts import CompiledRollouts, closed_loop_evaluations
@@ -187,6 +187,13 @@ def test_validate_policy_flags_an_unclipped_policy_that_leaves_the_bounds(
     code, report, err = _validate(spec, sat_path, refs, capsys)
     s = report["summary"]
     assert code == 0, err
+    # issue #29: the draw's reference may be best-found (verified, not proven optimal); it is
+    # a baseline all the same, and the summary says which kind it is
+    ref_status = str(load_dataset(refs).columns["status"][0])
+    assert ref_status in ("success", "best-found")
+    assert s["reference_best_found"] == int(ref_status == "best-found")
+    assert s["reference_proven"] == int(ref_status == "success")
+    assert report["worst"][0]["reference_status"] == ref_status
     assert s["infeasible"] == 0 and s["compared"] == 1
     assert s["violations"]["bound"] == {"draws": 0, "max": 0.0}
     assert s["gap_mean"] == pytest.approx(ev_sat.cost - report["worst"][0]["reference_cost"])
@@ -314,3 +321,63 @@ def test_cli_validate_flags_controls_out_of_bounds(
     assert report["bound_violation"] == pytest.approx(0.3, rel=1e-12)
     assert report["terminal_violation"] == pytest.approx(ev.terminal_violation, rel=1e-12)
     assert "INFEASIBLE" in cap.err and "control bounds by 0.3" in cap.err
+
+
+def test_a_best_found_reference_is_a_baseline_and_the_report_says_it_is_not_proven() -> None:
+    """Issue #29: a draw whose reference is best-found (a verified extremal, not proven
+    optimal) is compared with the policy; not-optimal and failed references are not. The
+    columns and the summary say which references are proven, and a policy that beats a
+    best-found reference is counted apart from one that beats a proven optimum."""
+    from hybridoc.workflows.policies import _report
+
+    statuses = ["success", "best-found", "best-found", "not-optimal", "failed"]
+    M = len(statuses)
+    ref = {
+        "index": np.arange(M), "x0": np.zeros((M, 2)), "targets": np.zeros((M, 0, 2)),
+        "status": np.array(statuses), "cost": np.array([1.0, 2.0, 3.0, 4.0, np.nan]),
+        "sequence": np.array(["g"] * M), "message": np.array(["", "", "", "cheaper", "x"]),
+    }  # fmt: skip
+    zero = np.zeros(M)
+    roll = {
+        "rollout_status": np.array(["ok"] * M), "feasible": np.ones(M, bool),
+        "policy_cost": np.array([1.5, 2.5, 2.7, 5.0, 6.0]), "policy_sequence": ref["sequence"],
+        "bound_violation": zero, "path_violation": zero, "terminal_violation": zero,
+        "rollout_message": np.array([""] * M), "rollout_path": np.array(["judge"] * M),
+        "fallback_reason": np.array([""] * M),
+    }  # fmt: skip
+    rep = _report(ref, roll, 0.0)
+    c, s = rep.columns, rep.summary
+    assert c["status"].tolist() == ["ok", "ok", "ok", "reference-failed", "reference-failed"]
+    assert c["reference_status"].tolist() == statuses
+    assert c["reference_proven"].tolist() == [True, False, False, False, False]
+    np.testing.assert_allclose(c["gap"][:3], [0.5, 0.5, -0.3], rtol=1e-12)
+    assert np.isnan(c["gap"][3:]).all()
+    assert (s["compared"], s["reference_proven"], s["reference_best_found"]) == (3, 1, 2)
+    assert s["reference_failed"] == 2
+    assert (s["negative_gaps"], s["negative_gaps_proven"]) == (1, 0)
+
+
+def test_a_best_found_nominal_warm_starts_and_its_warm_draws_are_not_proven(
+    ball_refs: tuple[str, Path],
+) -> None:
+    """Issue #29: the bounded ball's nominal reference is best-found (no sequence length
+    covered). It is a verified extremal, so the dataset keeps it as the draws' warm start
+    (before, only a success nominal was kept and every draw got the full discovery), and a
+    warm draw is no more proven than its nominal."""
+    from hybridoc.workflows.datasets import draw_context, problem_spec
+
+    spec, refs = ball_refs
+    ds = load_dataset(refs)
+    nominal = ds.manifest["nominal"]
+    assert nominal is not None and nominal["status"] in ("success", "best-found")
+    assert set(ds.columns["status"].tolist()) <= {"success", "best-found"}
+    warm = ds.columns["method"] == "warm"
+    assert set(ds.columns["status"][warm].tolist()) <= {nominal["status"]}
+    ocp = hybridoc.as_ocp(spec)
+    task = {**problem_spec(ocp, spec, ds.columns["x0"]), "seed": 0, "tol": 1e-10,
+            "full": False, "nominal": nominal}  # fmt: skip
+    ctx = draw_context(task)
+    assert ctx.sequence == nominal["sequence"] and ctx.warm_status == nominal["status"]
+    for status, warm_status in (("success", "success"), ("best-found", "best-found")):
+        other = draw_context({**task, "nominal": {**nominal, "status": status}})
+        assert other.warm_status == warm_status

@@ -157,12 +157,14 @@ def test_a_file_of_the_previous_format_still_loads_and_judges(ball, tmp_path):
     with np.load(tmp_path / "dt.npz") as data:
         arrays = {k: data[k] for k in data.files if k != "arrays/control_nodes"}
     meta["stored_arrays"] = [k for k in meta["stored_arrays"] if k != "arrays/control_nodes"]
-    assert meta["status"] == "success" and meta["format_version"] == 2
+    # issue #29: dt's default discovery on a problem with guards compares only its guess's
+    # sequences, so it claims best-found (never success); the status text still round-trips
+    assert meta["status"] == "best-found" and meta["format_version"] == 2
     (tmp_path / "dt.json").write_text(json.dumps(meta))
     with open(tmp_path / "dt.npz", "wb") as fh:
         np.savez(fh, **arrays)
     old = Solution.load(tmp_path / "dt.json")
-    assert "control_nodes" not in old.arrays and old.status is Status.SUCCESS
+    assert "control_nodes" not in old.arrays and old.status is Status.BEST_FOUND
     assert hybridoc.evaluate("bouncing-ball", old).cost == dt.cost
 
 

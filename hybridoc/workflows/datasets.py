@@ -27,6 +27,12 @@ How each draw is solved
     ``full=True`` every draw is. Draws that fail are kept with status ``failed`` and the
     reason in ``message``; nothing is dropped.
 
+    A draw's status is the reference's (issue #29): ``success`` only where its optimum is
+    proven, ``best-found`` for a verified extremal (HMP satisfied, re-simulated to its own
+    events) that is the best found but not proven optimal. A nominal that is only
+    ``best-found`` still gives the warm start, and its warm draws are ``best-found`` too:
+    a warm draw is never more proven than the nominal it starts from.
+
 Files (in the output directory)
     ``dataset.npz``
         One row per draw (columns below), written deterministically (fixed zip
@@ -65,7 +71,8 @@ Writes, resume and checks
 
 Columns
     ``index``, ``x0`` ``(M, nx)``, ``targets`` ``(M, n_discs, 2)`` (NaN: no target),
-    ``status`` (``success``, ``not-optimal``, ``infeasible``, ``failed``), ``method``
+    ``status`` (``success``, ``best-found``, ``not-optimal``, ``infeasible``, ``failed``;
+    :data:`BASELINE_STATUSES` are the verified ones), ``method``
     (``warm``, ``full``, ``""`` for a failure), ``message``, ``cost``, ``terminal_cost``,
     ``running_cost``, ``residual``, ``sequence`` (guard names joined by ``,``),
     ``n_events``, ``event_times`` ``(M, K)``, ``multipliers`` ``(M, K)``,
@@ -364,6 +371,9 @@ class DrawContext:
         HMP residual required of every extremal.
     full
         Every draw with the full discovery (no warm start).
+    warm_status
+        The status of a warm-started draw: the nominal's, ``success`` only when the
+        nominal's optimum is proven, else ``best-found``.
     x0
         The ``(M, nx)`` initial states of a problem with a Python distribution (drawn by the
         calling process, :func:`draw_initial_states`); ``None`` for a scene.
@@ -377,6 +387,13 @@ class DrawContext:
     tol: float
     full: bool
     x0: np.ndarray | None = None
+    warm_status: str = "success"
+
+
+BASELINE_STATUSES: frozenset[str] = frozenset({"success", "best-found"})
+"""Reference statuses of a verified extremal that serves as a draw's baseline: ``success``
+(its optimum proven) and ``best-found`` (the best found, not proven optimal; issue #29).
+Every other status (``not-optimal``, ``infeasible``, ``failed``, ...) is a failed draw."""
 
 
 _CONTEXTS: dict[str, DrawContext] = {}
@@ -430,6 +447,11 @@ def draw_context(spec: dict[str, Any]) -> DrawContext:
             "z": None if nominal is None else np.array(nominal["z"], dtype=float),
             "tol": float(spec["tol"]),
             "full": bool(spec["full"]),
+            # a warm draw is no more proven than its nominal (a manifest of before issue
+            # #29 has only success nominals)
+            "warm_status": "success"
+            if nominal is None or nominal.get("status", "success") == "success"
+            else "best-found",
         }
         if "scene" in spec:
             import tomllib
@@ -552,7 +574,7 @@ def _solve_draw(ctx: DrawContext, index: int) -> dict[str, Any]:
         except Exception as exc:  # whatever went wrong, the full discovery decides
             res, why = None, f"{type(exc).__name__}: {exc}"
         if res is not None:
-            return {**head, **_record_of(res, "success", "warm", "")}
+            return {**head, **_record_of(res, ctx.warm_status, "warm", "")}
     try:
         sol = solve_reference(ocp)
     except Exception as exc:  # kept as a failed row, never lost (e.g. a worker that may
@@ -1078,8 +1100,14 @@ class Dataset:
 
     @property
     def ok(self) -> np.ndarray:
-        """Rows whose status is ``success``."""
+        """Rows whose status is ``success``: the reference proves their optimum."""
         return self.columns["status"] == "success"
+
+    @property
+    def verified(self) -> np.ndarray:
+        """Rows with a verified reference, proven (``success``) or not (``best-found``): a
+        baseline for a policy's cost (:data:`BASELINE_STATUSES`)."""
+        return np.isin(self.columns["status"], list(BASELINE_STATUSES))
 
 
 def _settings(
@@ -1138,7 +1166,9 @@ def _nominal(source: Scene | HybridOCP, tol: float, progress: Progress) -> dict[
         f"{label}: {sol.status.value}, cost {sol.cost:.12g}, events {sol.sequence} "
         f"({time.perf_counter() - t0:.2f} s)"
     )
-    if not sol.success:
+    # a best-found nominal is a verified extremal too: it warm-starts the draws, which are
+    # then best-found as well (DrawContext.warm_status)
+    if sol.status.value not in BASELINE_STATUSES:
         return None
     return {
         "sequence": list(res.sequence),
@@ -1365,7 +1395,7 @@ def _make(
         _write_npz(shard[cid], {**cols, _SPEC_KEY: np.array([spec_hash])})
         parts[cid] = cols
         tally["done"] += len(cols["index"])
-        tally["failed"] += int(np.sum(cols["status"] != "success"))
+        tally["failed"] += int(np.sum(~np.isin(cols["status"], list(BASELINE_STATUSES))))
         progress.count(tally["done"], samples, f"{tally['failed']} failed")
 
     engine = "dask" if dask is not None else ("serial" if workers == 1 else "process-pool")

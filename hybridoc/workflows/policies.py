@@ -41,6 +41,7 @@ from hybridoc.errors import ControlsError, EvaluationError, HybridocError
 from hybridoc.evaluation import TERMINAL_TOL
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.workflows.datasets import (
+    BASELINE_STATUSES,
     CHUNK,
     Dataset,
     check_count,
@@ -202,11 +203,15 @@ class PolicyReport:
         optimum's), gap statistics ``gap_mean``,
         ``gap_median``, ``gap_p95``, ``gap_max`` (absolute, ``J_policy - J*``) and the same
         of the relative gap ``rel_gap_*`` (``(J_policy - J*) / J*``), ``sequence_mismatch_rate``,
+        ``negative_gaps`` (compared draws where the policy beats its reference) and of those
+        ``negative_gaps_proven`` (against a proven optimum: a contradiction),
         ``rollout_time_s``, and ``rollouts``: how they ran (``mode``, the counts
         ``compiled``, ``fallback`` and ``judge``, ``fallback_kinds``,
         ``compiled_max_rel_diff``; :func:`validate_policy`).
     columns
-        Per draw: ``index``, ``x0``, ``policy_cost``, ``reference_cost``, ``gap``,
+        Per draw: ``index``, ``x0``, ``policy_cost``, ``reference_cost``,
+        ``reference_status`` (the dataset's status of the draw's reference) and
+        ``reference_proven`` (it is ``success``), ``gap``,
         ``rel_gap``, ``policy_sequence``, ``reference_sequence``, ``mismatch``,
         ``bound_violation``, ``path_violation``, ``terminal_violation`` (the judge's; NaN for a
         failed rollout), ``feasible``, ``status`` (``ok``, ``reference-failed``,
@@ -582,7 +587,10 @@ def _rollouts(
 def _report(
     ref: dict[str, np.ndarray], roll: dict[str, np.ndarray], seconds: float
 ) -> PolicyReport:
-    ref_ok = ref["status"] == "success"
+    # a best-found reference (verified: the HMP holds and it re-simulates to its own events,
+    # only not proven globally optimal) is a baseline too; the columns say which are proven
+    ref_ok = np.isin(ref["status"], list(BASELINE_STATUSES))
+    proven = ref["status"] == "success"
     roll_ok = roll["rollout_status"] == "ok"
     # a rollout whose controls break the bounds, path or terminal constraints is not a
     # control of the problem: its cost is reported, never compared with the optimum
@@ -605,6 +613,8 @@ def _report(
         "targets": ref["targets"],
         "policy_cost": roll["policy_cost"],
         "reference_cost": ref["cost"],
+        "reference_status": ref["status"].astype(str),
+        "reference_proven": proven,
         "gap": gap,
         "rel_gap": rel,
         "policy_sequence": roll["policy_sequence"],
@@ -632,10 +642,13 @@ def _report(
         }
 
     n_both = int(both.sum())
+    negative = gap < -1e-9 * np.abs(np.nan_to_num(ref["cost"]))
     summary: dict[str, Any] = {
         "samples": int(ref_ok.size),
         "judged": int(roll_ok.sum()),
         "compared": n_both,
+        "reference_proven": int((both & proven).sum()),
+        "reference_best_found": int((both & ~proven).sum()),
         "reference_failed": int((~ref_ok).sum()),
         "rollout_failed": int((~roll_ok).sum()),
         "infeasible": int(infeasible.sum()),
@@ -643,7 +656,8 @@ def _report(
         **stats(gap, "gap"),
         **stats(rel, "rel_gap"),
         "sequence_mismatch_rate": (float(mismatch.sum()) / n_both) if n_both else None,
-        "negative_gaps": int(np.sum(gap < -1e-9 * np.abs(np.nan_to_num(ref["cost"])))),
+        "negative_gaps": int(negative.sum()),
+        "negative_gaps_proven": int((negative & proven).sum()),
         "rollout_time_s": seconds,
     }
     order = np.argsort(-np.nan_to_num(gap, nan=-np.inf), kind="stable")[: min(WORST, n_both)]
@@ -653,6 +667,7 @@ def _report(
             "x0": [float(x) for x in cols["x0"][i]],
             "policy_cost": float(cols["policy_cost"][i]),
             "reference_cost": float(cols["reference_cost"][i]),
+            "reference_status": str(cols["reference_status"][i]),
             "gap": float(gap[i]),
             "rel_gap": float(rel[i]),
             "policy_sequence": str(cols["policy_sequence"][i]),
