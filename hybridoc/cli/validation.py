@@ -248,13 +248,14 @@ def cmd_validate(args: argparse.Namespace) -> int:
             say(args, f"  INFEASIBLE        violates the {', the '.join(broken)}")
     for p in written:
         say(args, f"wrote {p}")
-    if not ref.success:
-        return exit_code(ref.status, f"the reference itself: {ref.message}")
+    # the controls' own verdict first: a reference that is not proven (best-found, issue #29)
+    # or that failed must not hide that the controls break the problem's constraints
     if broken:
         warn(f"the controls are INFEASIBLE: they violate the {', the '.join(broken)}; their "
              "cost gap is not a result")  # fmt: skip
-        return 1
-    return 0
+    if not ref.success:
+        return max(exit_code(ref.status, f"the reference itself: {ref.message}"), int(broken != []))
+    return 1 if broken else 0
 
 
 def _violated(report: dict[str, Any]) -> list[str]:
