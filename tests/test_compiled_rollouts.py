@@ -373,13 +373,20 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any]:
     mlp = random_mlp(ocp, 11)
     save_mlp_policy(mlp, d / "pol.json")
     n = 3
-    x0 = np.array([scene.distribution.draw(scene, i, 7).initial_state() for i in range(n)])
+    draws = [scene.distribution.draw(scene, i, 7) for i in range(n)]
+    x0 = np.array([s.initial_state() for s in draws])
+    targets = np.array([s.targets() for s in draws], dtype=float)
     cols = {
-        "index": np.arange(n), "x0": x0, "targets": np.zeros((n, 1, 2)),
+        "index": np.arange(n), "x0": x0, "targets": targets,
         "status": np.array(["failed"] * n), "cost": np.full(n, np.nan),
         "message": np.array(["not solved in this test"] * n), "sequence": np.array([""] * n),
     }  # fmt: skip
-    manifest = {"settings": {"scene": scene.to_toml(), "seed": 7}}
+    # a manifest as make_dataset writes it before any draw is solved (validate_policy checks
+    # an in-memory dataset as it checks a file: issue #32)
+    from hybridoc.workflows.datasets import FORMAT, _settings
+
+    settings = _settings(scene, n, 7, 1e-10, False)
+    manifest = {"format": FORMAT, "complete": False, "settings": settings, "nominal": None}
     return d, Dataset(d, cols, manifest)
 
 

@@ -59,7 +59,9 @@ def test_reference_saturates_active_bounds() -> None:
     free = hybridoc.solve(ball(), "reference")
     assert loose.success and loose.cost == pytest.approx(free.cost, rel=1e-12)
     tight = hybridoc.solve(ball(u_max=2.0), "reference")
-    assert tight.success, tight.message
+    # issue #29: best-found, not success: the no-event sequence has no extremal within the
+    # bound, so no length of the search is covered (the cost below is the check)
+    assert tight.status.value in ("success", "best-found"), tight.message
     assert tight.cost > free.cost
     assert tight.cost == pytest.approx(0.3775128259, rel=1e-8)
     u = np.asarray(tight.controls)
