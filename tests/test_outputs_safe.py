@@ -21,6 +21,7 @@ from cli_here import run_here
 from conftest import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from small_scenes import strike_scene
 
 from hybridoc import outputs
 from hybridoc.errors import HybridocError
@@ -28,30 +29,7 @@ from hybridoc.outputs import OutputRefused, check_folder, check_targets, write_t
 
 posix = pytest.mark.skipif(os.name != "posix", reason="POSIX links and FIFOs")
 
-SCENE_TOML = """
-name = "sc-out"
-horizon = 1.0
-steps = 480
-control_weight = 0.01
-
-[[discs]]
-name = "ball1"
-position = [-1.0, -2.0]
-radius = 0.2
-actuated = true
-initial_control = [0.0, 3.0]
-
-[[discs]]
-name = "ball2"
-position = [-1.0, -1.0]
-radius = 0.2
-target = [0.0, 0.0]
-
-[distribution]
-seed = 7
-[distribution.discs.ball2]
-position = { uniform = [0.3, 0.3] }
-"""
+SCENE_TOML = strike_scene("sc-out")
 
 PRECIOUS = b"the user's own bytes\n"
 

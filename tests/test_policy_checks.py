@@ -17,6 +17,7 @@ from cli_here import run_here
 from conftest import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from small_scenes import strike_scene
 
 from hybridoc.errors import HybridocError
 from hybridoc.outputs import MAX_JSON_DEPTH, parse_json
@@ -29,30 +30,7 @@ from hybridoc.workflows.policy_format import (
     save_mlp_policy,
 )
 
-SCENE_TOML = """
-name = "sc-pol"
-horizon = 1.0
-steps = 480
-control_weight = 0.01
-
-[[discs]]
-name = "ball1"
-position = [-1.0, -2.0]
-radius = 0.2
-actuated = true
-initial_control = [0.0, 3.0]
-
-[[discs]]
-name = "ball2"
-position = [-1.0, -1.0]
-radius = 0.2
-target = [0.0, 0.0]
-
-[distribution]
-seed = 7
-[distribution.discs.ball2]
-position = { uniform = [0.3, 0.3] }
-"""
+SCENE_TOML = strike_scene("sc-pol")
 
 
 def _mlp(nx: int, nu: int, *, hidden: int = 3, timed: bool = True) -> MLP:
