@@ -90,3 +90,19 @@ LONG_FIRST = ("test_tutorials.py", "test_validation.py", "test_trust_regressions
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Run the modules of :data:`LONG_FIRST` first (a stable sort: order within is kept)."""
     items.sort(key=lambda item: item.path.name not in LONG_FIRST)
+
+
+@pytest.fixture
+def registered() -> Iterator[object]:
+    """Register test methods for one test (removed after it): ``registered(method)``."""
+    from hybridoc.methods import register_method, unregister_method
+
+    names: list[str] = []
+
+    def add(method: object) -> None:
+        register_method(method)
+        names.append(method.name)
+
+    yield add
+    for name in names:
+        unregister_method(name)

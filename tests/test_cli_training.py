@@ -8,36 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from small_scenes import strike_scene
 
 import hybridoc
 from hybridoc.cli import main
 from hybridoc.problems import load_scene
 from hybridoc.workflows.policy_format import load_mlp_policy
 
-SCENE = """
-name = "sc-train"
-horizon = 1.0
-steps = 60
-control_weight = 0.01
-
-[[discs]]
-name = "ball1"
-position = [-1.0, -2.0]
-radius = 0.2
-actuated = true
-initial_control = [0.0, 3.0]
-
-[[discs]]
-name = "ball2"
-position = [-1.0, -1.0]
-radius = 0.2
-target = [0.0, 0.0]
-
-[distribution]
-seed = 7
-[distribution.discs.ball2]
-position = { uniform = [0.3, 0.3] }
-"""
+SCENE = strike_scene("sc-train", steps=60)
 
 
 def test_train_policy_then_validate_policy(

@@ -13,27 +13,13 @@ import pytest
 
 import hybridoc
 from hybridoc.cli import main
-from hybridoc.methods import Method, register_method, unregister_method
+from hybridoc.methods import Method
 from hybridoc.solution import Solution
 from hybridoc.workflows.validation import crossval
 
 
 def _boom(ocp: Any, *, initial: Any = None, progress: Any = None) -> Any:
     raise RuntimeError("boom: this method always breaks")
-
-
-@pytest.fixture
-def registered() -> Any:
-    """Register test methods for one test (removed after it)."""
-    names: list[str] = []
-
-    def add(method: Method) -> None:
-        register_method(method)
-        names.append(method.name)
-
-    yield add
-    for name in names:
-        unregister_method(name)
 
 
 def _returns(controls: np.ndarray, name: str) -> Any:

@@ -26,20 +26,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 import user_problems  # noqa: E402
 
 
-@pytest.fixture
-def registered() -> Any:
-    """Register test methods for one test (removed after it)."""
-    names: list[str] = []
-
-    def add(method: Method) -> None:
-        register_method(method)
-        names.append(method.name)
-
-    yield add
-    for name in names:
-        unregister_method(name)
-
-
 def _returns(controls: Any, name: str, status: Status | None = None) -> Any:
     """A method that answers with ``controls`` (judged), with ``status`` if given."""
 

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from small_scenes import strike_scene
 
 import hybridoc
 import hybridoc.workflows.datasets as dsmod
@@ -24,30 +25,7 @@ from hybridoc.workflows.policies import PolicyError, load_policy, validate_polic
 
 M = 6  # draws of the shared dataset (each ~0.1 s warm)
 
-SCENE_TOML = """
-name = "sc-dist"
-horizon = 1.0
-steps = 480
-control_weight = 0.01
-
-[[discs]]
-name = "ball1"
-position = [-1.0, -2.0]
-radius = 0.2
-actuated = true
-initial_control = [0.0, 3.0]
-
-[[discs]]
-name = "ball2"
-position = [-1.0, -1.0]
-radius = 0.2
-target = [0.0, 0.0]
-
-[distribution]
-seed = 7
-[distribution.discs.ball2]
-position = { uniform = [0.3, 0.3] }
-"""
+SCENE_TOML = strike_scene("sc-dist")
 
 POLICIES = """
 import numpy as np
