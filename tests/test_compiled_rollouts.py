@@ -21,6 +21,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import pytest
+from small_scenes import strike_scene
 
 import hybridoc
 from hybridoc.problem import as_ocp
@@ -354,8 +355,7 @@ def test_a_policy_file_never_runs_code(saved: Path, tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------- validate_policy
 
-SCENE = (Path(__file__).parent / "test_datasets.py").read_text().split('SCENE_TOML = """')[1]
-SCENE = SCENE.split('"""')[0]
+SCENE = strike_scene("sc-dist")  # test_datasets' scene
 
 
 @pytest.fixture(scope="module")
