@@ -61,6 +61,7 @@ import contextvars
 import dataclasses
 import math
 import numbers
+import signal
 import time
 import weakref
 from collections.abc import Callable, Iterable, Sequence
@@ -85,6 +86,7 @@ from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.problems.paper import PAPER_SETTINGS
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status
+from hybridoc.solvers.threads import flag_interrupts
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.evaluation import Evaluation
@@ -669,6 +671,8 @@ def solve_gd(
     )  # fmt: skip
     watch = _Watch(opts.time_limit)
     token = _WATCH.set(watch)
+    # an interrupt CasADi swallows inside a loss call is still seen at the next check
+    previous = flag_interrupts(watch)
     try:
         with progress_scope(progress, "gd") as meter:
             try:
@@ -677,6 +681,8 @@ def solve_gd(
                 why = "time-limit" if isinstance(exc, _OutOfTime) else "interrupted"
                 return _stopped_solution(ocp, opts, initial, watch, why)
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
         _WATCH.reset(token)
 
 
@@ -699,9 +705,13 @@ class _Watch:
         self.evaluations = 0
         self.iterations = 0  # of the optimisers that report them (not the batched ones)
         self.history: list[float] = []
+        self.interrupted = False  # set by SIGINT (solvers.threads.flag_interrupts)
 
     def check(self) -> None:
-        """Raise :class:`_OutOfTime` past the deadline."""
+        """Raise :class:`_OutOfTime` past the deadline, ``KeyboardInterrupt`` after a SIGINT
+        (also one that CasADi swallowed)."""
+        if self.interrupted:
+            raise KeyboardInterrupt
         if self.deadline is not None and time.perf_counter() > self.deadline:
             raise _OutOfTime
 

@@ -17,11 +17,20 @@ torch simulation or optimiser, and says so in :func:`torch_threads`'s return val
 from __future__ import annotations
 
 import os
+import signal
+import threading
+from typing import Any
 
 from hybridoc.cores import usable_cores
 from hybridoc.errors import SceneError
 
-__all__ = ["casadi_threads", "configured_threads", "torch_threads", "usable_cores"]
+__all__ = [
+    "casadi_threads",
+    "configured_threads",
+    "flag_interrupts",
+    "torch_threads",
+    "usable_cores",
+]
 
 _APPLIED: int | None = None
 
@@ -63,3 +72,27 @@ def torch_threads() -> int:
             torch.set_num_threads(1 if n is None else n)
         _APPLIED = torch.get_num_threads()
     return torch.get_num_threads()
+
+
+def flag_interrupts(target: Any) -> Any:
+    """Make SIGINT set ``target.interrupted = True`` before the handler in place runs
+    (Python's raises ``KeyboardInterrupt``), so that an interrupt that CasADi swallows inside
+    one of its calls (IPOPT, a compiled function) is still seen by the solver's next check.
+    Returns the handler to restore with ``signal.signal(signal.SIGINT, previous)``, or
+    ``None`` outside the main thread (where signal handlers cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum: int, frame: Any) -> None:
+        target.interrupted = True
+        if callable(previous):
+            previous(signum, frame)
+        else:
+            raise KeyboardInterrupt
+
+    try:
+        signal.signal(signal.SIGINT, handler)
+    except ValueError:  # pragma: no cover - not the main interpreter
+        return None
+    return previous

@@ -34,7 +34,6 @@ import dataclasses
 import math
 import signal
 import sys
-import threading
 import time
 import weakref
 from collections.abc import Callable, Sequence
@@ -61,6 +60,7 @@ from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status, lagrange_pieces
+from hybridoc.solvers.threads import flag_interrupts
 
 __all__ = [
     "DEFECT_TOL",
@@ -1525,7 +1525,7 @@ def solve_dt(
     with progress_scope(progress, "dt") as meter:
         monitor = _Monitor(meter, time_limit)
         token = _MONITOR.set(monitor)
-        previous = _flag_interrupts(monitor)
+        previous = flag_interrupts(monitor)
         try:
             return _solve_dt(
                 ocp,
@@ -1547,29 +1547,6 @@ def solve_dt(
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
             _MONITOR.reset(token)
-
-
-def _flag_interrupts(monitor: _Monitor) -> Any:
-    """Make SIGINT set ``monitor.interrupted`` before the handler in place runs (Python's
-    raises ``KeyboardInterrupt``), so that an interrupt CasADi swallows inside IPOPT is still
-    seen (:func:`_solve_nlp`). Returns the handler to restore, or ``None`` outside the main
-    thread (where signal handlers cannot be set)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.getsignal(signal.SIGINT)
-
-    def handler(signum: int, frame: Any) -> None:
-        monitor.interrupted = True
-        if callable(previous):
-            previous(signum, frame)
-        else:
-            raise KeyboardInterrupt
-
-    try:
-        signal.signal(signal.SIGINT, handler)
-    except ValueError:  # pragma: no cover - not the main interpreter
-        return None
-    return previous
 
 
 def _stopped_solution(
