@@ -99,6 +99,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
+from hybridoc.scales import Scales
 
 __all__ = [
     "MAX_STEPS",
@@ -394,6 +395,11 @@ class HybridOCP:
     final_mode
         For a problem with modes: the mode ``s(T)`` must be in (module notes, "A required
         final mode"); ``None`` (default): any. Part of the structure.
+    scales
+        The units the problem is measured in (:class:`~hybridoc.scales.Scales`), which the
+        methods use to work in numbers of order one. ``None`` (default):
+        :meth:`Scales.identity <hybridoc.scales.Scales.identity>`. Disc scenes fill it from
+        their lengths, horizon and masses. Part of the structure.
     """
 
     f: ca.Function
@@ -418,6 +424,7 @@ class HybridOCP:
     horizon_bounds: tuple[float, float] | None = None
     distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None
     final_mode: str | None = None
+    scales: Scales | None = field(default=None, repr=False)
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
@@ -458,6 +465,15 @@ class HybridOCP:
         self.u_max = self._bound(self.u_max, np.inf, "u_max")
         if np.any(self.u_min > self.u_max):
             raise SceneError("u_min must not exceed u_max")
+        if self.scales is None:
+            self.scales = Scales.identity(self.nx, self.nu)
+        elif not isinstance(self.scales, Scales):
+            raise SceneError(f"scales must be a hybridoc.scales.Scales, got {self.scales!r}")
+        elif len(self.scales.state) != self.nx or len(self.scales.control) != self.nu:
+            raise SceneError(
+                f"scales has {len(self.scales.state)} state and {len(self.scales.control)} "
+                f"control entries; the problem has {self.nx} and {self.nu}"
+            )
         if self.path is not None:
             p = self.path
             if not isinstance(p, ca.Function) or p.n_in() != 2 or p.n_out() != 1:
@@ -967,6 +983,7 @@ class HybridOCP:
             changes["structure"] = None
             if "flow_map" not in changes and self.structure.integrator_flow:
                 changes["flow_map"] = None
+            changes.setdefault("scales", None)  # other functions may mean other units
         changes.setdefault("meta", dict(self.meta))
         return dataclasses.replace(self, **changes)
 

@@ -16,6 +16,7 @@ import numpy as np
 from hybridoc.ocp import Guard
 from hybridoc.problems import physics as ph
 from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.scales import disc_scales
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems.scene import Scene
@@ -60,6 +61,15 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
         control_labels=scene.control_labels(),
         name=scene.name,
         source_scene=scene,
+        scales=disc_scales(
+            [d.position for d in scene.discs],
+            [d.radius for d in scene.discs],
+            masses,
+            [d.target for d in scene.discs if d.target is not None],
+            scene.horizon,
+            [d.mass for d in scene.discs if d.actuated],
+            [w.point for w in scene.walls],
+        ),
         meta={
             "n_discs": n,
             "disc_names": [d.name for d in scene.discs],

@@ -31,6 +31,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "hybridoc.errors",
             "hybridoc.ocp",
+            "hybridoc.scales",
             "hybridoc.kernels",
             "hybridoc.rootfind",
             "hybridoc.events",
