@@ -73,6 +73,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from hybridoc.children import popen_group
+
 __all__ = [
     "DEFAULT_MAX_MB",
     "HOT_CALLS",
@@ -668,17 +670,14 @@ def _as_tuple(out: Any) -> tuple[Any, ...]:
 def _run_compiler(cmd: list[str]) -> tuple[int, str]:
     """Run the C compiler in a process group of its own; its exit status and stderr.
 
-    ``cc`` runs ``cc1`` and the assembler as children: a timeout, or the exit of this process
-    while it compiles (:func:`_stop_compilers`), ends the whole group, where killing ``cc``
+    ``cc`` runs ``cc1`` and the assembler as children: a timeout, the exit of this process
+    while it compiles (:func:`_stop_compilers`), or its death, even by SIGKILL
+    (:func:`hybridoc.children.popen_group`), ends the whole group, where killing ``cc``
     alone left them running without a parent, loading the cores for minutes.
     """
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    # under a supervisor that kills the group when this process dies, even by SIGKILL (no
+    # atexit then): cc1 and the assembler must not compile on without it (issue #32)
+    proc = popen_group(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     with _BUILDS_LOCK:
         _COMPILERS[proc] = os.getpid()
     try:

@@ -95,7 +95,6 @@ Scale-out
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import errno
 import hashlib
@@ -106,9 +105,7 @@ import multiprocessing as mp
 import os
 import re
 import secrets
-import signal
 import sys
-import threading
 import time
 import warnings
 import zipfile
@@ -120,6 +117,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridoc import children
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solvers.threads import usable_cores
@@ -958,42 +956,24 @@ def check_dask(dask: Any) -> None:
         )
 
 
-def _die_with_parent() -> bool:
-    """Ask Linux to kill this process when its parent dies (``PR_SET_PDEATHSIG``); whether
-    it could."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return int(libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)) == 0  # 1: PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return False
-
-
-def _watch_parent(parent: int, interval: float = 0.5) -> None:
-    """Exit this process as soon as its parent is no longer ``parent`` (it died and the
-    process was re-parented); runs in a daemon thread where :func:`_die_with_parent`
-    cannot."""
-
-    def watch() -> None:
-        while True:
-            time.sleep(interval)
-            if os.getppid() != parent:
-                os._exit(1)
-
-    threading.Thread(target=watch, name="hybridoc-watch-parent", daemon=True).start()
+# the rules of hybridoc.children; kept as this module's names (tests replace
+# _die_with_parent to exercise the fallback thread)
+_die_with_parent = children.pdeathsig
+_watch_parent = children.watch_parent
 
 
 def _worker_start(parent: int, initializer: Callable[[], None] | None) -> None:
     """Pool initializer: end this worker with its parent, then run ``initializer``.
 
     Without it a worker outlives a parent killed with SIGKILL: it waits on the pool's pipe,
-    whose other ends its sibling workers hold open.
+    whose other ends its sibling workers hold open. The processes a worker forks (the
+    reference's own pools) die with it in turn.
     """
     if not _die_with_parent():
         _watch_parent(parent)
     if os.getppid() != parent:  # it died before the signal was asked for
         os._exit(1)
+    children.forks_die_with_this_process()
     if initializer is not None:
         initializer()
 
@@ -1044,8 +1024,9 @@ def run_chunks(
             for fut in as_completed(futs):
                 on_result(futs[fut], fut.result())
         except BaseException:
-            for f in futs:
-                f.cancel()
+            # stopped early (an error, Ctrl-C): the running chunks' results would be
+            # dropped, so their workers are killed rather than waited for
+            children.kill_pool(pool)
             raise
 
 
