@@ -50,6 +50,7 @@ __all__ = [
     "RECORD",
     "OutputRefused",
     "check_folder",
+    "check_subfolder",
     "check_targets",
     "parse_json",
     "read_json",
@@ -106,6 +107,44 @@ def check_folder(path: str | Path) -> Path:
             f"cannot write in output directory {str(p)!r}: {exc.strerror or exc}"
         ) from None
     return p
+
+
+def check_subfolder(path: str | Path) -> Path:
+    """:func:`check_folder` for a folder that hybridoc names inside an output folder
+    (``validate-policy``'s ``<name>_dataset``): refused when a symbolic link or something
+    other than a folder holds its name, since hybridoc would write through it (files outside
+    the output folder).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    OutputRefused
+        A link, or something that is not a folder, at ``path``.
+    HybridocError
+        As :func:`check_folder`.
+    """
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        return check_folder(p)
+    except OSError as exc:  # a parent that is a file, one that cannot be read
+        raise HybridocError(f"cannot write in {str(p)!r}: {exc.strerror or exc}") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise OutputRefused(
+            f"{str(p)!r} is a symbolic link: hybridoc never writes through a link; remove it "
+            "or choose another output folder"
+        )
+    if not stat.S_ISDIR(st.st_mode):
+        raise OutputRefused(
+            f"{str(p)!r} exists and is not a directory: hybridoc writes no output there; "
+            "remove it or choose another output folder"
+        )
+    return check_folder(p)
 
 
 def check_targets(*paths: str | Path) -> None:

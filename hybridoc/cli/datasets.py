@@ -27,7 +27,7 @@ from hybridoc.cli._util import (
     warn,
 )
 from hybridoc.errors import HybridocError
-from hybridoc.outputs import check_folder, check_targets, write_text, write_with
+from hybridoc.outputs import check_folder, check_subfolder, check_targets, write_text, write_with
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
@@ -164,6 +164,8 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
     slug = problem_slug(args.problem, scene)
     if out is not None:  # a refused output name fails before the work
         check_targets(*_policy_report_files(output_stem(out, slug, "validate-policy")))
+        # the dataset's folder too: a link planted there would take the dataset elsewhere
+        check_subfolder(output_stem(out, slug, "dataset"))
     report = validate_policy(
         args.problem, policy, args.samples, seed=args.seed, dataset=args.dataset,
         dataset_out=None if out is None else output_stem(out, slug, "dataset"),
