@@ -16,6 +16,7 @@ import numpy as np
 from hybridoc.ocp import Guard
 from hybridoc.problems import physics as ph
 from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.resources import check_judge
 from hybridoc.scales import disc_scales
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -28,6 +29,9 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     """Build the hybrid OCP of a disc scene (exact polynomial flow map, impulse resets)."""
     ops = ph.CASADI
     n = scene.n_discs
+    # every pair's guard enters the judge's dense kernels: refuse at once a scene whose
+    # kernels cannot fit (202 discs took 10.8 GB and 233 s before std::bad_alloc)
+    check_judge(n, len(scene.walls), scene.steps)
     nx = 4 * n
     s = ca.SX.sym("s", nx)
     u = ca.SX.sym("u", scene.n_controls)

@@ -70,6 +70,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridoc import resources
 from hybridoc.errors import SceneError
 from hybridoc.evaluator import evaluate
 from hybridoc.methods import (
@@ -781,44 +782,11 @@ def _stopped_solution(
     return sol.set_status(Status.NOT_CONVERGED, text)
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (``MemAvailable`` of /proc/meminfo,
-    else the free physical pages); ``None`` where neither can be read."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        import os
-
-        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_AVPHYS_PAGES"))
-    except (OSError, ValueError, AttributeError):
-        return None
-
-
-MEMORY_FRACTION = 0.5
-"""The share of the available memory (:func:`available_memory`) that the memory estimate
-of a run's sizes may take (:func:`memory_limit`)."""
-
-
-def memory_limit() -> int | None:
-    """The bytes a run's sizes may take: :data:`MEMORY_FRACTION` of the available memory,
-    or the ``HYBRIDOC_MEMORY_LIMIT`` environment variable (bytes) where set."""
-    import os
-
-    env = os.environ.get("HYBRIDOC_MEMORY_LIMIT", "").strip()
-    if env:
-        try:
-            return int(float(env))
-        except ValueError:
-            raise SceneError(
-                f"HYBRIDOC_MEMORY_LIMIT must be a number of bytes, got {env!r}"
-            ) from None
-    avail = available_memory()
-    return None if avail is None else int(MEMORY_FRACTION * avail)
+# the memory estimates' limit lives in hybridoc.resources (shared by every command); kept
+# here under their old names
+available_memory = resources.available_memory
+memory_limit = resources.memory_limit
+MEMORY_FRACTION = resources.MEMORY_FRACTION
 
 
 #: bytes per stored float in a Python list (a pointer and a float object)
@@ -852,35 +820,23 @@ def _size_estimates(
     ]  # fmt: skip
 
 
-def _fmt_bytes(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if abs(n) < 1024 or unit == "PiB":
-            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
-        n /= 1024
-    return f"{n:.3g} PiB"  # pragma: no cover
+_fmt_bytes = resources.fmt_bytes
 
 
 def _check_memory(
     ocp: HybridOCP, starts: Any, iters: Any, hops: Any, smoothing: Any, terminal_iters: Any
 ) -> None:
     """Refuse sizes whose memory estimate (:func:`_size_estimates`) passes
-    :func:`memory_limit` (a :class:`SceneError` naming the argument, the estimate and the
-    limit); ``HYBRIDOC_MEMORY_LIMIT`` overrides the limit."""
+    :func:`memory_limit` (a :class:`~hybridoc.resources.ResourceError`, a
+    :class:`SceneError`, naming the argument, the estimate and the limit;
+    :func:`hybridoc.resources.check`): ``HYBRIDOC_MEMORY_LIMIT`` sets the limit,
+    ``--allow-large`` or ``HYBRIDOC_ALLOW_LARGE=1`` lifts it."""
     if not all(_whole(v, 0) for v in (starts, iters, hops, terminal_iters)):
         return  # the range checks report those
-    limit = memory_limit()
-    if limit is None:
-        return
     for name, value, need, unit in _size_estimates(
         ocp, starts, iters, hops, _checked_smoothing(smoothing), terminal_iters
     ):
-        if need > limit:
-            raise SceneError(
-                f"{name}={value} would need about {_fmt_bytes(need)} of memory ({unit}), above "
-                f"the limit of {_fmt_bytes(limit)} (half the memory available; "
-                "HYBRIDOC_MEMORY_LIMIT=bytes sets another): use a smaller "
-                f"{name.replace('_', '-')}"
-            )
+        resources.check(f"{name}={value}", need, unit, f"use a smaller {name.replace('_', '-')}")
 
 
 def _dispatch(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progress) -> Solution:

@@ -23,7 +23,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from hybridoc.cli._util import HybridocArgumentParser
+from hybridoc.cli._util import HybridocArgumentParser, add_allow_large
 from hybridoc.errors import HybridocError
 
 __all__ = ["COMMAND_MODULES", "build_parser", "main"]
@@ -74,6 +74,11 @@ def build_parser() -> HybridocArgumentParser:
     )
     for name in COMMAND_MODULES:
         importlib.import_module(f"hybridoc.cli.{name}").register(sub)
+    seen: set[int] = set()
+    for command in sub.choices.values():
+        if id(command) not in seen:  # an alias shares its command's parser
+            seen.add(id(command))
+            add_allow_large(command)
     return parser
 
 
@@ -97,7 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            code = int(args.func(args) or 0)
+            code = _run(args)
         except HybridocError as exc:
             print(f"hybridoc: error: {_one_line(exc)}", file=sys.stderr)
             code = 2
@@ -122,6 +127,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             code = _internal_error(exc)
     _print_warnings(caught)
     return code
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The command's exit code; with ``--allow-large``, without the memory estimates'
+    refusals (:mod:`hybridoc.resources`, imported only then: it is not light)."""
+    if not getattr(args, "allow_large", False):
+        return int(args.func(args) or 0)
+    from hybridoc.resources import allowing_large
+
+    with allowing_large():
+        return int(args.func(args) or 0)
 
 
 def _one_line(exc: BaseException) -> str:

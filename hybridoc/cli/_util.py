@@ -40,6 +40,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "HybridocArgumentParser",
+    "add_allow_large",
     "add_controls_arg",
     "add_initial_arg",
     "add_json_out",
@@ -47,6 +48,7 @@ __all__ = [
     "add_policy_arg",
     "add_progress_arg",
     "add_substeps_arg",
+    "check_controls_file",
     "emit_json",
     "ensure_dir",
     "exit_code",
@@ -251,6 +253,18 @@ def disc_scene_of(ocp: HybridOCP, command: str) -> Scene:
     return ocp.scene
 
 
+def add_allow_large(parser: argparse.ArgumentParser) -> None:
+    """Add ``--allow-large`` (every command has it): run sizes whose memory estimate passes
+    the limit (:mod:`hybridoc.resources`) instead of refusing them."""
+    parser.add_argument(
+        "--allow-large",
+        action="store_true",
+        help="run even when the memory estimate of the sizes asked for (samples, starts, "
+        "discs x steps, a file's declared shape) passes the limit: half the available "
+        "memory, or HYBRIDOC_MEMORY_LIMIT bytes (HYBRIDOC_ALLOW_LARGE=1 does the same)",
+    )
+
+
 def add_json_out(
     parser: argparse.ArgumentParser, *, out_help: str | None = None, out_required: bool = False
 ) -> None:
@@ -391,7 +405,23 @@ def load_controls_arg(path: Path | None, ocp: Any) -> tuple[np.ndarray, str]:
         return np.array(ocp.u_guess, dtype=float), "initial guess"
     from hybridoc.io import load_controls
 
+    check_controls_file(path)
     return load_controls(path, ocp), str(path)
+
+
+def check_controls_file(path: str | Path) -> None:
+    """The sizes a controls file declares, checked before it is read
+    (:func:`hybridoc.resources.check_array_file`, :func:`~hybridoc.resources.check_npz_file`):
+    a ``.npy`` header claiming more rows than the file holds is a damaged file, and one
+    whose array passes the memory limit is refused, both without allocating it."""
+    from hybridoc.errors import ControlsError
+    from hybridoc.resources import check_array_file, check_npz_file
+
+    where = f"controls file {str(path)!r}"
+    if Path(path).suffix.lower() == ".npz":
+        check_npz_file(path, where, ControlsError)
+    else:
+        check_array_file(path, where, ControlsError)
 
 
 def add_substeps_arg(parser: argparse.ArgumentParser) -> None:
@@ -421,6 +451,7 @@ def load_substep_controls_arg(
             raise HybridocError("--substeps applies to a --controls file (of N*K rows)")
         return (ocp, *load_controls_arg(None, ocp))
     k = 1 if substeps is None else substeps
+    check_controls_file(path)
     u = load_controls(path, ocp, substeps=k, flag="--substeps")
     fine = substep_problem(ocp, k)
     label = str(path) if k == 1 else f"{path} ({k} substeps: N = {ocp.steps} x {k})"

@@ -12,6 +12,7 @@ from hybridoc.cli._util import (
     add_json_out,
     add_policy_arg,
     add_substeps_arg,
+    check_controls_file,
     emit_json,
     events_table,
     fmt,
@@ -114,6 +115,7 @@ def _evaluated_arg(args: argparse.Namespace, ocp: HybridOCP) -> tuple[HybridOCP,
         # continuous u(t)), as hybridoc.evaluate(problem, path) does, not its grid averages
         from hybridoc.io import read_controls
 
+        check_controls_file(args.controls)
         return ocp, None, read_controls(args.controls, ocp), str(args.controls)
     ocp, controls, source = load_substep_controls_arg(args.controls, ocp, args.substeps)
     return ocp, None, controls, source

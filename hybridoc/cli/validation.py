@@ -71,6 +71,11 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     names = ["reference"] + [m for m in methods if m != "reference"]
     tolerances = dict(args.tolerance or [])
+    if args.starts is not None and "gd" in methods:
+        from hybridoc.solvers.gd import GDOptions, checked_options
+
+        # a size beyond the memory limit is refused now, not after the other solves
+        checked_options(ocp, GDOptions(starts=args.starts))
     say(args, f"{ocp.name}: solving with {', '.join(names)} ...")
     options: dict[str, dict[str, Any]] = {"gd": {}, "dt": {}}
     if args.gd_integrator is not None:
