@@ -143,6 +143,7 @@ __all__ = [
     "MAX_SAMPLES",
     "check_count",
     "check_dask",
+    "check_columns",
     "check_draws",
     "check_manifest",
     "distribution_problem",
@@ -1611,6 +1612,84 @@ def _read_manifest(mpath: Path) -> dict[str, Any]:
     return check_manifest(manifest, f"dataset manifest {str(mpath)!r}")
 
 
+# each column's type ("f" float, "i" integer, "U" text) and shape, in the sizes of the module
+# notes: M draws, nx states, D discs, K events (K + 1 phases), N steps, nu controls
+_COLUMN_SCHEMA: dict[str, tuple[str, tuple[Any, ...]]] = {
+    "index": ("i", ("M",)),
+    "x0": ("f", ("M", "nx")),
+    "targets": ("f", ("M", "D", 2)),
+    **{k: ("U", ("M",)) for k in _STRINGS},
+    **{k: ("f", ("M",)) for k in ("cost", "terminal_cost", "running_cost", "residual")},
+    "n_events": ("i", ("M",)),
+    **{k: ("f", ("M", "K")) for k in ("event_times", "multipliers", "approach_speeds")},
+    "controls": ("f", ("M", "N", "nu")),
+    "control_coefficients": ("f", ("M", ("K", 1), 2, "nu")),
+    "phase_starts": ("f", ("M", ("K", 1))),
+    **{k: ("f", ("M", ("K", 1), "nx")) for k in ("phase_states", "phase_costates")},
+    **{k: ("f", ("M", "K", "nx")) for k in ("states_minus", "costates_minus")},
+    **{k: ("f", ("M", "nx")) for k in ("final_state", "final_costate", "lambda0")},
+}
+_KINDS = {"f": ("f", "a float"), "i": ("iu", "an integer"), "U": ("U", "a text")}
+
+
+def check_columns(
+    columns: dict[str, np.ndarray], where: str, *, complete: bool = True
+) -> dict[str, int]:
+    """Check a dataset's columns against their schema: the names, each column's type and
+    number of axes, and sizes that agree across columns (the same ``nx``, ``K``, ``nu``
+    everywhere; ``K + 1`` phases; ``n_events`` within ``[0, K]``). With ``complete=False``
+    (a :class:`Dataset` made in memory) only the columns it has are checked, and ``index``
+    and ``x0``, which every check of the rows needs.
+
+    Returns
+    -------
+    dict
+        The sizes: ``M``, ``nx``, ``D``, ``K``, ``N``, ``nu``.
+
+    Raises
+    ------
+    HybridocError
+        The first column that breaks it: one line naming the dataset and the column.
+    """
+    needed = COLUMNS if complete else {"index", "x0"}
+    if not needed <= set(columns) <= COLUMNS:
+        extra, lack = sorted(set(columns) - COLUMNS), sorted(needed - set(columns))
+        raise HybridocError(
+            f"{where}: its columns are not a dataset's (unknown: {', '.join(extra) or 'none'}; "
+            f"missing: {', '.join(lack) or 'none'})"
+        )
+    sizes: dict[str, int] = {}
+    for name, (kind, dims) in _COLUMN_SCHEMA.items():
+        if name not in columns:
+            continue
+        a = columns[name]
+        kinds, said = _KINDS[kind]
+        if not isinstance(a, np.ndarray) or a.dtype.kind not in kinds:
+            got = getattr(getattr(a, "dtype", None), "str", type(a).__name__)
+            raise HybridocError(f"{where}: its column {name!r} must be {said} array, got {got}")
+        if a.ndim != len(dims):
+            raise HybridocError(
+                f"{where}: its column {name!r} must have {len(dims)} axes, got shape {a.shape}"
+            )
+        for axis, (dim, n) in enumerate(zip(dims, a.shape, strict=True)):
+            sym, extra = (dim, 0) if not isinstance(dim, tuple) else dim
+            want = sym if isinstance(sym, int) else sizes.setdefault(sym, n - extra)
+            if n - extra != want or n - extra < 0:
+                raise HybridocError(
+                    f"{where}: its column {name!r} has shape {a.shape}, whose axis {axis} does "
+                    "not agree with the other columns"
+                )
+    events = columns.get("n_events")
+    if (
+        events is not None
+        and "K" in sizes
+        and events.size
+        and (events.min() < 0 or events.max() > sizes["K"])
+    ):
+        raise HybridocError(f"{where}: its column 'n_events' is not within [0, {sizes['K']}]")
+    return sizes
+
+
 def check_draws(ds: Dataset) -> None:
     """Check a dataset's rows against its problem: the ``index`` column is ``0..M-1``, and
     the initial states (and targets) are the draws of the distribution with the recorded
@@ -1627,7 +1706,10 @@ def check_draws(ds: Dataset) -> None:
     """
     st, cols = ds.manifest["settings"], ds.columns
     where = f"the dataset in {str(ds.path)!r}"
+    sizes = check_columns(cols, where, complete=False)  # load_dataset: all of them
     M, seed = st["samples"], st["seed"]
+    if sizes["M"] != M:
+        raise HybridocError(f"{where}: it has {sizes['M']} rows; its manifest says {M}")
     x0 = np.asarray(cols["x0"])
     if cols["index"].shape != (M,) or not np.array_equal(cols["index"], np.arange(M)):
         raise HybridocError(f"{where}: its index column is not 0..{M - 1}")
@@ -1668,6 +1750,11 @@ def check_draws(ds: Dataset) -> None:
                 f"distribution with seed {seed} (draw {int(rows[0])} differs by up to "
                 f"{diff:.3g}): the data or the manifest were changed after it was written"
             )
+    nu = len(scene.control_labels())
+    if sizes.get("nu", nu) != nu:
+        raise HybridocError(
+            f"{where}: its controls have {sizes['nu']} entries per step; its scene has {nu}"
+        )
 
 
 def load_dataset(path: str | Path) -> Dataset:
@@ -1716,6 +1803,7 @@ def load_dataset(path: str | Path) -> Dataset:
         raise HybridocError(
             f"{str(dpath)!r} does not hold the columns its manifest records (names or shapes)"
         )
+    check_columns(columns, f"the dataset in {str(p)!r}")  # every column, typed and shaped
     ds = Dataset(p, columns, manifest)
     check_draws(ds)  # the rows against the problem: a file rehashed after an edit fails here
     return ds
