@@ -51,6 +51,8 @@ __all__ = [
     "check_samples_of",
     "fmt_bytes",
     "judge_bytes",
+    "judge_guard_state_bytes",
+    "disc_guards",
     "large_allowed",
     "memory_limit",
     "samples_bytes",
@@ -184,16 +186,21 @@ def check(what: str, need: float, detail: str, hint: str, error: type = Resource
 # ---------------------------------------------------------------------------------------
 # the judge
 
-JUDGE_BYTES_PER_GUARD_STATE = 6 * 1024
-"""Bytes the judge's compiled kernels take per guard and state component (measured on
-grids of discs, one wall: 4.4 KiB at 10 discs, 3.3 at 20, 3.7 at 30, 4.5 at 40, 5.2 at 50;
-each guard's detector, rounding level and reset enter dense functions of the whole state)."""
+JUDGE_GUARD_STATE_BYTES = (1024, 23, 4608)
+"""``(a, b, floor)``: the judge's compiled kernels take ``max(floor, a + b nx)`` bytes per
+guard and state component of a disc scene with ``nx`` states. Each guard's detector,
+rounding level (with its Hessian) and reset enter dense CasADi functions of the whole state,
+so the cost per guard grows with the state too. Measured (RSS growth of building the
+kernels, grids of discs 3 apart and one wall): 4.4 KiB per guard and state at 10 discs,
+3.4 at 20, 4.6 at 40, 5.3 at 50 (1275 guards, 1.30 GiB), 7.2 at 70 (2485 guards, 4.81 GiB);
+the model gives 4.5, 4.5, 4.6, 5.5 and 7.3."""
 JUDGE_SECONDS_PER_GUARD_STATE = 5e-5
 """CPU seconds to compile the judge's kernels, per guard and state component (12.8 s for
-1275 guards of 50 discs, 200 states)."""
-JUDGE_BYTES_PER_STEP_STATE = 64
-"""Bytes of the judge's trajectory per grid step and state component (the recorded states,
-the segments' start states, the batched samples and copies, float64)."""
+1275 guards over 200 states, 33 s for 2485 guards over 280)."""
+JUDGE_STEP_BYTES = (384, 32)
+"""``(a, b)``: the judge's trajectory takes ``a + b nx`` bytes per grid step (the recorded
+states, the segments, the batched samples; measured peak growth 580 B per step at 8 states,
+1520 at 40)."""
 
 
 def disc_guards(n_discs: int, n_walls: int) -> int:
@@ -201,11 +208,19 @@ def disc_guards(n_discs: int, n_walls: int) -> int:
     return n_discs * (n_discs - 1) // 2 + n_discs * n_walls
 
 
+def judge_guard_state_bytes(nx: int) -> int:
+    """Bytes of the judge's kernels per guard and state component
+    (:data:`JUDGE_GUARD_STATE_BYTES`)."""
+    a, b, floor = JUDGE_GUARD_STATE_BYTES
+    return max(floor, a + b * nx)
+
+
 def judge_bytes(guards: int, nx: int, steps: int) -> int:
-    """The bytes one evaluation by the judge allocates at least: its compiled kernels
-    (:data:`JUDGE_BYTES_PER_GUARD_STATE` per guard and state) and its trajectory
-    (:data:`JUDGE_BYTES_PER_STEP_STATE` per step and state)."""
-    return JUDGE_BYTES_PER_GUARD_STATE * guards * nx + JUDGE_BYTES_PER_STEP_STATE * steps * nx
+    """The bytes one evaluation by the judge allocates: its compiled kernels
+    (:func:`judge_guard_state_bytes` per guard and state) and its trajectory
+    (:data:`JUDGE_STEP_BYTES` per step)."""
+    a, b = JUDGE_STEP_BYTES
+    return judge_guard_state_bytes(nx) * guards * nx + (a + b * nx) * steps
 
 
 def check_judge(n_discs: int, n_walls: int, steps: int) -> None:
@@ -220,12 +235,13 @@ def check_judge(n_discs: int, n_walls: int, steps: int) -> None:
     need = judge_bytes(G, nx, steps)
     secs = JUDGE_SECONDS_PER_GUARD_STATE * G * nx
     walls = f"{n_walls} wall{'' if n_walls == 1 else 's'}"
+    a, b = JUDGE_STEP_BYTES
     check(
         f"a scene of {n_discs} discs and {walls} with {steps} steps",
         need,
-        f"{G} contact guards over {nx} states, about "
-        f"{fmt_bytes(JUDGE_BYTES_PER_GUARD_STATE)} per guard and state, compiled in about "
-        f"{secs:.3g} s; {fmt_bytes(JUDGE_BYTES_PER_STEP_STATE)} per step and state",
+        f"the judge compiles {G} contact guards over {nx} states, about "
+        f"{fmt_bytes(judge_guard_state_bytes(nx))} per guard and state, in about {secs:.3g} s "
+        f"of CPU; its trajectory takes {fmt_bytes(a + b * nx)} per step",
         "use fewer discs or steps",
     )
 
