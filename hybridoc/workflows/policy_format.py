@@ -74,6 +74,7 @@ from hybridoc.errors import HybridocError
 __all__ = [
     "ACTIVATIONS",
     "FORMAT",
+    "MAX_PARAMETERS",
     "INPUTS",
     "CasadiPolicy",
     "MLP",
@@ -100,6 +101,10 @@ SATURATIONS = ("clip",)
 """Kinds of output saturation of the format (module notes)."""
 _NORMS = {"state_mean": "nx", "state_scale": "nx", "output_offset": "nu", "output_scale": "nu"}
 _MAX_JSON_BYTES = 1 << 20
+MAX_PARAMETERS = 10**8
+"""The most weights and biases a policy file may describe (800 MB as float64): a larger
+``layers`` entry is refused before its weights file is read."""
+_NPZ_SLACK = 1 << 20  # bytes of zip and .npy headers allowed beyond a file's described data
 
 
 class PolicyError(HybridocError, ValueError):
@@ -552,8 +557,21 @@ def load_mlp_policy(path: str | Path) -> MLP:
             f"{where}: 'layers' must list at least two positive integer widths (input, ..., "
             f"output), got {layers!r}"
         )
+    parameters = sum((layers[k] + 1) * layers[k + 1] for k in range(len(layers) - 1))
+    if parameters > MAX_PARAMETERS:
+        raise PolicyError(
+            f"{where}: 'layers' {_shown(layers)} describes {parameters} parameters, more than "
+            f"the {MAX_PARAMETERS} a policy file may hold: refused before its weights are read"
+        )
     weights = _weights_file(path, spec, where)
-    arrays = _read_npz(weights, spec.get("sha256"), where)
+    # what the file may hold: the layers, the normalisations, at most 16 bytes a number
+    shapes = {f"layer{k}.{part}": shape for k in range(len(layers) - 1)
+              for part, shape in (("weight", (layers[k + 1], layers[k])),
+                                  ("bias", (layers[k + 1],)))}  # fmt: skip
+    for name, side in _NORMS.items():
+        shapes[name] = (layers[-1],) if side == "nu" else None  # nx: checked by the MLP
+    _check_weights_size(weights, parameters + 4 * max(layers), where)
+    arrays = _read_npz(weights, spec.get("sha256"), where, shapes)
     Ws, bs = [], []
     for k in range(len(layers) - 1):
         W, b = arrays.pop(f"layer{k}.weight", None), arrays.pop(f"layer{k}.bias", None)
@@ -625,7 +643,105 @@ def _weights_file(path: Path, spec: dict[str, Any], where: str) -> Path:
     return weights
 
 
-def _read_npz(weights: Path, sha: Any, where: str) -> dict[str, np.ndarray]:
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check_weights_size(weights: Path, numbers: int, where: str) -> None:
+    """Refuse a weights file larger than the numbers its description holds can take (16
+    bytes each, plus headers) before reading it."""
+    try:
+        size = weights.stat().st_size
+    except OSError as exc:
+        raise PolicyError(f"cannot read {str(weights)!r}: {exc.strerror or exc}") from None
+    if size > 16 * numbers + _NPZ_SLACK:
+        raise PolicyError(
+            f"{str(weights)!r} holds {size} bytes, more than the {numbers} numbers that "
+            f"{where} describes can take: refused before it is read"
+        )
+
+
+def _declared_shapes(data: bytes, weights: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """The shapes and types the members of an ``.npz`` file declare in their headers (read
+    without the arrays: a header may declare far more than the file holds)."""
+    import zipfile
+
+    from numpy.lib import format as npformat
+
+    out: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        for info in zf.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            with zf.open(info) as fh:
+                head = io.BytesIO(fh.read(65536 + 16))
+            version = npformat.read_magic(head)
+            read = (
+                npformat.read_array_header_1_0
+                if version == (1, 0)
+                else npformat.read_array_header_2_0
+            )
+            shape, _, dtype = read(head)
+            out[name] = (tuple(int(n) for n in shape), np.dtype(dtype))
+    return out
+
+
+def _check_declared(
+    data: bytes, weights: Path, where: str, shapes: dict[str, tuple[int, ...] | None]
+) -> None:
+    """The members of a weights file, by the shapes their headers declare, against its
+    description (``shapes``: name -> shape, ``None`` for a state-sized vector), with the
+    messages of the checks after the load; nothing is allocated for a member."""
+    try:
+        members = _declared_shapes(data, weights)
+    except Exception as exc:  # zipfile and numpy's header parser raise many kinds
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise PolicyError(f"cannot read {str(weights)!r} as .npz weights: {first}") from None
+    for name, (_, dtype) in members.items():
+        if dtype.hasobject:  # a pickle: never read
+            raise PolicyError(
+                f"cannot read {str(weights)!r} as .npz weights: {name} is an object array"
+            )
+        if dtype.kind not in "fiu":
+            raise PolicyError(f"{weights.name!r}: {name} must hold real numbers, got dtype {dtype}")
+    declared = {name: shape for name, (shape, _) in members.items()}
+    unknown = sorted(set(declared) - set(shapes))
+    if unknown:
+        raise PolicyError(
+            f"{weights.name!r} holds arrays {', '.join(map(repr, unknown))} that {where} does "
+            "not describe"
+        )
+    k = 0
+    while f"layer{k}.weight" in shapes:
+        W, b = (declared.get(f"layer{k}.{part}") for part in ("weight", "bias"))
+        want_W, want_b = shapes[f"layer{k}.weight"], shapes[f"layer{k}.bias"]
+        if W is not None and b is not None and (W != want_W or b != want_b):
+            raise PolicyError(
+                f"{weights.name!r}: layer {k} has weight {W} and bias {b}; {where} describes "
+                f"{want_W} and {want_b}"
+            )
+        k += 1
+    for name in _NORMS:
+        shape = declared.get(name)
+        if shape is None:
+            continue
+        want = shapes[name]
+        if (want is None and (len(shape) != 1 or shape[0] > _NPZ_SLACK)) or (
+            want is not None and shape != want
+        ):
+            n = "the state's" if want is None else str(want[0])
+            raise PolicyError(f"{weights.name!r}: {name} must have {n} entries, got shape {shape}")
+
+
+def _read_npz(
+    weights: Path,
+    sha: Any,
+    where: str,
+    shapes: dict[str, tuple[int, ...] | None] | None = None,
+) -> dict[str, np.ndarray]:
+    """The arrays of a weights file; with ``shapes`` (name -> the shape its description
+    gives, ``None``: any vector), each member's declared shape is checked against it before
+    any array is read, so that a header declaring a huge array allocates nothing."""
     try:
         data = weights.read_bytes()
     except OSError as exc:
@@ -636,6 +752,8 @@ def _read_npz(weights: Path, sha: Any, where: str) -> dict[str, np.ndarray]:
                 f"{str(weights)!r} does not match the SHA-256 recorded in {where}: the weights "
                 "were changed or belong to another policy"
             )
+    if shapes is not None:
+        _check_declared(data, weights, where, shapes)
     try:
         # allow_pickle=False: an object array in the file is refused, never unpickled
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
