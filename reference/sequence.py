@@ -32,6 +32,7 @@ from hybridoc.reference.shooting import (
     shooting_system,
 )
 from hybridoc.reference.sources import PhaseCostates, SequenceStarter
+from hybridoc.reference.units import cost_shown as _J
 
 __all__ = [
     "BOUND_SIGN_TOL",
@@ -481,8 +482,8 @@ def _disagreement(res: ReferenceResult, sim: Evaluation, rel: float, rtol: float
             f"terminal constraints by {viol:.2e} (> {TERMINAL_TOL:g}){steps}"
         )
     return (
-        f"reference for {res.sequence}: shooting cost {res.cost:.12g} but the judge gives "
-        f"{sim.cost:.12g} for the same u(t) (relative {rel:.2e} > rtol = {rtol:g}){steps}"
+        f"reference for {res.sequence}: shooting cost {_J(res.cost):.12g} but the judge gives "
+        f"{_J(sim.cost):.12g} for the same u(t) (relative {rel:.2e} > rtol = {rtol:g}){steps}"
     )
 
 

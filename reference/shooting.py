@@ -102,6 +102,7 @@ import numpy as np
 from hybridoc.errors import SceneError
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.reference import dop853 as tab
 
 __all__ = [
     "ACCURACY_SAFETY",
@@ -261,8 +262,9 @@ def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
     """One step of Dormand and Prince's eighth-order Runge-Kutta method, ``(x, h) -> x(h)``.
 
     The 12-stage formula of DOP853 (Hairer, Norsett and Wanner, *Solving Ordinary
-    Differential Equations I*, section II.10), with SciPy's coefficients, taken at a fixed
-    step: no error estimate, no step-size control (:func:`refine` does that per phase).
+    Differential Equations I*, section II.10), with SciPy's coefficients
+    (:mod:`hybridoc.reference.dop853`), taken at a fixed step: no error estimate, no
+    step-size control (:func:`refine` does that per phase).
 
     Parameters
     ----------
@@ -271,13 +273,13 @@ def dop853_step(rhs: ca.Function, n: int) -> ca.Function:
     n
         The dimension of ``x``.
     """
-    # SciPy ships the tableau as module data; copying its 78 rational-looking decimals here
-    # would only add a chance of a typo (tests check the order against closed forms)
-    from scipy.integrate._ivp import dop853_coefficients as tab
-
-    stages = int(tab.N_STAGES)
-    A = np.asarray(tab.A, dtype=float)[:stages, :stages]
-    B = np.asarray(tab.B, dtype=float)[:stages]
+    # the tableau is kept in reference/dop853.py (SciPy's, bit for bit, tested): importing
+    # scipy.integrate for it cost the first solve about 1 s (issue #34)
+    stages = tab.N_STAGES
+    A = np.zeros((stages, stages))
+    for i, row in enumerate(tab.A):
+        A[i, : len(row)] = row
+    B = np.asarray(tab.B, dtype=float)
     x = ca.SX.sym("x", n)
     h = ca.SX.sym("h")
     K: list[Any] = []

@@ -62,6 +62,7 @@ What it checks before it answers
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import sys
@@ -124,6 +125,8 @@ from hybridoc.reference.sources import (
     SourceContext,
     registered_sources,
 )
+from hybridoc.reference.units import canonical, in_problem_units
+from hybridoc.reference.units import cost_shown as _J
 from hybridoc.solution import Solution, Status
 
 __all__ = [
@@ -673,7 +676,7 @@ class _Book:
             self.reasons.pop(key, None)
         elif res is None and old is None:
             self.reasons[key] = why
-        self.say(f"{list(key)} ({origin}): " + (f"cost {res.cost:.12g}" if res else why))
+        self.say(f"{list(key)} ({origin}): " + (f"cost {_J(res.cost):.12g}" if res else why))
         if key not in self.results and fallback:
             return self.from_known(key)
         return self.results.get(key)
@@ -849,7 +852,11 @@ def solve_reference(
     problem
         Any problem (:func:`hybridoc.problem.as_ocp`) whose Hamiltonian is quadratic in
         ``u``, whose path constraints (if any) each depend on ``u``, affinely
-        (:func:`reference_supports`).
+        (:func:`reference_supports`). A disc scene far from its own units (its
+        :attr:`~hybridoc.ocp.HybridOCP.scales` beyond a factor 4, or moved from the origin)
+        is solved in them and the answer stated in the scene's
+        (:mod:`hybridoc.reference.units`), so that the same physical scene in any units, or
+        moved, gets the same answer.
     sequence
         Guard names in event order (e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
         ``"ball1|ball2,ball2|wall"``; ``[]`` for no event): the extremal of that sequence.
@@ -984,8 +991,15 @@ def solve_reference(
         transcription=transcription, multistart=multistart, sources=sources,
         proposers=proposers, starters=starters, kind=kind, t_start=t_start,
     )  # fmt: skip
-    with progress_scope(progress, "reference") as meter:
-        return _solve(ocp, run, meter)
+    units = canonical(ocp)
+    if units is None:
+        with progress_scope(progress, "reference") as meter:
+            return _solve(ocp, run, meter)
+    # a disc scene in other units, or moved: solved in its scaled units (reference.units)
+    run = dataclasses.replace(run, initial=units.initial_in(initial))
+    with progress_scope(progress, "reference") as meter, in_problem_units(units):
+        sol = _solve(units.ocp, run, meter)
+    return units.to_problem(sol, ocp, rtol)
 
 
 @dataclass(frozen=True)
@@ -1185,14 +1199,14 @@ def _stopped(ocp: HybridOCP, run: _Run, book: _Book, reason: str) -> Solution:
             + ("; --time-limit gives it more time" if reason == "the time limit" else "")
         )
     message = (
-        f"{what}: the best verified extremal found so far (cost {best.cost:.10g}, events "
+        f"{what}: the best verified extremal found so far (cost {_J(best.cost):.10g}, events "
         f"{best.sequence}); the search did not finish, so it claims nothing more"
     )
     cheaper = [k for k in book.rivals() if k.cost < best.cost * (1 - _OPT_RTOL) - 1e-15]
     cheapest = None
     if cheaper:
         c = min(cheaper, key=lambda k: k.cost)
-        message += f"; {c.source} costs less, {c.cost:.10g} (events {c.sequence})"
+        message += f"; {c.source} costs less, {_J(c.cost):.10g} (events {c.sequence})"
         cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
     return _finish(ocp, run, book, best, Status.NOT_CONVERGED, message, cheapest, None)
 
@@ -1552,9 +1566,9 @@ def _verdict(
         _check_coalescing(ocp, c, best)
         status = Status.NOT_OPTIMAL
         message = (
-            f"the extremal found costs {best.cost:.10g}, but {c.source} costs {c.cost:.10g} "
-            f"(events {c.sequence}): this is not the optimum; try --initial with that control "
-            "or --search"
+            f"the extremal found costs {_J(best.cost):.10g}, but {c.source} costs "
+            f"{_J(c.cost):.10g} (events {c.sequence}): this is not the optimum; try --initial "
+            "with that control or --search"
         )
         cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}
     elif seq is not None:
@@ -1585,8 +1599,8 @@ def _verdict(
         if rival is not None:
             status = Status.NOT_OPTIMAL
             message = (
-                f"the extremal found costs {best.cost:.10g}, but {rival['source']} costs "
-                f"{rival['cost']:.10g}: the reset's control meets its first-order conditions "
+                f"the extremal found costs {_J(best.cost):.10g}, but {rival['source']} costs "
+                f"{_J(rival['cost']):.10g}: the reset's control meets its first-order conditions "
                 "without being a minimum; this is not the optimum"
             )
             cheapest = rival
@@ -1650,7 +1664,7 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
             break
         if len(key) <= need and not book.verify(key):
             why.append(
-                f"the extremal of {list(key) or 'no event'} costs {res.cost:.10g}, less, but "
+                f"the extremal of {list(key) or 'no event'} costs {_J(res.cost):.10g}, less, but "
                 "does not re-simulate to its own events: that sequence's optimum with the other "
                 "contacts avoided is not known"
             )
@@ -1679,8 +1693,8 @@ def _proof(run: _Run, book: _Book, best: ReferenceResult) -> tuple[bool, str]:
         n = max(n, PROOF_STARTS)  # one extremal: the unique minimum
     if n < PROOF_STARTS:
         others = sorted(
-            {f"{c:.10g}" for c in book.start_costs.get(key, ()) if c != best.cost}
-            - {f"{best.cost:.10g}"}
+            {f"{_J(c):.10g}" for c in book.start_costs.get(key, ()) if c != best.cost}
+            - {f"{_J(best.cost):.10g}"}
         )
         why.append(
             f"its extremal was reached from {n} start(s) of Newton, {PROOF_STARTS} needed"
@@ -1870,11 +1884,11 @@ def _check_coalescing(ocp: HybridOCP, c: _Known, best: ReferenceResult) -> None:
     a, b, gap = pair
     raise ConvergenceError(
         f"no optimal control exists within the impulsive model: the cheapest control "
-        f"found ({c.source}, cost {c.cost:.10g}) has the impacts {a!r} and {b!r} only "
+        f"found ({c.source}, cost {_J(c.cost):.10g}) has the impacts {a!r} and {b!r} only "
         f"{gap:.2g} apart, and no extremal with them in order exists: the optimum lies "
         "at a simultaneous impact whose jumps do not commute, which the model does not "
         "define. Perturb the scene slightly so that the contacts happen one after the "
-        f"other (the best well-defined extremal found costs {best.cost:.10g})"
+        f"other (the best well-defined extremal found costs {_J(best.cost):.10g})"
     )
 
 
@@ -2059,8 +2073,8 @@ def _judge_given_sequence(
         c = min(beaten, key=lambda k: k.cost)
         return (
             Status.NOT_OPTIMAL,
-            f"the extremal of the given sequence {seq} costs {best.cost:.10g}, but {c.source} "
-            f"costs {c.cost:.10g} with the events {c.sequence}: a cheaper control is known "
+            f"the extremal of the given sequence {seq} costs {_J(best.cost):.10g}, but {c.source} "
+            f"costs {_J(c.cost):.10g} with the events {c.sequence}: a cheaper control is known "
             "(without --sequence, or with --search K, the reference looks for the optimum)",
             {"source": c.source, "cost": c.cost, "sequence": c.sequence},
             None,
@@ -2081,7 +2095,7 @@ def _judge_given_sequence(
     if low["cost"] < bound:
         return (
             Status.NOT_OPTIMAL,
-            f"the extremal of the given sequence {seq} costs {best.cost:.10g}, but the "
+            f"the extremal of the given sequence {seq} costs {_J(best.cost):.10g}, but the "
             f"discovery and search found {low['cost']:.10g} with the events "
             f"{low['sequence']} ({low['source']})",
             low,
@@ -2134,7 +2148,7 @@ def _check_simultaneous(book: _Book, best: ReferenceResult | None) -> None:
         if ok or res.cost >= bound or "same instant" not in msg:
             continue
         raise ConvergenceError(
-            f"the cheapest extremal ({res.cost:.10g}, events {list(key)}) has events that "
+            f"the cheapest extremal ({_J(res.cost):.10g}, events {list(key)}) has events that "
             "coincide in time without commuting jumps: the optimum of this problem lies at a "
             "simultaneous impact, which the impulsive model does not define (controls that "
             "separate the impacts by a little come arbitrarily close to that cost). Perturb the "
@@ -2142,7 +2156,7 @@ def _check_simultaneous(book: _Book, best: ReferenceResult | None) -> None:
             + (
                 ""
                 if best is None
-                else f"; the best well-defined extremal found costs {best.cost:.10g}"
+                else f"; the best well-defined extremal found costs {_J(best.cost):.10g}"
             )
         )
 
@@ -2630,7 +2644,7 @@ def _record(
     if old is None or res.cost < old.cost - 1e-12 * abs(old.cost):
         book.results[key] = res
         book.verdicts.pop(key, None)
-    book.say(f"{seq} (enumeration): cost {res.cost:.12g}")
+    book.say(f"{seq} (enumeration): cost {_J(res.cost):.12g}")
 
 
 def _search_outcomes(
