@@ -174,15 +174,28 @@ class _Constraints:
         self.lbg: list[np.ndarray] = []
         self.ubg: list[np.ndarray] = []
         self.index: dict[str, Any] = {}
+        self.scale: dict[str, list[np.ndarray]] = {}
         self.n = 0
 
-    def add(self, name: str, expr: Any, lo: float | np.ndarray, hi: float | np.ndarray) -> None:
+    def add(
+        self,
+        name: str,
+        expr: Any,
+        lo: float | np.ndarray,
+        hi: float | np.ndarray,
+        scale: float | np.ndarray = 1.0,
+    ) -> None:
+        """Add the rows ``expr`` (already divided by ``scale``, per row or one number: the
+        physical rows are ``scale * expr``, what :meth:`_PhaseNLP.mult` unscales by)."""
         expr = ca.vec(expr)
         m = expr.size1()
         self.exprs.append(expr)
         self.lbg.append(np.broadcast_to(np.asarray(lo, dtype=float), (m,)).copy())
         self.ubg.append(np.broadcast_to(np.asarray(hi, dtype=float), (m,)).copy())
         self.index.setdefault(name, []).append(slice(self.n, self.n + m))
+        self.scale.setdefault(name, []).append(
+            np.broadcast_to(np.asarray(scale, dtype=float), (m,)).copy()
+        )
         self.n += m
 
 
@@ -211,6 +224,15 @@ class _PhaseNLP:
         self.P = P
         sym = self._symbol_type(ocp)
         self.sym = sym
+        # the NLP's own units (module notes, "Units"): the variables are the scaled states
+        # (s - s0) / sigma_s, controls u / sigma_u and durations h / sigma_t, the objective
+        # J / sigma_J, and every constraint row is divided by its own scale; where the
+        # scales are the identity nothing is scaled (the NLP of before, bit for bit)
+        sc = ocp.scales
+        self.scaled = not sc.is_identity
+        self.sx, self.off, self.su = sc.state_array, sc.offset_array, sc.control_array
+        self.ts, self.cs = float(sc.time), float(sc.cost)
+        self.gs = _guard_scales(ocp)
 
         h = sym.sym("h", P)
         Xs, Us = [], []
@@ -228,15 +250,24 @@ class _PhaseNLP:
         cons = _Constraints()
         # the final time: fixed, or free in its bounds (the phase durations scale with it)
         T_lo, T_hi = _horizon_range(ocp)
-        cons.add("sum_h", ca.sum1(h), T_lo, T_hi)
-        cons.add("x0", Xs[0][:, 0] - ca.DM(ocp.x0), 0.0, 0.0)
+        ts = self.ts
+        if self.scaled:
+            cons.add("sum_h", ca.sum1(h), T_lo / ts, T_hi / ts, ts)
+            x0 = sc.to_scaled_state(ocp.x0)
+        else:
+            cons.add("sum_h", ca.sum1(h), T_lo, T_hi)
+            x0 = ocp.x0
+        cons.add("x0", Xs[0][:, 0] - ca.DM(x0), 0.0, 0.0, self.sx)
         cost = 0
         for k in range(P):
-            cost = self._add_phase(cons, cost, k, h[k], Xs[k], Us[k])
+            hk = h[k] * ts if self.scaled else h[k]  # the physical duration
+            cost = self._add_phase(cons, cost, k, hk, Xs[k], Us[k])
             if k < P - 1:
                 self._add_event(cons, k, Xs[k], Us[k], Xs[k + 1])
-        s_T = Xs[-1][:, -1]
+        s_T = self._phys_x(Xs[-1][:, -1])
         cost = cost + ocp.phi(s_T)
+        if self.scaled:
+            cost = cost / self.cs
         if ocp.terminal_eq is not None:
             cons.add("terminal_eq", ocp.terminal_eq(s_T), 0.0, 0.0)
         if ocp.terminal_ineq is not None:
@@ -245,6 +276,7 @@ class _PhaseNLP:
         self.cost_fn = ca.Function("J", [w_all], [cost])
         self._nlp = {"x": w_all, "f": cost, "g": ca.vertcat(*cons.exprs)}
         self.g_index = cons.index
+        self.g_scale = cons.scale
         self.lbg = np.concatenate(cons.lbg)
         self.ubg = np.concatenate(cons.ubg)
         self.n_g = cons.n
@@ -266,36 +298,60 @@ class _PhaseNLP:
         funcs += [fn for fn in (ocp.path, ocp.terminal_eq, ocp.terminal_ineq) if fn is not None]
         return ca.MX if any(fn.is_a("MXFunction") for fn in funcs) else ca.SX
 
+    def _phys_x(self, X: Any) -> Any:
+        """The physical states ``sigma_s X + s0`` of scaled state symbols ``(nx, n)``."""
+        if not self.scaled:
+            return X
+        n = X.size2()
+        return X * ca.repmat(ca.DM(self.sx), 1, n) + ca.repmat(ca.DM(self.off), 1, n)
+
+    def _phys_u(self, U: Any) -> Any:
+        """The physical controls ``sigma_u U`` of scaled control symbols ``(nu, n)``."""
+        if not self.scaled:
+            return U
+        return U * ca.repmat(ca.DM(self.su), 1, U.size2())
+
     def _add_phase(self, cons: _Constraints, cost: Any, k: int, hk: Any, X: Any, U: Any) -> Any:
         """Phase ``k``'s collocation defects, control-polynomial bounds, path constraints and
-        free-space guards; returns ``cost`` plus the phase's running cost."""
+        free-space guards; returns ``cost`` plus the phase's running cost (physical units;
+        ``hk`` the physical duration, ``X``, ``U`` the scaled symbols)."""
         ocp, d, M = self.ocp, self.d, self.mesh[k]
         f, L, con = ocp.f, ocp.L, ocp.path
         u_lo, u_hi = np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float)
         bounded = np.flatnonzero(np.isfinite(u_lo) | np.isfinite(u_hi))
+        su_b = self.su[bounded]
+        if self.scaled:
+            u_lo, u_hi = u_lo / self.su, u_hi / self.su
         lo_b, hi_b = np.tile(u_lo[bounded], d - 1), np.tile(u_hi[bounded], d - 1)
         D = ca.DM(self.rad.D)
         frac = self.fractions[k]
+        Xp, Up = self._phys_x(X), self._phys_u(U)
+        # a defect row of state i is divided by sigma_s,i (X D is already scaled: the
+        # columns of D sum to zero, so the offset drops out exactly)
+        sx_cols = ca.repmat(ca.DM(self.sx), 1, d)
         for e in range(M):
             he = hk / M if frac is None else hk * float(frac[e])
             Xe = X[:, e * d : e * d + d + 1]
             Ue = U[:, e * d : e * d + d]
-            Fe = f.map(d)(Xe[:, 1:], Ue)
-            cons.add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0)
-            Le = L.map(d)(Xe[:, 1:], Ue)
+            Xpe, Upe = Xp[:, e * d + 1 : e * d + d + 1], Up[:, e * d : e * d + d]
+            Fe = f.map(d)(Xpe, Upe)
+            if self.scaled:
+                Fe = Fe / sx_cols
+            cons.add(f"coll{k}", ca.mtimes(Xe, D) - he * Fe, 0.0, 0.0, np.tile(self.sx, d))
+            Le = L.map(d)(Xpe, Upe)
             cost = cost + he * ca.mtimes(Le, ca.DM(self.rad.w))
             if bounded.size and d > 1:
                 # the control polynomial stays within the bounds between the Radau points
                 # too: its Bernstein coefficients do (the last one is the value at the
                 # element end, a Radau point, bounded by lbx/ubx)
                 bern = ca.mtimes(Ue[bounded.tolist(), :], ca.DM(self.rad.bernstein[:-1].T))
-                cons.add(f"ubern{k}", bern, lo_b, hi_b)
+                cons.add(f"ubern{k}", bern, lo_b, hi_b, np.tile(su_b, d - 1))
             if con is not None:
                 # path constraints at the Radau points (and the phase start, with the first
                 # control of the phase)
                 if e == 0:
-                    cons.add(f"con{k}", con(X[:, 0], U[:, 0]), 0.0, np.inf)
-                cons.add(f"con{k}", con.map(d)(Xe[:, 1:], Ue), 0.0, np.inf)
+                    cons.add(f"con{k}", con(Xp[:, 0], Up[:, 0]), 0.0, np.inf)
+                cons.add(f"con{k}", con.map(d)(Xpe, Upe), 0.0, np.inf)
         # every guard stays in free space at the nodes, except the ones that are zero by
         # construction at this phase's boundaries (their equality constraint covers them)
         prev = self.guards[k - 1] if k > 0 else None
@@ -307,21 +363,36 @@ class _PhaseNLP:
             if gi == nxt:
                 cols = cols[:-1]
             if cols:
-                cons.add(f"path{k}", g.psi.map(len(cols))(X[:, cols]), 0.0, np.inf)
+                rows = g.psi.map(len(cols))(Xp[:, cols])
+                if self.scaled:
+                    rows = rows / self.gs[gi]
+                cons.add(f"path{k}", rows, 0.0, np.inf, self.gs[gi])
         return cost
 
     def _add_event(self, cons: _Constraints, k: int, X: Any, U: Any, X_next: Any) -> None:
         """The ``k``-th event at the end of phase ``k``: its guard, the approach condition
         and the reset linking phase ``k + 1``."""
         ocp = self.ocp
+        gs = float(self.gs[self.guards[k]])
         gd = ocp.guards[self.guards[k]]
-        s_minus = X[:, -1]
-        cons.add(f"guard{k}", gd.psi(s_minus), 0.0, 0.0)
+        s_minus = self._phys_x(X[:, -1])
+        u_minus = self._phys_u(U[:, -1])
         s_ = self.sym.sym("s", ocp.nx)
         dpsi = ca.Function("dpsi", [s_], [ca.jacobian(gd.psi(s_), s_)])
-        cons.add(f"approach{k}", ca.mtimes(dpsi(s_minus), ocp.f(s_minus, U[:, -1])), -np.inf, 0.0)
+        approach = ca.mtimes(dpsi(s_minus), ocp.f(s_minus, u_minus))
         v = self.V_sym[:, self.reset_events.index(k)] if gd.uses_control else None
-        cons.add(f"link{k}", X_next[:, 0] - gd.reset_at(s_minus, v), 0.0, 0.0)
+        if not self.scaled:
+            cons.add(f"guard{k}", gd.psi(s_minus), 0.0, 0.0)
+            cons.add(f"approach{k}", approach, -np.inf, 0.0)
+            cons.add(f"link{k}", X_next[:, 0] - gd.reset_at(s_minus, v), 0.0, 0.0)
+            return
+        cons.add(f"guard{k}", gd.psi(s_minus) / gs, 0.0, 0.0, gs)
+        cons.add(f"approach{k}", approach * (self.ts / gs), -np.inf, 0.0, gs / self.ts)
+        # the jump as an increment, g(s) - s: the components it keeps (a collision's
+        # positions) link exactly, without the rounding of s0 + sigma_s X - s0
+        v = None if v is None else self._phys_u(v)
+        jump = (gd.reset_at(s_minus, v) - s_minus) / ca.DM(self.sx)
+        cons.add(f"link{k}", X_next[:, 0] - X[:, -1] - jump, 0.0, 0.0, self.sx)
 
     def _variable_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``lbx``, ``ubx``: phase durations in ``[1e-6 T, T]`` (``[1e-6 T_min, T_max]`` for
@@ -331,22 +402,26 @@ class _PhaseNLP:
         T_lo, T_hi = _horizon_range(ocp)
         lbx = np.full(self.n_w, -np.inf)
         ubx = np.full(self.n_w, np.inf)
+        u_lo, u_hi = np.asarray(ocp.u_min, dtype=float), np.asarray(ocp.u_max, dtype=float)
+        if self.scaled:
+            T_lo, T_hi = T_lo / self.ts, T_hi / self.ts
+            u_lo, u_hi = u_lo / self.su, u_hi / self.su
         lbx[:P] = 1e-6 * T_lo
         ubx[:P] = T_hi
         # U is stored column by column
         o = self._offsets
         n_u = int(o[-1] - o[1 + P])
-        lbx[o[1 + P] :] = np.resize(np.asarray(ocp.u_min, dtype=float), n_u)
-        ubx[o[1 + P] :] = np.resize(np.asarray(ocp.u_max, dtype=float), n_u)
+        lbx[o[1 + P] :] = np.resize(u_lo, n_u)
+        ubx[o[1 + P] :] = np.resize(u_hi, n_u)
         return lbx, ubx
 
     def solver(self, verbose: bool) -> Any:
         if verbose not in self._solvers:
             if self.callback is None:
-                self.callback = _IterationCallback(self.n_w, self.n_g, self.lbg, self.ubg)
+                self.callback = _IterationCallback(self.n_w, self.n_g, self.lbg, self.ubg, self.cs)
             opts = {
                 "ipopt.tol": 1e-12,
-                "ipopt.acceptable_tol": 1e-9,
+                "ipopt.acceptable_tol": max(1e-9, 100 * _rounding_level(self.ocp)),
                 "ipopt.max_iter": _MAX_ITER,
                 "ipopt.print_level": 5 if verbose else 0,
                 "ipopt.sb": "yes",
@@ -368,25 +443,35 @@ class _PhaseNLP:
         U: list[np.ndarray],
         V: np.ndarray | None = None,
     ) -> np.ndarray:
-        """The NLP's variables; ``V`` ``(nu, len(reset_events))``: the resets' controls
-        (default: the control at the end of each phase that ends in such an event)."""
-        parts = [np.asarray(h, dtype=float)]
-        parts += [np.asarray(x, dtype=float).ravel(order="F") for x in X]
-        parts += [np.asarray(u, dtype=float).ravel(order="F") for u in U]
+        """The NLP's (scaled) variables of physical durations ``h``, states ``X`` and
+        controls ``U``; ``V`` ``(nu, len(reset_events))``: the resets' controls (default:
+        the control at the end of each phase that ends in such an event)."""
+        h = np.asarray(h, dtype=float)
+        X = [np.asarray(x, dtype=float) for x in X]
+        U = [np.asarray(u, dtype=float) for u in U]
+        if self.reset_events and V is None:
+            V = np.column_stack([U[k][:, -1] for k in self.reset_events])
+        if self.scaled:
+            h = h / self.ts
+            X = [(x - self.off[:, None]) / self.sx[:, None] for x in X]
+            U = [u / self.su[:, None] for u in U]
+            if V is not None:
+                V = np.asarray(V, dtype=float) / self.su[:, None]
+        parts = [h]
+        parts += [x.ravel(order="F") for x in X]
+        parts += [u.ravel(order="F") for u in U]
         if self.reset_events:
-            if V is None:
-                V = np.column_stack(
-                    [np.asarray(U[k], dtype=float)[:, -1] for k in self.reset_events]
-                )
             parts.append(np.asarray(V, dtype=float).ravel(order="F"))
         return np.concatenate(parts)
 
     def unpack_v(self, w: np.ndarray) -> np.ndarray:
-        """The resets' controls ``(nu, len(reset_events))`` of the variables ``w``."""
+        """The resets' physical controls ``(nu, len(reset_events))`` of the variables ``w``."""
         o, nu = self._offsets, self.ocp.nu
-        return w[o[-2] : o[-1]].reshape((nu, len(self.reset_events)), order="F").copy()
+        V = w[o[-2] : o[-1]].reshape((nu, len(self.reset_events)), order="F").copy()
+        return V * self.su[:, None] if self.scaled else V
 
     def unpack(self, w: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+        """The physical durations, states and controls of the (scaled) variables ``w``."""
         o, P, nx, nu, d = self._offsets, self.P, self.ocp.nx, self.ocp.nu, self.d
         h = w[:P].copy()
         X = [
@@ -396,6 +481,10 @@ class _PhaseNLP:
             w[o[1 + P + k] : o[2 + P + k]].reshape((nu, self.mesh[k] * d), order="F")
             for k in range(P)
         ]
+        if self.scaled:
+            h = h * self.ts
+            X = [x * self.sx[:, None] + self.off[:, None] for x in X]
+            U = [u * self.su[:, None] for u in U]
         return h, X, U
 
     def node_times(self, h: np.ndarray) -> list[np.ndarray]:
@@ -429,7 +518,12 @@ class _PhaseNLP:
         return edges
 
     def mult(self, lam_g: np.ndarray, name: str) -> list[np.ndarray]:
-        return [lam_g[s] for s in self.g_index.get(name, [])]
+        """The multipliers of the constraints ``name`` in physical units: a row divided by
+        ``r`` in an objective divided by ``sigma_J`` has ``sigma_J / r`` times them."""
+        out = [lam_g[s] for s in self.g_index.get(name, [])]
+        if not self.scaled:
+            return out
+        return [self.cs * m / r for m, r in zip(out, self.g_scale.get(name, []), strict=True)]
 
     def clip_controls(self, U: np.ndarray) -> np.ndarray:
         """Controls ``(nu, n)`` clipped into the problem's bounds."""
@@ -491,9 +585,12 @@ class _IterationCallback(ca.Callback):
     """IPOPT's iteration callback: reports the iteration to the run's :class:`_Monitor` and
     asks IPOPT to stop (``User_Requested_Stop``) once its time limit has passed."""
 
-    def __init__(self, n_w: int, n_g: int, lbg: np.ndarray, ubg: np.ndarray) -> None:
+    def __init__(
+        self, n_w: int, n_g: int, lbg: np.ndarray, ubg: np.ndarray, cost_scale: float = 1.0
+    ) -> None:
         ca.Callback.__init__(self)
         self.n_w, self.n_g, self.lbg, self.ubg = n_w, n_g, lbg, ubg
+        self.cost_scale = cost_scale
         self.monitor: _Monitor | None = None
         self.iteration = 0
         self.construct("dt_iteration", {})
@@ -539,12 +636,45 @@ class _IterationCallback(ca.Callback):
         if mon.reporting:
             g = np.asarray(arg[ca.nlpsol_out().index("g")], dtype=float).ravel()
             viol = float(np.max(np.maximum(self.lbg - g, g - self.ubg), initial=0.0))
-            f = float(arg[ca.nlpsol_out().index("f")])
+            f = float(arg[ca.nlpsol_out().index("f")]) * self.cost_scale
             mon.progress.detail(
                 f"IPOPT iteration {self.iteration} of at most {_MAX_ITER}, objective {f:.6g}, "
                 f"constraint violation {viol:.1e}"
             )
         return [1 if mon.expired() else 0]
+
+
+def _rounding_level(ocp: HybridOCP) -> float:
+    """The relative rounding of the problem's functions at its states, in scaled units:
+    ``eps max(1, max |s0_i| / sigma_i)`` (``s0`` the initial state). A problem far from the
+    origin in its own lengths (positions ``3e5`` with lengths ``1e-3``) evaluates its guards
+    and costs on positions rounded to ``eps |s|``, noise that no iterate can push below:
+    IPOPT's acceptable level is set above it (``1e-9`` otherwise)."""
+    x0 = np.abs(np.asarray(ocp.x0, dtype=float))
+    return float(np.finfo(float).eps * max(1.0, float(np.max(x0 / ocp.scales.state_array))))
+
+
+def _guard_scales(ocp: HybridOCP) -> np.ndarray:
+    """Per guard, the scale its rows (guard, free space, approach) are divided by in the
+    NLP: the power of two at or below the norm of ``d psi / d s~`` (the guard's gradient in
+    the scaled state) at the initial state, so that a distance is measured in the
+    problem's lengths (a disc pair's gap has the norm ``sqrt(2) L``, a wall's ``L``: both
+    give ``L``). The problem's length scale where the gradient is zero or not finite; ones
+    where the scales are the identity (the NLP of before)."""
+    n = len(ocp.guards)
+    sc = ocp.scales
+    if sc.is_identity or not n:
+        return np.ones(n)
+    x0 = np.asarray(ocp.x0, dtype=float)
+    s = ca.MX.sym("s", ocp.nx)
+    out = np.full(n, float(sc.length))
+    for i, g in enumerate(ocp.guards):
+        grad = ca.Function("dpsi", [s], [ca.jacobian(g.psi(s), s)])
+        norm = float(np.linalg.norm(np.asarray(grad(x0), dtype=float).ravel() * sc.state_array))
+        if norm > 0 and math.isfinite(norm):
+            # + 0.01: a unit normal's norm computed as 0.9999999999999999 still gives 1
+            out[i] = math.ldexp(1.0, math.floor(math.log2(norm) + 0.01))
+    return out
 
 
 def _horizon_range(ocp: HybridOCP) -> tuple[float, float]:
@@ -986,7 +1116,7 @@ def _solve_nlp(nlp: _PhaseNLP, w0: np.ndarray, sequence: list[str], verbose: boo
             event_controls[k] = V[:, i]
     return DTResult(
         sequence=list(sequence),
-        nlp_cost=float(res["f"]),
+        nlp_cost=float(res["f"]) * nlp.cs if nlp.scaled else float(res["f"]),
         event_times=np.cumsum(h)[:-1],
         node_times=times,
         states=X,
@@ -1280,9 +1410,11 @@ def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndar
     except SimultaneousEventError as exc:
         first = exc
     z = np.random.default_rng(20240601).standard_normal(u0.shape)
-    scale = 1e-6 * max(1.0, float(np.abs(u0).max(initial=0.0)))
+    # in the controls' units: 1e-6 sigma_u max(1, |u / sigma_u|)
+    su = ocp.scales.control_array
+    scale = 1e-6 * max(1.0, float(np.abs(u0 / su).max(initial=0.0)))
     for k in range(1, _GUESS_PERTURBATIONS + 1):
-        u = np.clip(u0 + scale * k * z, ocp.u_min, ocp.u_max)
+        u = np.clip(u0 + scale * k * z * su, ocp.u_min, ocp.u_max)
         try:
             return evaluate(ocp, u), u, scale * k
         except SimultaneousEventError:
@@ -1293,6 +1425,11 @@ def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndar
         guards=first.guards,
         time=first.time,
     ) from None
+
+
+def _bound_tol(ocp: HybridOCP) -> float:
+    """:data:`_BOUND_TOL` in the controls' units (the smallest control scale)."""
+    return _BOUND_TOL * float(np.min(ocp.scales.control_array, initial=1.0))
 
 
 @dataclass
@@ -1310,7 +1447,7 @@ class _Judged:
     def feasible(self) -> bool:
         assert self.ev is not None
         return (
-            self.ev.bound_violation <= _BOUND_TOL
+            self.ev.bound_violation <= _bound_tol(self.result._nlp.ocp)
             and self.ev.path_violation <= _PATH_TOL
             and self.ev.terminal_violation <= self.terminal_tol
         )
@@ -1790,7 +1927,7 @@ def _cheaper_known(
                     "sequence": _resimulated_names(ocp, d.ev),
                 }
             )
-    bound = float(j.ev.cost) * (1 - _CHEAPER_RTOL) - 1e-15
+    bound = float(j.ev.cost) * (1 - _CHEAPER_RTOL) - 1e-15 * ocp.scales.cost
     cheaper = [k for k in known if k["cost"] < bound]
     return min(cheaper, key=lambda k: k["cost"]) if cheaper else None
 
@@ -1965,12 +2102,17 @@ def _defects(ocp: HybridOCP, r: DTResult) -> list[np.ndarray]:
     hi = np.asarray(ocp.u_max, dtype=float)[:, None]
     h = np.diff(np.concatenate([[0.0], r.event_times, [r.horizon]]))
     f = ocp.f.map(d)
+    sx, off = ocp.scales.state_array, ocp.scales.offset_array
     out = []
     for k in range(nlp.P):
         M = nlp.mesh[k]
         shares = nlp.shares(k)
         X, U = r.states[k], r.controls[k]
-        scale = np.maximum(1.0, np.max(np.abs(X), axis=1))
+        # max(1, max |x_i|) in the state's units: sigma_i max(1, max |(x_i - s0_i) / sigma_i|)
+        if ocp.scales.is_identity:
+            scale = np.maximum(1.0, np.max(np.abs(X), axis=1))
+        else:
+            scale = sx * np.maximum(1.0, np.max(np.abs(X - off[:, None]) / sx[:, None], axis=1))
         per = np.zeros(M)
         for e in range(M):
             he = h[k] * float(shares[e])
@@ -2002,18 +2144,22 @@ def _error_estimate(
     """
     r, ev = j.result, j.ev
     assert ev is not None
-    scale = max(1.0, abs(float(ev.cost)))
+    scale = max(ocp.scales.cost, abs(float(ev.cost)))  # max(1, |J|) in the cost's units
     gap = abs(float(ev.cost) - r.nlp_cost) / scale
     change = None if previous_cost is None else abs(float(ev.cost) - previous_cost) / scale
     per_element = _defects(ocp, r)
     defects = [float(np.max(x, initial=0.0)) for x in per_element]
     phases = [k for k, x in enumerate(defects) if not x <= DEFECT_TOL]
     time_gap = _event_time_gap(ocp, r, ev)
+    # REFINE_RTOL, or above the rounding of a problem far from its origin (whose judged
+    # cost carries that rounding, which no mesh removes)
+    rtol = max(REFINE_RTOL, 100 * _rounding_level(ocp))
     if change is None:  # the first mesh: its defects must be small too
-        converged = gap <= REFINE_RTOL and not phases
+        converged = gap <= rtol and not phases
     else:  # refined: the last two meshes agree (the defects only say where to refine)
-        converged = gap <= REFINE_RTOL and change <= REFINE_RTOL
+        converged = gap <= rtol and change <= rtol
     return {
+        "tolerance": rtol,
         "cost_gap": gap,
         "refinement_change": change,
         "defects": defects,
@@ -2027,13 +2173,13 @@ def _error_estimate(
 
 def _estimate_text(est: dict[str, Any]) -> str:
     """The error estimate for a message."""
+    rtol = est.get("tolerance", REFINE_RTOL)
     parts = [f"judged cost vs NLP objective {est['cost_gap']:.2e} (relative)"]
     if est.get("refinement_change") is not None:
         parts.append(f"change from the previous mesh {est['refinement_change']:.2e}")
     parts.append(f"largest collocation defect {max(est['defects'], default=0.0):.2e}")
     return (
-        ", ".join(parts)
-        + f" at mesh {est['mesh']} (tolerances {REFINE_RTOL:g}, {REFINE_RTOL:g}, {DEFECT_TOL:g})"
+        ", ".join(parts) + f" at mesh {est['mesh']} (tolerances {rtol:g}, {rtol:g}, {DEFECT_TOL:g})"
     )
 
 
@@ -2057,7 +2203,7 @@ def _adapt(ocp: HybridOCP, j: _Judged, verbose: bool, progress: Progress) -> tup
         if est["converged"]:
             return j, refined
         change = est["refinement_change"]
-        settled = change is not None and change <= REFINE_RTOL
+        settled = change is not None and change <= est["tolerance"]
         if settled and previous_gap is not None and est["cost_gap"] >= 0.9 * previous_gap:
             stalled += 1
         else:
@@ -2197,9 +2343,9 @@ def _choose(
         ev = matched[0].ev
         assert ev is not None
         parts = []
-        if ev.bound_violation > _BOUND_TOL:
+        if ev.bound_violation > _bound_tol(ocp):
             parts.append(
-                f"the control bounds by {ev.bound_violation:.3g} (tolerance {_BOUND_TOL:g})"
+                f"the control bounds by {ev.bound_violation:.3g} (tolerance {_bound_tol(ocp):g})"
             )
         if ev.path_violation > _PATH_TOL:
             parts.append(

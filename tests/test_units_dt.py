@@ -1,0 +1,145 @@
+"""dt gives the same answer in any units and place (issue #32).
+
+The same physical scene with lengths, times or masses scaled, or moved far from the origin
+(:mod:`scaling`), must give ``dt``'s cost times ``length**2`` within ``1e-9`` relative,
+the same events and the same status. Before the NLP was built in the problem's own units
+(``ocp.scales``), single-collision with lengths x ``1e-6`` gave ``best-found`` at 0.788
+instead of 0.31142, with lengths x ``1e6`` a ``ConvergenceError``, and moved by ``1e6`` a
+``not-optimal`` 2.0 with no event.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scene_generator as sg
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scaling import CORNERS, cost_factor, transform
+
+import hybridoc
+from hybridoc.problem import as_ocp
+from hybridoc.problems import load_scene
+from hybridoc.solution import Status
+
+EPS = float(np.finfo(float).eps)
+SCENES = ("single-collision", "multiple-collision", "gen-inelastic", "gen-chain")
+# generated scenes (tests/scene_generator.py): 5, family "inelastic", one contact with
+# restitution < 1; 7, family "chain", four events
+GENERATED = {"gen-inelastic": 5, "gen-chain": 7}
+
+
+def _ratio(corner: dict) -> float:
+    """How far the corner moves the scene, in its own lengths."""
+    return float(np.max(np.abs(corner.get("shift", (0.0, 0.0))))) / corner.get("length", 1.0)
+
+
+# the corners whose data keep the scene's numbers to 1e-9: moved by at most 1e6 lengths
+# (a position is rounded to eps |shift|, 2.2e-10 of a length at 1e6 lengths)
+EXACT = [c for c in CORNERS if _ratio(c) <= 1e6]
+FAR = [c for c in CORNERS if _ratio(c) > 1e6]
+
+
+def _scene(name: str, tmp_path_factory: pytest.TempPathFactory) -> hybridoc.Scene:
+    if name in GENERATED:
+        path = tmp_path_factory.mktemp("gen") / f"{name}.toml"
+        path.write_text(sg.generate(GENERATED[name]).to_toml())
+        return load_scene(str(path))
+    return load_scene(name)
+
+
+@pytest.fixture(scope="module")
+def bases(tmp_path_factory):
+    out = {}
+    for name in SCENES:
+        scene = _scene(name, tmp_path_factory)
+        out[name] = (scene, hybridoc.solve(scene, method="dt"))
+    return out
+
+
+def _events(sol) -> list[tuple[str, ...]]:
+    return [tuple(e["bodies"]) for e in sol.events]
+
+
+def _same_answer(base, sol, corner: dict, rtol: float) -> None:
+    cost = sol.cost / cost_factor(**corner)
+    assert math.isclose(cost, base.cost, rel_tol=rtol), (corner, cost, base.cost, sol.message)
+    assert _events(sol) == _events(base), corner
+    assert sol.status == base.status, (corner, sol.status, sol.message)
+
+
+@pytest.mark.parametrize("corner", EXACT, ids=str)
+@pytest.mark.parametrize("name", SCENES)
+def test_dt_same_answer_in_other_units(bases, name, corner):
+    scene, base = bases[name]
+    assert base.status is Status.BEST_FOUND and base.events
+    sol = hybridoc.solve(transform(scene, **corner), method="dt")
+    _same_answer(base, sol, corner, 1e-9)
+    # the event times scale with the times
+    t = np.array([e["time"] for e in sol.events]) / corner.get("time", 1.0)
+    np.testing.assert_allclose(t, [e["time"] for e in base.events], rtol=1e-8)
+
+
+@pytest.mark.parametrize("corner", FAR, ids=str)
+def test_dt_far_from_origin_within_the_data_rounding(bases, corner):
+    """Moved by more than 1e6 of its lengths (3e5 with lengths 1e-3), the scene's own data
+    are rounded to ``eps |shift|``, ``6.7e-8`` of a length: the same events, the cost within
+    ``64 eps |shift| / length``, the same status (never ``success``)."""
+    scene, base = bases["single-collision"]
+    sol = hybridoc.solve(transform(scene, **corner), method="dt")
+    cost = sol.cost / cost_factor(**corner)
+    assert math.isclose(cost, base.cost, rel_tol=64 * EPS * _ratio(corner)), (cost, sol.message)
+    assert _events(sol) == _events(base)
+    assert sol.status == base.status and sol.status is not Status.SUCCESS, sol.message
+
+
+def test_guard_rows_are_measured_in_lengths():
+    """The NLP divides a disc pair's guard by the length scale (its gradient's norm is
+    sqrt(2) L), and the identity problems keep their NLP unscaled."""
+    from hybridoc.solvers.transcription import _guard_scales, _PhaseNLP
+
+    scene = load_scene("single-collision")
+    assert as_ocp(scene).scales.is_identity
+    np.testing.assert_array_equal(_guard_scales(as_ocp(scene)), [1.0])
+    small = as_ocp(transform(scene, length=1e-6, shift=(3.0, 4.0)))
+    np.testing.assert_array_equal(_guard_scales(small), [small.scales.length])
+    nlp = _PhaseNLP(small, [0], 3, [2, 2])
+    h = np.array([0.4, 0.6])
+    X = [np.tile(small.x0[:, None], (1, 7)), np.tile(small.x0[:, None], (1, 7))]
+    force = small.scales.control_array[:, None]  # forces of the scene's own size
+    U = [np.ones((small.nu, 6)) * force, -np.ones((small.nu, 6)) * force]
+    w = nlp.pack(h, X, U)
+    # the variables are of order one, and unpack gives the physical values back
+    assert np.max(np.abs(w)) <= 1024
+    h2, X2, U2 = nlp.unpack(w)
+    np.testing.assert_allclose(h2, h, rtol=1e-15)
+    np.testing.assert_allclose(X2[1], X[1], rtol=1e-15)
+    np.testing.assert_allclose(U2[0], U[0], rtol=1e-15)
+
+
+@settings(
+    max_examples=6,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    length=st.floats(-6, 6),
+    time=st.floats(-6, 6),
+    mass=st.floats(-6, 6),
+    shift=st.tuples(st.floats(-1e6, 1e6), st.floats(-1e6, 1e6)),
+)
+def test_dt_property_any_units_and_place(bases, length, time, mass, shift):
+    """Random factors in [1e-6, 1e6] (log-uniform) and a move by up to 1e6 of the scene's
+    lengths: the same cost times length**2 within 1e-9, the same events and status."""
+    scene, base = bases["single-collision"]
+    corner = dict(
+        length=10.0**length,
+        time=10.0**time,
+        mass=10.0**mass,
+        shift=(shift[0] * 10.0**length, shift[1] * 10.0**length),
+    )
+    sol = hybridoc.solve(transform(scene, **corner), method="dt")
+    _same_answer(base, sol, corner, 1e-9)
