@@ -38,7 +38,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP, Structure
     from hybridoc.problem import ProblemLike
 
-__all__ = ["CompiledLoss", "SIMULATIONS", "TerminalLoss", "per_structure"]
+__all__ = ["CompiledLoss", "SIMULATIONS", "TerminalLoss", "per_structure", "translated"]
 
 SIMULATIONS = ("auto", "disc", "generic")
 """Which step :class:`CompiledLoss` compiles: ``auto`` (the disc step for disc scenes, the
@@ -133,6 +133,9 @@ class CompiledLoss:
             )
         ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
         is_disc = isinstance(ocp, DiscOCP)
+        # a disc scene far from the origin is simulated moved by its offset (exactly): the
+        # same numbers as at the origin, not rounded to the ulp of the far positions
+        sim, self._offset = translated(ocp) if is_disc and simulation != "generic" else (ocp, None)
         if simulation == "disc" and not is_disc:
             raise SceneError(f"{ocp.name!r} is not a disc scene: use simulation='generic'")
         use_disc = is_disc and simulation != "generic"
@@ -145,7 +148,7 @@ class CompiledLoss:
         self.simulation = "disc" if use_disc else "generic"
         if use_disc:
             integrator = integrator or "symplectic-euler"
-            step_fn = _disc_step(ocp, model, integrator)
+            step_fn = _disc_step(sim, model, integrator)
             self.settings = {**model.settings(), "integrator": integrator}
         else:
             if integrator not in (None, "exact"):
@@ -160,11 +163,11 @@ class CompiledLoss:
         if ocp.path is not None:
             step_fn = _with_path_penalty(ocp, step_fn, path_weight)
         self.step = step_fn
-        value, value_grad, self._rollout = _rollout_functions(step_fn, ocp.phi, nx, nu, N)
+        value, value_grad, self._rollout = _rollout_functions(step_fn, sim.phi, nx, nu, N)
         self._value = Accelerated(value)
         self._value_grad = Accelerated(value_grad)
         self._maps: dict[int, Accelerated] = {}
-        self._x0 = ocp.x0.copy()
+        self._x0 = sim.x0.copy()
         self.threads = _threads()
 
     # ------------------------------------------------------------------ numpy interface
@@ -180,17 +183,25 @@ class CompiledLoss:
             raise ControlsError("controls contain NaN or infinite values")
         return u
 
+    def _start(self, x0: Any) -> np.ndarray:
+        """The simulation's initial state(s) of ``x0`` (the problem's when ``None``): moved
+        by the offset where the simulation is (:func:`translated`)."""
+        if x0 is None:
+            return self._x0
+        x = np.asarray(x0, dtype=float)
+        return x if self._offset is None else x - self._offset
+
     def value(self, controls: Any, x0: Any = None) -> float:
         """The discrete objective of ``(N, nu)`` controls."""
         u = self._check(controls)
-        x = self._x0 if x0 is None else np.asarray(x0, dtype=float)
+        x = self._start(x0)
         (J,) = self._value.call_numpy(x, u.T)
         return float(J[0, 0])
 
     def value_and_grad(self, controls: Any, x0: Any = None) -> tuple[float, np.ndarray, np.ndarray]:
         """Objective, gradient ``(N, nu)`` w.r.t. the controls and ``(nx,)`` w.r.t. ``x0``."""
         u = self._check(controls)
-        x = self._x0 if x0 is None else np.asarray(x0, dtype=float)
+        x = self._start(x0)
         J, gx, gU = self._value_grad.call_numpy(x, u.T)
         return float(J[0, 0]), gU.T.copy(), gx.ravel()
 
@@ -205,7 +216,7 @@ class CompiledLoss:
             raise ControlsError(
                 f"controls must have shape (B, {self.steps}, {self.nu}), got {u.shape}"
             )
-        x = np.broadcast_to(self._x0 if x0 is None else np.asarray(x0, dtype=float), (B, self.nx))
+        x = np.broadcast_to(self._start(x0), (B, self.nx))
         fn = self._maps.get(B)
         if fn is None:
             vg = self._value_grad.vm
@@ -225,8 +236,9 @@ class CompiledLoss:
     def rollout_numpy(self, controls: Any, x0: Any = None) -> np.ndarray:
         """States ``(N + 1, nx)`` of the discrete rollout."""
         u = self._check(controls)
-        x = self._x0 if x0 is None else np.asarray(x0, dtype=float)
-        return np.asarray(self._rollout(x, u.T)).T.copy()
+        x = self._start(x0)
+        states = np.asarray(self._rollout(x, u.T)).T.copy()
+        return states if self._offset is None else states + self._offset
 
     # ------------------------------------------------------------------ torch interface
     def loss(self, controls: Any, x0: Any = None) -> Any:
@@ -247,7 +259,10 @@ class CompiledLoss:
             )
         if x0 is None:
             x0 = torch.as_tensor(self._x0, dtype=u.dtype, device=u.device)
-        x0 = torch.as_tensor(x0, dtype=u.dtype, device=u.device)
+        else:
+            x0 = torch.as_tensor(x0, dtype=u.dtype, device=u.device)
+            if self._offset is not None:  # the simulation's coordinates (translated)
+                x0 = x0 - torch.as_tensor(self._offset, dtype=u.dtype, device=u.device)
         x0 = x0.expand(u.shape[0], self.nx) if x0.ndim == 1 else x0
         out = _loss_function().apply(u, x0, self)
         return out if batched else out[0]
@@ -259,12 +274,54 @@ class CompiledLoss:
         u = torch.as_tensor(controls)
         if u.ndim == 2:
             u = u.unsqueeze(0)
-        x = self._x0 if x0 is None else torch.as_tensor(x0).detach().cpu().numpy()
+        x = None if x0 is None else torch.as_tensor(x0).detach().cpu().numpy()
         xs = [
-            self.rollout_numpy(u[b].detach().cpu().numpy(), x if x.ndim == 1 else x[b])
+            self.rollout_numpy(u[b].detach().cpu().numpy(), x if x is None or x.ndim == 1 else x[b])
             for b in range(u.shape[0])
         ]
         return torch.as_tensor(np.stack(xs), dtype=u.dtype, device=u.device)
+
+
+def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
+    """A disc problem moved by its position offset (:attr:`~hybridoc.scales.Scales.state_offset`)
+    to near the origin, with that offset ``(nx,)``; ``(ocp, None)`` where it has none.
+
+    The dynamics, contacts and cost of a disc scene do not change when every position,
+    target and wall point moves by the same vector, and the offset (a multiple of 1024
+    lengths, :func:`~hybridoc.scales.snap_offset`) is subtracted exactly; but positions of
+    1e6 keep only about 1e-10 of their digits, so that each step's displacement is rounded
+    there and the loss of a scene far from the origin is noisy at about 1e-9, enough to stall
+    L-BFGS's line search. The moved problem computes the same loss and gradient in full
+    precision.
+    """
+    import dataclasses
+
+    scales = getattr(ocp, "scales", None)
+    offset = None if scales is None else scales.offset_array
+    if offset is None or not offset.any() or ocp.path is not None:
+        return ocp, None  # (path constraints are functions of the state where it is)
+    n = ocp.scene.n_discs
+    dx, dy = float(offset[0]), float(offset[1])
+    if not (
+        np.all(offset[0 : 2 * n : 2] == dx)
+        and np.all(offset[1 : 2 * n : 2] == dy)
+        and not offset[2 * n :].any()
+    ):
+        return ocp, None  # not one shift of the whole scene: simulated where it is
+
+    def moved(p: Any) -> tuple[float, float]:
+        return (float(p[0]) - dx, float(p[1]) - dy)
+
+    scene = ocp.scene
+    discs = tuple(
+        dataclasses.replace(
+            d, position=moved(d.position), target=None if d.target is None else moved(d.target)
+        )
+        for d in scene.discs
+    )
+    walls = tuple(dataclasses.replace(w, point=moved(w.point)) for w in scene.walls)
+    near = dataclasses.replace(scene, discs=discs, walls=walls, distribution=None).to_ocp()
+    return near, offset.copy()
 
 
 def _disc_step(ocp: DiscOCP, model: ContactModel, integrator: str) -> ca.Function:

@@ -121,6 +121,7 @@ __all__ = [
     "parse_smoothing",
     "pinned_events",
     "solve_gd",
+    "units",
 ]
 
 INTEGRATORS = ("exact", "symplectic-euler")
@@ -297,19 +298,37 @@ class GDOptions:
     )
 
 
+def units(ocp: Any) -> tuple[np.ndarray, float, float]:
+    """The units gd optimises in: ``(control scale (nu,), cost scale, time scale)``.
+
+    From the problem's :class:`~hybridoc.scales.Scales` (ones where it has none). The
+    optimisers see the scaled controls ``u / cs`` and the loss ``J / jc`` per scaled step
+    ``dt / tc``, so that their step sizes, line searches and stopping tests (and the
+    smoothing weights, the kink certificate, the hops' perturbations and the multi-start's
+    batched L-BFGS) give the same iterates, up to the rounding of the scales to powers of
+    two, for the same physical problem in any units; with identity scales every number is
+    as it was.
+    """
+    sc = getattr(ocp, "scales", None)
+    if sc is None:
+        return np.ones(int(ocp.nu)), 1.0, 1.0
+    return sc.control_array, float(sc.cost), float(sc.time)
+
+
 def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
     """Default ``(learning rate, iterations)`` of an optimiser on a scene.
 
     Plain ``gd`` uses the paper's settings on the paper's problems
     (:data:`hybridoc.problems.paper.PAPER_SETTINGS`) and otherwise a learning rate of
-    ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``) for 1000
-    iterations; ``adam`` uses 0.05 for 1000 iterations; ``lbfgs`` a step of 0.1 (the trial
-    step of its line search, taken when it lowers the loss:
+    ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``; in the
+    scaled units of :func:`units`, ``dt / tc``) for 1000 iterations; ``adam`` uses 0.05 for
+    1000 iterations; ``lbfgs`` a step of 0.1 (the trial step of its line search, taken when
+    it lowers the loss:
     :data:`~hybridoc.solvers.optimizers.GD_LINE_SEARCH_EVALS`) for at most 300 iterations:
     with 1.0 it leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
     """
     if optimizer == "gd":
-        return PAPER_SETTINGS.get(problem.name, (0.1 / problem.dt, 1000))
+        return PAPER_SETTINGS.get(problem.name, (0.1 / (problem.dt / units(problem)[2]), 1000))
     if optimizer == "adam":
         return 0.05, 1000
     if optimizer == "lbfgs":
@@ -960,6 +979,8 @@ def _descend(
             history.append(final_loss)
             if kink["stalled"]:
                 converged, why = False, kink["message"]
+    if converged and kink is None and penalty == 0.0 and np.array_equal(final_u, u0):
+        converged, why = _unmoved(run, final_u)
     t_opt = time.perf_counter() - run.t_loop
     status, status_message = _status(ev, message, history, nan_stop, diverged, converged, why)
     info = {
@@ -985,6 +1006,25 @@ def _descend(
         arrays={"loss_history": np.array(history, dtype=float)},
     )
     return sol.set_status(status, status_message)
+
+
+def _unmoved(run: _Run, u: np.ndarray) -> tuple[bool, str]:
+    """A descent that claims convergence without having moved from its start ``u``: whether
+    ``u`` is stationary after all (the certificate of :data:`KINK_GTOL` on the scaled
+    objective), and if not, the status message. Without this check a step that is too
+    short for the controls' size (another unit, a tiny ``lr``) leaves the start unchanged
+    and "L-BFGS made no further progress" reads as success."""
+    run.scale = 1.0 / (run.jc * run.dts)
+    x = run.scaled(u)
+    f, g = run.fun(x)
+    stat = float(np.linalg.norm(g)) * (1.0 + float(np.abs(x).max())) / (1.0 + abs(f))
+    if stat <= KINK_GTOL:
+        return True, ""
+    return False, (
+        f"the descent took no step from its start, where the gradient does not vanish "
+        f"(stationarity {stat:.2e} > {KINK_GTOL:g} in the problem's scaled units): "
+        "no convergence shown; try another --lr"
+    )
 
 
 # ---------------------------------------------------------------------- kinks
@@ -1057,10 +1097,11 @@ def _past_kinks(
     if not near:
         return u, loss, ev, None
     record: dict[str, Any] = {"before": near, "loss_before": float(loss), "iterations": 0}
-    scale = 1.0 / ocp.dt  # the objective L-BFGS sees, J / dt
+    scale = 1.0 / (run.jc * run.dts)  # the objective L-BFGS sees, (J / jc) / dt~
     run.scale = scale
-    f_here, g_here = run.fun(u.ravel())
-    here = float(np.linalg.norm(g_here)) * (1.0 + float(np.abs(u).max())) / (1.0 + abs(f_here))
+    x = run.scaled(u)  # scaled controls: the certificate is the same in any units
+    f_here, g_here = run.fun(x)
+    here = float(np.linalg.norm(g_here)) * (1.0 + float(np.abs(x).max())) / (1.0 + abs(f_here))
     if here <= KINK_GTOL:  # stationary where it stands: the loss is smooth there
         record.update(after=near, loss=float(loss), stationarity=here, stalled=False, message="")
         return u, loss, ev, record
@@ -1070,13 +1111,13 @@ def _past_kinks(
     else:
         progress.stage(f"past the kinks: event {near[0]['event']} near grid time "
                        f"t_{near[0]['grid_index']}")  # fmt: skip
-        res = nonsmooth_bfgs(run.fun, u.ravel(), max_iter=KINK_ITERS, gtol=KINK_GTOL,
+        res = nonsmooth_bfgs(run.fun, x, max_iter=KINK_ITERS, gtol=KINK_GTOL,
                              start=(f_here, g_here))  # fmt: skip
         record.update(iterations=res.iterations, evaluations=res.evaluations,
                       message_bfgs=res.message, bundle=res.bundle)  # fmt: skip
         relative = res.stationarity
         if res.f < f_here:
-            u, loss = res.x.reshape(u.shape), res.f / scale
+            u, loss = run.physical(res.x), res.f / scale
             ev = evaluate(ocp, u)
     after = pinned_events(ocp, ev)
     stalled = not relative <= KINK_GTOL
@@ -1189,24 +1230,27 @@ def _hop(
 
     if base.info.get("nan_stop") or base.info.get("diverged"):
         return base
-    dt = ocp.horizon / ocp.steps
+    # scaled controls u / cs and loss (J / jc) / dt~ (units): the same hops in any units
+    cs, jc, tc = units(ocp)
+    per = jc * (ocp.horizon / ocp.steps / tc)
     lower = upper = None
     if ocp.has_bounds:
-        lower, upper = ocp.u_min, ocp.u_max
+        lower, upper = ocp.u_min / cs, ocp.u_max / cs
 
     watch = _watch()
 
-    def vg(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def vg(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if watch is not None:
             watch.check()
+        U = X * cs
         J, gU, _ = loss_obj.value_and_grad_batch(U)
         if watch is not None and len(J):
             b = int(np.argmin(np.where(np.isfinite(J), J, np.inf)))
             watch.offer(float(J[b]), U[b])
-        return J / dt, gU / dt  # the batched L-BFGS's scaling, as in the multi-start
+        return J / per, gU * cs / per  # the batched L-BFGS's scaling, as in the multi-start
 
-    x = np.array(base.controls, dtype=float)
-    f = float(loss_obj.value_and_grad(x)[0])
+    x = np.array(base.controls, dtype=float) / cs
+    f = float(loss_obj.value_and_grad(x * cs)[0]) / jc
     rng = np.random.default_rng(opts.seed)
     rounds: list[dict[str, Any]] = []
     stale = 0
@@ -1219,7 +1263,7 @@ def _hop(
         if lower is not None:
             P = np.clip(P, lower, upper)
         X, F, _ = batched_lbfgs(vg, P, iters=HOP_ITERS, lower=lower, upper=upper)
-        F = np.where(np.isfinite(F), F * dt, np.inf)
+        F = np.where(np.isfinite(F), F * (per / jc), np.inf)
         k = int(np.argmin(F))
         improved = bool(F[k] < f - 1e-13 * max(abs(f), 1.0))
         rounds.append({"loss": float(F[k]), "improved": improved, "size": float(scales[k] / size)})
@@ -1229,6 +1273,9 @@ def _hop(
             stale += 1
             if stale >= HOP_PATIENCE:
                 break
+    x, f = x * cs, f * jc  # back in the problem's units
+    for r in rounds:
+        r["loss"] *= jc
     kink = None
     improved = any(r["improved"] for r in rounds)
     if improved and _kinks_apply(ocp, opts):
@@ -1390,6 +1437,10 @@ class _Run:
         self.restarts = 0
         self.t_loop = time.perf_counter()
         self.shape = (ocp.steps, ocp.nu)
+        # the optimisers see scaled controls u / cs and the loss per unit of cost and scaled
+        # step, (J / jc) / (dt / tc): the same numbers in any units (module notes)
+        self.cs, self.jc, self.tc = units(ocp)
+        self.dts = ocp.dt / self.tc
         self.scale = 1.0
         self.best: dict[str, Any] = {"loss": math.inf, "u": None}
         self.last: tuple[np.ndarray, float] | None = None
@@ -1414,13 +1465,13 @@ class _Run:
         if self.watch is not None:
             self.watch.offer(value, u)
         if self.penalty:
-            dt = self.ocp.dt
-            diff = u[1:] - u[:-1]
-            value = value + self.penalty * float((diff * diff).sum()) / dt
+            # mu sum |du~|^2 / dt~ in units of cost: the same weight in any units
+            diff = (u[1:] - u[:-1]) / self.cs
+            value = value + self.penalty * self.jc * float((diff * diff).sum()) / self.dts
             grad = np.array(grad, dtype=float)
-            w = 2.0 * self.penalty / dt
-            grad[1:] += w * diff
-            grad[:-1] -= w * diff
+            w = 2.0 * self.penalty * self.jc / self.dts
+            grad[1:] += w * diff / self.cs
+            grad[:-1] -= w * diff / self.cs
         if not math.isfinite(value):
             raise _NonFinite(f"the loss became {value}")
         if value < self.best["loss"]:
@@ -1431,9 +1482,18 @@ class _Run:
         return value, grad
 
     def fun(self, x: np.ndarray) -> tuple[float, np.ndarray]:
-        """The scaled objective of flat controls, for the optimisers."""
-        value, grad = self.value_and_grad(x.reshape(self.shape))
-        return value * self.scale, np.ravel(grad) * self.scale
+        """The scaled objective (times :attr:`scale`) of flat scaled controls ``u / cs``, for
+        the optimisers."""
+        value, grad = self.value_and_grad(self.physical(x))
+        return value * self.scale, np.ravel(grad * self.cs) * self.scale
+
+    def physical(self, x: np.ndarray) -> np.ndarray:
+        """Controls ``(N, nu)`` of flat scaled controls."""
+        return x.reshape(self.shape) * self.cs
+
+    def scaled(self, u: np.ndarray) -> np.ndarray:
+        """Flat scaled controls of controls ``(N, nu)``."""
+        return np.ravel(u / self.cs)
 
     def loss_here(self, u: np.ndarray) -> float:
         """The loss at ``u`` (the last evaluation when it was there: no second rollout)."""
@@ -1488,7 +1548,8 @@ class _Run:
             state["k"] = k
             value, grad = self.value_and_grad(u)
             history.append(value)
-            u = opt.step(u, grad)
+            # a step in scaled controls along the gradient of the scaled loss
+            u = opt.step(u / self.cs, grad * self.cs / self.jc) * self.cs
             if ocp.has_bounds:
                 u = np.clip(u, ocp.u_min, ocp.u_max)
             state["u"] = u
@@ -1504,19 +1565,20 @@ class _Run:
 
         # L-BFGS has absolute thresholds (curvature pairs with y.s <= 1e-10 are dropped) while
         # the gradient with respect to one control value scales with dt: it sees loss / dt
-        self.scale = 1.0 / self.ocp.dt
+        self.scale = 1.0 / (self.jc * self.dts)
         state["k"] = 0
         if self.iters == 0:
             return "finished the requested iterations", 0
-        start = self.fun(u0.ravel())
+        x0 = self.scaled(u0)
+        start = self.fun(x0)
         history.append(self.loss_here(u0))
         steps = lbfgs_iterations(
-            self.fun, u0.ravel(), lr=self.lr, max_step=self.max_step,
+            self.fun, x0, lr=self.lr, max_step=self.max_step / float(self.cs.max()),
             max_ls=GD_LINE_SEARCH_EVALS, start=start,
         )  # fmt: skip
         for k, it in zip(range(self.iters), steps, strict=False):
             state["k"] = k
-            u = it.x.reshape(self.shape)
+            u = self.physical(it.x)
             state["u"] = u
             if it.event in ("restart", "converged", "cut-rejected"):
                 history.append(history[-1])
@@ -1539,29 +1601,32 @@ class _Run:
         shape = u0.shape
         history: list[float] = []
         k = 0
+        # scaled: controls u / cs, loss (J / jc) / dt~ (identity scales: J / dt as before)
+        per = self.jc * self.dts
 
         def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-            u = x.reshape(shape)
+            u = self.physical(x)
             if self.last is not None and np.array_equal(self.last[0], u):
                 value = self.last[1]  # the callback's point: SciPy has just evaluated it
-                return value / ocp.dt, self.last_grad
+                return value / per, self.last_grad
             value, grad = self.value_and_grad(u)
-            self.last_grad = np.ravel(grad) / ocp.dt
-            return value / ocp.dt, self.last_grad
+            self.last_grad = np.ravel(grad * self.cs) / per
+            return value / per, self.last_grad
 
         def cb(x: np.ndarray) -> None:
             nonlocal k
             k += 1
-            history.append(fun(x)[0] * ocp.dt)
-            if self.report(k, history[-1], lambda: x.reshape(shape)):
+            history.append(fun(x)[0] * per)
+            if self.report(k, history[-1], lambda: self.physical(x)):
                 raise StopIteration
 
-        bounds = list(zip(np.tile(ocp.u_min, shape[0]), np.tile(ocp.u_max, shape[0]), strict=True))
+        lo, hi = ocp.u_min / self.cs, ocp.u_max / self.cs
+        bounds = list(zip(np.tile(lo, shape[0]), np.tile(hi, shape[0]), strict=True))
         self.last_grad = np.zeros(u0.size)
-        history.append(fun(u0.ravel())[0] * ocp.dt)
+        history.append(fun(self.scaled(u0))[0] * per)
         try:
             res = minimize(
-                fun, u0.ravel(), jac=True, method="L-BFGS-B", bounds=bounds,
+                fun, self.scaled(u0), jac=True, method="L-BFGS-B", bounds=bounds,
                 callback=cb, options={"maxiter": self.iters, "ftol": 1e-15, "gtol": 1e-12},
             )  # fmt: skip
         except _NonFinite as exc:
@@ -1573,9 +1638,9 @@ class _Run:
             msg = f"finished the requested iterations (L-BFGS-B: {res.message})"
         else:  # SciPy's convergence tests, or a line search that cannot progress
             msg = f"converged: L-BFGS-B: {res.message}"
-        final = fun(x)[0] * ocp.dt
+        final = fun(x)[0] * per
         history.append(final)
-        return x.reshape(shape), final, k, msg, False, history
+        return self.physical(x), final, k, msg, False, history
 
 
 def _torch_value_and_grad(loss_obj: Any) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:

@@ -728,7 +728,11 @@ def explore(
     loss = (loss_for or exploration_loss)(coarse)
     if starts is None:
         starts = starting_controls(ocp, count, seed=seed)
-    U0 = resample(np.asarray(starts, dtype=float), coarse.steps)
+    # the batched L-BFGS runs in scaled controls u / cs on the loss (J / jc) / dt~ (the
+    # units of gd, hybridoc.solvers.gd.units): the same descent in any units
+    cs, jc, tc = _units(ocp)
+    per = jc * (coarse.dt / tc)
+    U0 = resample(np.asarray(starts, dtype=float), coarse.steps) / cs
 
     def make_vg(
         mu: float, one: bool = False
@@ -736,25 +740,27 @@ def explore(
         # mu: the control-smoothness penalty that weakens the kinks of the loss (an event
         # crossing a grid time), as in solve_gd's continuation; one: start by start through
         # the loss's own compiled function (a few starts: batched_lbfgs's ``some``)
-        def vg(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def vg(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            U = X * cs
             if one:
                 rows = [loss.value_and_grad(u) for u in U]
                 J, gU = np.array([r[0] for r in rows]), np.stack([r[1] for r in rows])
             else:
                 J, gU, _ = loss.value_and_grad_batch(U)
+            gU = gU * cs
             if mu:
-                d = U[:, 1:] - U[:, :-1]
-                J = J + mu * (d**2).sum(axis=(1, 2)) / coarse.dt
+                d = X[:, 1:] - X[:, :-1]
+                J = J + mu * jc * (d**2).sum(axis=(1, 2)) / (coarse.dt / tc)
                 gU = gU.copy()
-                gU[:, 1:] += 2 * mu * d / coarse.dt
-                gU[:, :-1] -= 2 * mu * d / coarse.dt
-            return J / coarse.dt, gU / coarse.dt
+                gU[:, 1:] += 2 * mu * jc * d / (coarse.dt / tc)
+                gU[:, :-1] -= 2 * mu * jc * d / (coarse.dt / tc)
+            return J / per, gU / per
 
         return vg
 
     lower = upper = None
     if ocp.has_bounds:
-        lower, upper = ocp.u_min, ocp.u_max
+        lower, upper = ocp.u_min / cs, ocp.u_max / cs
     single = hasattr(loss, "value_and_grad")
     X, f, _ = batched_lbfgs(
         make_vg(EXPLORE_SMOOTHING), U0, iters=iters, lower=lower, upper=upper, deadline=deadline,
@@ -764,12 +770,20 @@ def explore(
         make_vg(0.0), X, iters=max(iters // 2, 1), lower=lower, upper=upper, deadline=deadline,
         some=make_vg(0.0, one=True) if single else None,
     )  # fmt: skip
+    X = X * cs  # back in the problem's units (f is the scaled loss per scaled step, J / per)
     picked = _distinct(f, judge)
-    out, rows = _judged(ocp, X, f, picked, coarse.dt, deadline, repeats)
+    out, rows = _judged(ocp, X, f, picked, per, deadline, repeats)
     if report is not None:
         report.extend(rows)
     out.sort(key=lambda r: r["cost"])
     return out
+
+
+def _units(ocp: HybridOCP) -> tuple[np.ndarray, float, float]:
+    """:func:`hybridoc.solvers.gd.units` (the control, cost and time scales)."""
+    from hybridoc.solvers.gd import units
+
+    return units(ocp)
 
 
 def _same(f: np.ndarray, b: int, c: int) -> bool:
@@ -807,7 +821,7 @@ def _judged(
 
     out = []
     rows: list[dict[str, Any]] = [
-        # f is scaled by 1 / dt for the optimiser: the rows carry the discrete loss itself
+        # f is scaled by 1 / dt (jc dt~) for the optimiser: the rows carry the discrete loss
         {"start": b, "loss": float(f[b]) * dt if np.isfinite(f[b]) else None}
         for b in range(len(f))
     ]
