@@ -27,7 +27,14 @@ import numpy as np
 
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation
-from hybridoc.events import ZENO_RUN, Event, EventResolver, accumulating, approaching
+from hybridoc.events import (
+    ZENO_RUN,
+    Event,
+    EventResolver,
+    accumulating,
+    approaching,
+    graze_threshold,
+)
 from hybridoc.kernels import UNKNOWN_DEGREE, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp
@@ -75,9 +82,11 @@ def evaluate_callable(
     state_feedback
         Instead of ``control``: ``pi(t, s) -> u``, evaluated on the integrator's stages.
     graze_tol
-        As in :func:`hybridoc.evaluate`.
+        As in :func:`hybridoc.evaluate` (in the problem's units).
     rtol, atol
-        Integrator tolerances.
+        Integrator tolerances; ``atol`` in the problem's units: times each state
+        component's scale and the cost scale (:attr:`HybridOCP.scales
+        <hybridoc.ocp.HybridOCP.scales>`).
     penetration_tol
         As in :func:`hybridoc.evaluate`: how far a non-jumping (grazing or resting) contact
         may penetrate before the motion counts as sustained contact, an error.
@@ -100,7 +109,7 @@ def evaluate_callable(
     u_at = _control_function(ocp, control, state_feedback)
     sim = _Simulation(ocp, u_at, graze_tol, rtol, atol, penetration_tol, max_events)
     if event_controls is not None:
-        sim.resolver = EventResolver(ocp, sim.num, graze_tol, event_controls)
+        sim.resolver = EventResolver(ocp, sim.num, sim.graze_tol, event_controls)
     sim.run(breakpoints)
     return sim.evaluation()
 
@@ -162,12 +171,16 @@ class _Simulation:
         max_events: int,
     ) -> None:
         self.ocp, self.u_at = ocp, u_at
-        self.graze_tol, self.rtol, self.atol = graze_tol, rtol, atol
-        self.penetration_tol, self.max_events = penetration_tol, max_events
+        # tolerances in the problem's units (hybridoc.scales): atol per state component and
+        # for the running cost, graze and penetration in guard units
+        sc = ocp.scales
+        self.graze_tol, self.rtol = graze_threshold(ocp, graze_tol), rtol
+        self.atol = atol * np.concatenate([sc.state_array, [sc.cost]])
+        self.penetration_tol, self.max_events = penetration_tol * sc.length, max_events
         self.k = kernels(ocp)
         self.num = self.k.numeric()
         self.nx, self.G = ocp.nx, len(ocp.guards)
-        self.resolver = EventResolver(ocp, self.num, graze_tol)
+        self.resolver = EventResolver(ocp, self.num, self.graze_tol)
         # the integrator's error adds to the rounding of every detector value
         self.integ_factor = 1.0 + rtol / np.finfo(float).eps
         self.z = np.concatenate([ocp.x0, [0.0]])
@@ -338,7 +351,9 @@ def _search_step(
         _check_penetration(ocp, num, s, u_piece(t0 + tau, s), t0 + tau, penetration_tol)
 
     exact = np.zeros(G, dtype=bool)
-    return CrossingSearch(_CHEB, exact, window, value, appr, penetrated).run(t1 - t0)
+    return CrossingSearch(
+        _CHEB, exact, window, value, appr, penetrated, time_scale=ocp.scales.time
+    ).run(t1 - t0)
 
 
 def _check_penetration(

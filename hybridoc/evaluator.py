@@ -33,6 +33,7 @@ Not modelled
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from typing import Any
@@ -42,7 +43,14 @@ import numpy as np
 from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation, Gradient, Segment
-from hybridoc.events import ZENO_RUN, Event, EventResolver, accumulating, approaching
+from hybridoc.events import (
+    ZENO_RUN,
+    Event,
+    EventResolver,
+    accumulating,
+    approaching,
+    graze_threshold,
+)
 from hybridoc.kernels import Kernels, Numeric, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
@@ -98,11 +106,14 @@ def evaluate(
         ``"zoh"`` (default) or ``"continuous"``; only with ``policy``.
     graze_tol
         Approach speeds ``|d psi/dt|`` below this (or below the rounding floor described in
-        :mod:`hybridoc.events`) are grazing: no jump.
+        :mod:`hybridoc.events`) are grazing: no jump. In the problem's units
+        (:attr:`HybridOCP.scales <hybridoc.ocp.HybridOCP.scales>`): guard units
+        (``scales.length``, a disc scene's length unit) per unit time (``scales.time``), so
+        that the same scene in other units grazes alike (:func:`hybridoc.events.graze_threshold`).
     penetration_tol
         A guard more negative than this (or than its rounding level) at the end of a grid
         interval means the impulsive model cannot represent the motion (sustained contact):
-        an error, not a number.
+        an error, not a number. In guard units (``scales.length``).
     max_events
         More events than this raise :class:`~hybridoc.errors.EvaluationError`.
 
@@ -244,15 +255,25 @@ class Forward:
         penetration_tol: float,
         max_events: int,
     ) -> None:
+        # a scene far from the origin is simulated in its local frame (positions less the
+        # scales' offset, exact to take off): its numbers then round at its own length scale
+        # instead of at the rounding of its coordinates; the results are moved back
+        self.outer = ocp
+        self.offset: np.ndarray | None = None
+        frame_of = getattr(ocp, "local_frame", None)
+        frame = frame_of() if frame_of is not None else None
+        if frame is not None:
+            ocp, self.offset = frame
         self.ocp = ocp
         self.k: Kernels = kernels(ocp)
         self.num: Numeric = self.k.numeric()
         self.policy = policy
         self.u_all = np.zeros((ocp.steps, ocp.nu)) if u_all is None else u_all
-        self.graze_tol = graze_tol
-        self.penetration_tol = penetration_tol
+        # the tolerances are in the problem's units (module notes of hybridoc.scales)
+        self.graze_tol = graze_threshold(ocp, graze_tol)
+        self.penetration_tol = penetration_tol * ocp.scales.length
         self.max_events = int(max_events)
-        self.resolver = EventResolver(ocp, self.num, graze_tol)
+        self.resolver = EventResolver(ocp, self.num, self.graze_tol)
         self.grid = ocp.time_grid()
         self.hs = np.diff(self.grid)
         # blocks of recorded times (1-D) and states (2-D), concatenated at the end
@@ -275,7 +296,8 @@ class Forward:
         while n < N:
             if not batched:
                 if self.policy is not None:
-                    self.u_all[n] = self.policy(grid[n], s)
+                    s_out = s if self.offset is None else s + self.offset
+                    self.u_all[n] = self.policy(grid[n], s_out)
                 s = self._interval(n, s, None)
                 n += 1
                 continue
@@ -321,7 +343,6 @@ class Forward:
         return self._finish(s)
 
     def _finish(self, s: np.ndarray) -> Evaluation:
-        ocp = self.ocp
         terminal = float(self.num.phi_grad(s)[0][0])
         t_arr, s_arr = _dedupe(np.concatenate(self.times), np.concatenate(self.states))
         cost = terminal + self.running
@@ -329,6 +350,21 @@ class Forward:
             raise EvaluationError(
                 "the cost is not finite: the controls drive the state to overflow"
             )
+        path_violation = _path_violation(
+            self.num, self.ocp, self.segments, self.u_all, t_arr, s_arr
+        )
+        ocp = self.outer
+        off = self.offset
+        if off is not None:  # back from the local frame
+            s = s + off
+            s_arr = s_arr + off
+            self.segments = [seg._replace(s0=seg.s0 + off) for seg in self.segments]
+            self.events = [
+                dataclasses.replace(
+                    e, state_before=e.state_before + off, state_after=e.state_after + off
+                )
+                for e in self.events
+            ]
         return Evaluation(
             cost=cost,
             terminal_cost=terminal,
@@ -341,7 +377,7 @@ class Forward:
             ocp=ocp,
             segments=self.segments,
             bound_violation=ocp.bound_violation(self.u_all),
-            path_violation=_path_violation(self.num, ocp, self.segments, self.u_all, t_arr, s_arr),
+            path_violation=path_violation,
         )
 
     def _search(self, s: np.ndarray, u: np.ndarray) -> CrossingSearch:
@@ -367,7 +403,9 @@ class Forward:
             s_tau = num.point(s, u, tau)[0]
             self._check_penetration(s_tau, u, float(self._t_origin + tau))
 
-        return CrossingSearch(k.cheb, k.exact, window, value, appr, penetrated)
+        return CrossingSearch(
+            k.cheb, k.exact, window, value, appr, penetrated, time_scale=self.ocp.scales.time
+        )
 
     def _check_penetration(self, s: np.ndarray, u: np.ndarray, t: float) -> None:
         """Sustained contact: a guard violated beyond tolerance without an impact."""

@@ -44,6 +44,7 @@ __all__ = [
     "accumulating",
     "approaching",
     "commute_defect",
+    "graze_threshold",
 ]
 
 EPS = float(np.finfo(float).eps)
@@ -133,9 +134,23 @@ def approaching(
     return rate < -np.maximum(graze_tol, floor)
 
 
-def commute_defect(ab: np.ndarray, ba: np.ndarray, s: np.ndarray, *jumps: np.ndarray) -> float:
+def graze_threshold(ocp: Any, graze_tol: float) -> float:
+    """The grazing threshold on ``d psi/dt`` of a tolerance given in the problem's units.
+
+    ``graze_tol`` counts guard units (:attr:`Scales.length <hybridoc.scales.Scales.length>`,
+    the unit of a disc scene's gaps) per unit time (:attr:`Scales.time
+    <hybridoc.scales.Scales.time>`): the same physical scene in other units grazes at the
+    same contacts. ``graze_tol`` itself for a problem that states no units.
+    """
+    sc = ocp.scales
+    return float(graze_tol) * (sc.length / sc.time)
+
+
+def commute_defect(
+    ab: np.ndarray, ba: np.ndarray, s: np.ndarray, *jumps: np.ndarray, floor: Any = 1.0
+) -> float:
     """How far two jumps fail to commute, relative to rounding: ``max |ab_i - ba_i|`` over
-    the components either jump changes, divided by their scale ``max(1, |s_i|, |ab_i|,
+    the components either jump changes, divided by their scale ``max(floor_i, |s_i|, |ab_i|,
     |ba_i|, |jump_i|)``.
 
     Only the components the jumps touch enter: a body they leave alone (copied, bit for bit,
@@ -150,6 +165,10 @@ def commute_defect(ab: np.ndarray, ba: np.ndarray, s: np.ndarray, *jumps: np.nda
         The state before.
     *jumps
         ``g_a(s)`` and ``g_b(s)``.
+    floor
+        Per component (or one number), its unit (:attr:`HybridOCP.scales
+        <hybridoc.ocp.HybridOCP.scales>`): the scale of a component near zero. An absolute
+        floor of 1 hid any non-commuting pair of jumps in a scene measured in micrometres.
     """
     touched = (ab != s) | (ba != s)
     for g in jumps:
@@ -157,7 +176,8 @@ def commute_defect(ab: np.ndarray, ba: np.ndarray, s: np.ndarray, *jumps: np.nda
     if not touched.any():
         return 0.0
     mags = [np.abs(x[touched]) for x in (s, ab, ba, *jumps)]
-    scale = np.maximum(1.0, np.max(mags, axis=0))
+    low = np.broadcast_to(np.asarray(floor, dtype=float), s.shape)[touched]
+    scale = np.maximum(low, np.max(mags, axis=0))
     return float(np.max(np.abs(ab[touched] - ba[touched]) / scale))
 
 
@@ -193,7 +213,8 @@ class EventResolver:
     num
         The problem's buffer-bound kernels (:meth:`hybridoc.kernels.Kernels.numeric`).
     graze_tol
-        The grazing threshold.
+        The grazing threshold, in the guards' units per unit time (the caller converts a
+        tolerance given in the problem's units, :func:`graze_threshold`).
     event_controls
         Optional ``(K, nu)`` controls of the resets, event by event in the order this
         resolver applies them: a reset that depends on the control reads row ``k`` at the
@@ -209,6 +230,7 @@ class EventResolver:
         self.num = num
         self.graze_tol = graze_tol
         self.G = len(ocp.guards)
+        self.floor = ocp.scales.state_array
         self.event_controls = (
             None if event_controls is None else np.asarray(event_controls, dtype=float)
         )
@@ -289,7 +311,7 @@ class EventResolver:
                 ga, gb = self.num.reset(a), self.num.reset(b)
                 sa, sb = ga(s, u)[0], gb(s, u)[0]
                 ab, ba = ga(sb, u)[0], gb(sa, u)[0]
-                if commute_defect(ab, ba, s, sa, sb) > _COMMUTE_RTOL:
+                if commute_defect(ab, ba, s, sa, sb, floor=self.floor) > _COMMUTE_RTOL:
                     na, nb = self.ocp.guards[a].name, self.ocp.guards[b].name
                     raise SimultaneousEventError(
                         f"guards {na!r} and {nb!r} fire at the same instant t = {t:.12g} and "

@@ -14,10 +14,13 @@ Rounding levels
     only by the rounding of the components it depends on, each at its own scale. A sample
     along the closed-form flow takes a component's scale from the terms the flow map adds up
     (:func:`flow_scale_fn`); a state known only by its value (an event state, the dense
-    output of the callable path) from its magnitude, ``max(1, |s_i|)``. An earlier version
-    took one scale, ``max(1, |s|_inf)``, for every guard: a passive disc at ``1e15`` (or
-    receding at ``1e13``) raised every guard's rounding level to order one, and the judge
-    found phantom collisions between the other discs or placed their events wrongly.
+    output of the callable path) from its magnitude, ``max(sigma_i, |s_i|)`` with ``sigma_i``
+    the component's unit from :attr:`HybridOCP.scales <hybridoc.ocp.HybridOCP.scales>` (1 for
+    a problem that states none), so that the levels scale with the problem's units. An
+    earlier version took one scale, ``max(1, |s|_inf)``, for every guard: a passive disc at
+    ``1e15`` (or receding at ``1e13``) raised every guard's rounding level to order one, and
+    the judge found phantom collisions between the other discs or placed their events
+    wrongly.
 """
 
 from __future__ import annotations
@@ -123,10 +126,15 @@ ROUNDING_ULPS = 8.0
 this many ulps of its scale (see :func:`rounding_level`)."""
 
 
-def state_scale(x: Any) -> Any:
-    """Per component, ``max(1, |x_i|)``: the scale of a state component known only by its
-    value (rounding is relative, with an absolute floor for components near zero)."""
-    return ca.fmax(1.0, ca.fabs(x))
+def state_scale(x: Any, floor: Any = 1.0) -> Any:
+    """Per component, ``max(floor_i, |x_i|)``: the scale of a state component known only by
+    its value (rounding is relative, with a floor for components near zero).
+
+    The floor is the problem's own unit of each component (:attr:`HybridOCP.scales
+    <hybridoc.ocp.HybridOCP.scales>`, ``1`` for a problem that states none): an absolute
+    floor of ``1`` made every rounding level of a scene measured in micrometres a million
+    times too large, and the judge missed its contacts (issue #32)."""
+    return ca.fmax(floor, ca.fabs(x))
 
 
 def rounding_level(val: Any, x: Any, scale: Any) -> Any:
@@ -160,11 +168,11 @@ def rounding_level(val: Any, x: Any, scale: Any) -> Any:
     return first + ca.vertcat(*second)
 
 
-def flow_scale_fn(fm: ca.Function, sym: Any, nx: int, nu: int) -> ca.Function:
+def flow_scale_fn(fm: ca.Function, sym: Any, nx: int, nu: int, floor: Any = 1.0) -> ca.Function:
     """``(s, u, tau) -> (s(tau), scale)``: the closed-form flow and, per component, the scale
     of its rounding: the sum of the magnitudes of the terms it adds up, to first order
     ``sum_k |d s_i(tau) / d s_k| |s_k| + sum_k |d s_i / d u_k| |u_k| + |d s_i / d tau| tau``
-    (floored at 1 and at ``|s_i(tau)|``).
+    (floored at ``|s_i(tau)|`` and at ``floor``, the component's unit: :func:`state_scale`).
 
     For disc flows ``p + v tau + a tau^2 / 2`` this is ``|p| + |v| tau + |a| tau^2 / 2``
     (and ``|v + a tau| tau`` for the rounding of ``tau`` itself), which the component's value
@@ -177,7 +185,7 @@ def flow_scale_fn(fm: ca.Function, sym: Any, nx: int, nu: int) -> ca.Function:
         + ca.mtimes(ca.fabs(ca.jacobian(st, u)), ca.fabs(u))
         + ca.fabs(ca.jacobian(st, tau)) * ca.fabs(tau)
     )
-    return ca.Function("flow_scale", [s, u, tau], [st, ca.fmax(state_scale(st), terms)])
+    return ca.Function("flow_scale", [s, u, tau], [st, ca.fmax(state_scale(st, floor), terms)])
 
 
 def is_sx(ocp: HybridOCP) -> bool:
@@ -271,15 +279,16 @@ def _integrator_flow_nodes(
     s_end, cost = xs[:, D - 1], qs[:, D - 1]
 
     def scaled(x0: Any, x: Any) -> tuple[Any, Any]:
-        return x, ca.fmax(state_scale(x0), ca.fabs(x))
+        return x, ca.fmax(state_scale(x0, floor), ca.fabs(x))
 
-    node_states = [(s, state_scale(s))]
+    floor = ca.DM(ocp.scales.state_array)
+    node_states = [(s, state_scale(s, floor))]
     node_states += [scaled(s, xs[:, k]) for k in range(D)]
     # a sub-window [a, b]: flow to a, then sample
     s_a = sampler(s, u, a)[0][:, D - 1]
     xw = sampler(s_a, u, b - a)[0]
     win_states = [scaled(s, s_a)] + [scaled(s, xw[:, k]) for k in range(D)]
-    sc_end = ca.fmax(state_scale(s), ca.fabs(s_end))
+    sc_end = ca.fmax(state_scale(s, floor), ca.fabs(s_end))
     return _FlowNodes(s_end, cost, node_states, win_states, sc_end)
 
 
@@ -354,9 +363,10 @@ def _flow_map_nodes(
     fm = ocp.flow_map
     assert fm is not None
     s_end, cost = fm(s, u, h)
-    flow_sc = flow_scale_fn(fm, sym, ocp.nx, ocp.nu)
+    floor = ca.DM(ocp.scales.state_array)
+    flow_sc = flow_scale_fn(fm, sym, ocp.nx, ocp.nu, floor)
     # the first node is s itself (exact); the others carry the flow map's rounding
-    node_states = [(s, state_scale(s))]
+    node_states = [(s, state_scale(s, floor))]
     node_states += [tuple(flow_sc(s, u, h * (xk + 1) / 2)) for xk in x_nodes[1:-1]]
     node_states.append((s_end, flow_sc(s, u, h)[1]))
     win_states = [tuple(flow_sc(s, u, a + (b - a) * (xk + 1) / 2)) for xk in x_nodes]
@@ -505,7 +515,7 @@ class Kernels:
         G, sym = dets.G, dets.sym
         # at a state without its flow (the callable path's dense output, an event state):
         # each component's scale is its own magnitude
-        own_scale = state_scale(sp)
+        own_scale = state_scale(sp, ca.DM(ocp.scales.state_array))
         det_at, noise_at = dets.at(sp, own_scale)
         self.det_fn = dense_fn("det_noise", [sp], [det_at, noise_at])
         det_rate = ca.mtimes(dets.grad, fs) if G else sym(0, 1)

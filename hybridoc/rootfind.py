@@ -101,6 +101,10 @@ class CrossingSearch:
         ``penetrated(j, tau)``: called where guard ``j`` is found inside (below its rounding
         level) without an impact that put it there; it raises when that is beyond tolerance
         (sustained contact).
+    time_scale
+        The problem's unit of time (:attr:`Scales.time <hybridoc.scales.Scales.time>`): the
+        floor of the rounding of a time near zero, so that the search halves and brackets
+        alike in seconds or in microseconds.
     """
 
     cheb: Chebyshev
@@ -109,6 +113,7 @@ class CrossingSearch:
     value: Callable[[int, float], tuple[float, float, float]]
     approaching: Callable[[int, float], bool]
     penetrated: Callable[[int, float], None] | None = None
+    time_scale: float = 1.0
 
     def run(
         self, h: float, first: tuple[np.ndarray, np.ndarray] | None = None
@@ -135,7 +140,7 @@ class CrossingSearch:
             # detector is smallest
             interp_noise = _LEBESGUE * Nz.max(axis=1) + 4 * EPS * np.abs(C).sum(axis=1) + tail
             unresolved = (~free) & (interp_noise > _RESOLVED * Nz.min(axis=1))
-            tiny = (b - a) <= 64 * EPS * max(1.0, abs(b))
+            tiny = (b - a) <= 64 * EPS * max(self.time_scale, abs(b))
             if unresolved.any() and not tiny:
                 if depth >= MAX_DEPTH:
                     from hybridoc.errors import EvaluationError
@@ -231,11 +236,11 @@ class CrossingSearch:
                 lo = t
             else:
                 hi = t
-            if hi - lo <= 4 * EPS * max(1.0, abs(hi)):
+            if hi - lo <= 4 * EPS * max(self.time_scale, abs(hi)):
                 break
             newton = t - d / r if r != 0 else np.nan
             if lo < newton < hi:
-                if abs(newton - t) <= 2 * EPS * max(1.0, abs(t)):
+                if abs(newton - t) <= 2 * EPS * max(self.time_scale, abs(t)):
                     return float(newton)
                 t = float(newton)
             else:

@@ -31,10 +31,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Scales", "disc_scales", "pow2", "snap_offset"]
+__all__ = ["FAR_FACTOR", "Scales", "disc_scales", "pow2", "snap_offset"]
 
 OFFSET_QUANTUM = 1024.0
 """Offsets are multiples of this many length scales: a scene near the origin keeps offset 0."""
+
+FAR_FACTOR = 2.0**20
+"""A point (position, target, wall point) farther than this many typical sizes from the
+scene's median point is *far*: it sets neither the length scale nor the offset.
+
+A passive disc parked at ``1e15`` beside discs of size one is part of the scene, but taking
+its distance as the length unit would make every rounding floor (the judge's
+:func:`hybridoc.kernels.state_scale`) and every method's scaling ``1e15`` for the near discs
+too: the phantom collisions of issue #17 again. Its own coordinates carry their
+magnitudes. The typical size is the larger of the largest radius and the median distance
+of the points from their median point; a scene without far points keeps the plain
+centroid and spread."""
 
 
 def pow2(x: float) -> float:
@@ -160,12 +172,19 @@ def disc_scales(
     """The scales of a disc scene with ``n`` discs (state ``[p_1..p_n, v_1..v_n]``).
 
     Length: the larger of the largest radius and the largest distance of a position, target
-    or wall point from their centroid; time: the horizon; mass: the geometric mean of the masses;
+    or wall point from their centroid (far points left out: :data:`FAR_FACTOR`); time: the
+    horizon; mass: the geometric mean of the masses;
     each rounded to a power of two. Positions are offset by their centroid snapped to a
     multiple of ``1024`` lengths; velocities scale as length / time, forces as
     mass * length / time**2, the cost as length**2.
     """
     pts = np.array([*positions, *targets, *wall_points], dtype=float).reshape(-1, 2)
+    med = np.median(pts, axis=0)
+    dist = np.hypot(*(pts - med).T)
+    typical = max(float(np.max(radii)), float(np.median(dist)))
+    near = dist <= FAR_FACTOR * typical
+    if not near.all():
+        pts = pts[near]  # far points set no scale (FAR_FACTOR)
     center = pts.mean(axis=0)
     spread = float(np.max(np.hypot(*(pts - center).T)))
     raw_length = max(float(np.max(radii)), spread)

@@ -51,7 +51,7 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
 
     labels = [f"{d.name}.{c}" for d in scene.discs for c in ("x", "y")]
     labels += [f"{d.name}.{c}" for d in scene.discs for c in ("vx", "vy")]
-    return DiscOCP(
+    ocp = DiscOCP(
         f=ca.Function("f", [s, u], [f]),
         L=ca.Function("L", [s, u], [L]),
         phi=ca.Function("phi", [s], [phi]),
@@ -83,6 +83,8 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
             "control_weight": scene.control_weight,
         },
     )
+    ocp.mark_compiled()  # its functions are the scene's: DiscOCP.local_frame may move it
+    return ocp
 
 
 def disc_accelerations(scene: Scene, u: ca.SX) -> list[ca.SX]:

@@ -9,18 +9,47 @@ geometric pruning of event sequences) asks ``isinstance(ocp, DiscOCP)`` and read
 from __future__ import annotations
 
 import dataclasses
+import threading
+import weakref
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
 from hybridoc.errors import SceneError
-from hybridoc.ocp import HybridOCP
+from hybridoc.ocp import HybridOCP, Structure
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems.scene import Scene
 
-__all__ = ["DiscOCP"]
+__all__ = ["DiscOCP", "translated"]
+
+# the structures that scene_to_ocp compiled (a DiscOCP whose functions were replaced has
+# another structure, which its scene no longer describes), each with its local frame's
+# problem once built
+_COMPILED: weakref.WeakKeyDictionary[Structure, list[HybridOCP | None]] = (
+    weakref.WeakKeyDictionary()
+)
+_LOCK = threading.RLock()  # local_frame compiles, which marks the new structure
+
+
+def translated(scene: Scene, shift: np.ndarray) -> Scene:
+    """``scene`` moved by ``shift`` (positions, targets and wall points), without its
+    distribution. Exact where ``shift`` is a snapped offset (:func:`hybridoc.scales.snap_offset`)
+    taken off coordinates near it."""
+    sh = np.asarray(shift, dtype=float)
+
+    def mv(x: tuple[float, float]) -> tuple[float, float]:
+        return (float(x[0] + sh[0]), float(x[1] + sh[1]))
+
+    discs = tuple(
+        dataclasses.replace(
+            d, position=mv(d.position), target=None if d.target is None else mv(d.target)
+        )
+        for d in scene.discs
+    )
+    walls = tuple(dataclasses.replace(w, point=mv(w.point)) for w in scene.walls)
+    return dataclasses.replace(scene, discs=discs, walls=walls, distribution=None)
 
 
 @dataclass(eq=False)
@@ -47,6 +76,52 @@ class DiscOCP(HybridOCP):
         super().__post_init__()
         if self.source_scene is None:
             raise SceneError("a DiscOCP needs the Scene it was compiled from (source_scene)")
+
+    def mark_compiled(self) -> None:
+        """Record that this problem's functions are those of :attr:`source_scene` (called by
+        :func:`~hybridoc.problems.compile.scene_to_ocp`): only then may :meth:`local_frame`
+        compile the scene again, moved."""
+        with _LOCK:
+            _COMPILED.setdefault(self.structure, [None])
+
+    def local_frame(self) -> tuple[HybridOCP, np.ndarray] | None:
+        """The same problem with every position taken relative to the scales' offset, and
+        that offset: ``(local, offset)`` with ``state = local_state + offset`` exactly.
+
+        A scene far from the origin (positions near ``1e6``) keeps its numbers at the
+        rounding of ``1e6`` in its own coordinates; in the local frame they round at the
+        scene's own length scale, so the judge computes there (issue #32). ``None`` where the
+        offset is zero, or where the problem's functions are not its scene's (a
+        :meth:`~hybridoc.HybridOCP.replace` that changed them).
+        """
+        off = self.scales.offset_array
+        slot = _COMPILED.get(self.structure)
+        if slot is None or not off.any():
+            return None
+        with _LOCK:
+            if slot[0] is None:
+                from hybridoc.problems.compile import scene_to_ocp
+
+                scene = self.source_scene
+                assert scene is not None
+                n = scene.n_discs
+                local = scene_to_ocp(translated(scene, -off[:2]))
+                if not np.array_equal(local.scales.offset_array, np.zeros(4 * n)):
+                    return None  # pragma: no cover - the snapped centre moves by < 1 quantum
+                slot[0] = local
+            base = slot[0]
+        assert base is not None
+        local_ocp = base.replace(
+            x0=self.x0 - off,
+            horizon=self.horizon,
+            steps=self.steps,
+            u_guess=self.u_guess,
+            u_min=self.u_min,
+            u_max=self.u_max,
+            name=self.name,
+            horizon_bounds=self.horizon_bounds,
+        )
+        return local_ocp, off
 
     @property
     def scene(self) -> Scene:

@@ -76,3 +76,13 @@ CORNERS = [
     dict(shift=(1e6, -1e6)),
     dict(length=1e-3, time=1e2, mass=1e4, shift=(-3e5, 2e5)),
 ]
+
+
+def moved_back(scene: Scene, shift: tuple[float, float]) -> Scene:
+    """``scene`` (already moved by ``shift``) moved back by ``-shift``: the near scene whose
+    move is ``scene`` exactly where the coordinates lie within a factor two of the shift
+    (Sterbenz), and to an ulp of the near coordinates elsewhere. ``transform(s, shift=...)``
+    itself rounds each coordinate to the spacing of the shift, a change of the physical
+    scene (about 1e-10 at a shift of 1e6) that compares against this one, not against
+    ``s``."""
+    return transform(scene, shift=(-shift[0], -shift[1]))
