@@ -77,9 +77,11 @@ def _env() -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": root if not path else f"{root}{os.pathsep}{path}"}
 
 
-def _kill_and_check(p: subprocess.Popen[bytes], ready: Callable[[set[int]], bool]) -> None:
+def _kill_and_check(
+    p: subprocess.Popen[bytes], ready: Callable[[set[int]], bool], seconds: float = 10
+) -> None:
     """Wait until ``ready(descendants)``, record the descendants a little longer, SIGKILL the
-    parent and check that all of them end within 10 s."""
+    parent and check that all of them end within ``seconds``."""
     seen: set[int] = set()
     try:
 
@@ -97,7 +99,7 @@ def _kill_and_check(p: subprocess.Popen[bytes], ready: Callable[[set[int]], bool
         p.kill()
         p.wait()
     try:
-        _wait_for(lambda: not _running(seen, p.pid), 10, "the children to end")
+        _wait_for(lambda: not _running(seen, p.pid), seconds, "the children to end")
     finally:
         for k in _running(seen, p.pid):  # never left behind by a failing test
             try:
@@ -240,3 +242,33 @@ def test_a_child_whose_parent_is_already_gone_ends_at_once() -> None:
     done = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True,
                           text=True, timeout=60)  # fmt: skip
     assert (done.returncode, done.stdout, done.stderr) == (1, "", "")
+
+
+# a fork pool as the reference's search starts one (the lines proposed for
+# reference/solve.py: initializer=die_with_parent), its workers asleep; argv[1] == "bare":
+# without the initializer, the control case
+FORK_POOL = """
+import sys, time
+from concurrent.futures import ProcessPoolExecutor
+import multiprocessing as mp
+from hybridoc.children import die_with_parent
+
+def nap(_):
+    time.sleep(60)
+
+init = None if sys.argv[1] == "bare" else die_with_parent
+with ProcessPoolExecutor(2, mp_context=mp.get_context("fork"), initializer=init) as pool:
+    list(pool.map(nap, range(2)))
+"""
+
+
+@linux
+@pytest.mark.parametrize("how", ["die_with_parent", "bare"])
+def test_a_fork_pool_ends_with_its_parent_only_with_die_with_parent(how: str) -> None:
+    p = subprocess.Popen([sys.executable, "-c", FORK_POOL, how], env=_env(), start_new_session=True)
+    if how == "die_with_parent":
+        _kill_and_check(p, lambda seen: len(seen) >= 2)
+        return
+    # the control: without it, the workers outlive their parent (killed here by the test)
+    with pytest.raises(AssertionError, match="the children to end"):
+        _kill_and_check(p, lambda seen: len(seen) >= 2, seconds=2)
