@@ -229,6 +229,21 @@ def test_a_missing_or_an_extra_key_is_refused(
     _refused(out, scene)
 
 
+@pytest.mark.parametrize("where", ["settings", "columns"])
+def test_a_name_with_line_breaks_is_named_on_one_line(
+    genuine: tuple[Path, Path], tmp_path: Path, where: str
+) -> None:
+    # found by the fuzzing of the test above: an extra settings key "\r" was printed raw
+    scene, ds = genuine
+    cols, manifest = _read(ds)
+    if where == "settings":
+        manifest["settings"]["\r\nsurprise"] = 1
+    else:
+        cols["\nsurprise"] = np.zeros(M)
+    out = _write(tmp_path / "ds", cols, manifest)
+    _refused(out, scene, "surprise")
+
+
 @FAST
 @given(data=st.data())
 def test_a_column_of_another_shape_or_type_is_refused(

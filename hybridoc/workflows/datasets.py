@@ -1528,7 +1528,7 @@ def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
         extra, lack = sorted(set(st) - keys), sorted(keys - set(st))
         raise HybridocError(
             f"{where}: 'settings' must hold exactly {', '.join(sorted(keys))} (unknown: "
-            f"{', '.join(extra) or 'none'}; missing: {', '.join(lack) or 'none'})"
+            f"{', '.join(map(repr, extra)) or 'none'}; missing: {', '.join(lack) or 'none'})"
         )
     checks: list[tuple[str, str, Callable[[Any], bool]]] = [
         ("format", repr(FORMAT), lambda v: v == FORMAT),
@@ -1655,7 +1655,8 @@ def check_columns(
     if not needed <= set(columns) <= COLUMNS:
         extra, lack = sorted(set(columns) - COLUMNS), sorted(needed - set(columns))
         raise HybridocError(
-            f"{where}: its columns are not a dataset's (unknown: {', '.join(extra) or 'none'}; "
+            f"{where}: its columns are not a dataset's (unknown: "
+            f"{', '.join(map(repr, extra)) or 'none'}; "
             f"missing: {', '.join(lack) or 'none'})"
         )
     sizes: dict[str, int] = {}
