@@ -137,19 +137,45 @@ class _DiscreteNLP:
         self.nc = nc = ftest.size1_out(0)
         self.x0 = x0 = scene.initial_state()
         self.nx = nx = x0.size
+        # the NLP in the problem's own units (issue #32): variables (s - s0) / sigma_s and
+        # u / sigma_u, the steps' rows divided by the state scales, gaps by the length,
+        # normal speeds by length / time, the objective by the cost scale; nothing is
+        # scaled where the scales are the identity (the NLP of before)
+        sc = ocp.scales
+        self.scaled = not sc.is_identity
+        self.sx, self.off, self.su = sc.state_array, sc.offset_array, sc.control_array
+        self.cs = float(sc.cost)
         S = ca.SX.sym("S", nx, N + 1)
         U = ca.SX.sym("U", nu, N)
         F = ca.SX.sym("F", nc, N)
-        nxt, gaps, speeds = fstep.map(N)(S[:, :-1], U, F)
-        g = ca.vertcat(
-            ca.vec(S[:, 0] - ca.DM(x0)),
-            ca.vec(S[:, 1:] - nxt),
-            ca.vec(gaps),
-            ca.vec(speeds),
-            ca.vec(gaps - scene.dt * speeds),
-        )
+        if self.scaled:
+            Sp = S * ca.repmat(ca.DM(self.sx), 1, N + 1) + ca.repmat(ca.DM(self.off), 1, N + 1)
+            Up = U * ca.repmat(ca.DM(self.su), 1, N)
+        else:
+            Sp, Up = S, U
+        nxt, gaps, speeds = fstep.map(N)(Sp[:, :-1], Up, F)
+        if self.scaled:
+            gl, vl = float(sc.length), float(sc.length / sc.time)
+            g = ca.vertcat(
+                ca.vec(S[:, 0] - ca.DM(sc.to_scaled_state(x0))),
+                # the step as an increment: no rounding of s0 + sigma_s S - s0
+                ca.vec(S[:, 1:] - S[:, :-1] - (nxt - Sp[:, :-1]) / ca.repmat(ca.DM(self.sx), 1, N)),
+                ca.vec(gaps / gl),
+                ca.vec(speeds / vl),
+                ca.vec((gaps - scene.dt * speeds) / gl),
+            )
+        else:
+            g = ca.vertcat(
+                ca.vec(S[:, 0] - ca.DM(x0)),
+                ca.vec(S[:, 1:] - nxt),
+                ca.vec(gaps),
+                ca.vec(speeds),
+                ca.vec(gaps - scene.dt * speeds),
+            )
         self.n_eq = nx * (N + 1)
-        J = _terminal(scene, S[:, -1]) + scene.control_weight * scene.dt * ca.sumsqr(U)
+        J = _terminal(scene, Sp[:, -1]) + scene.control_weight * scene.dt * ca.sumsqr(Up)
+        if self.scaled:
+            J = J / self.cs
         opts = {
             "ipopt.tol": tol,
             "ipopt.max_iter": max_iter,
@@ -163,6 +189,19 @@ class _DiscreteNLP:
         self.solver = ca.nlpsol("discrete", "ipopt", nlp, opts)
         self.flags_of = ftest.map(N)
         self.last: Any = None  # (flags, gaps) of the latest rollout
+
+    def pack(self, states: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The NLP's (scaled) variables of physical states ``(nx, N + 1)`` and ``(N, nu)``
+        controls."""
+        if self.scaled:
+            states = (states - self.off[:, None]) / self.sx[:, None]
+            u = u / self.su[None, :]
+        return np.concatenate([states.ravel(order="F"), u.T.ravel(order="F")])
+
+    def controls(self, w: np.ndarray) -> np.ndarray:
+        """The physical ``(N, nu)`` controls of the NLP's variables ``w``."""
+        u = w[self.nx * (self.N + 1) :].reshape((self.nu, self.N), order="F").T.copy()
+        return u * self.su[None, :] if self.scaled else u
 
     def rollout(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """States ``(nx, N + 1)``, contact flags ``(nc, N)`` and the loss of ``u``'s rollout
@@ -233,7 +272,6 @@ def _refreeze(nlp: _DiscreteNLP, u0: np.ndarray, max_rounds: int, verbose: bool)
     """Solve the frozen NLP, re-read the branches from a rollout of its controls, and repeat
     until they no longer change; at a boundary (an active gap bound) the branches on its other
     side are tried too. Stops at the first round that does not lower the loss."""
-    N, nx, nu = nlp.N, nlp.nx, nlp.nu
     best_u = u0
     states, fl, best_loss = nlp.rollout(u0)
     loss0 = best_loss
@@ -241,7 +279,7 @@ def _refreeze(nlp: _DiscreteNLP, u0: np.ndarray, max_rounds: int, verbose: bool)
     try_flags, try_off = fl.ravel(order="F"), np.zeros(fl.size, dtype=bool)
     flipping = False
     for rounds in range(1, max_rounds + 1):
-        w0 = np.concatenate([states.ravel(order="F"), best_u.T.ravel(order="F")])
+        w0 = nlp.pack(states, best_u)
         lbg, ubg = nlp.region(try_flags, nlp.last[1], try_off)
         res = nlp.solver(x0=w0, lbg=lbg, ubg=ubg, p=try_flags)
         stats = nlp.solver.stats()
@@ -252,14 +290,15 @@ def _refreeze(nlp: _DiscreteNLP, u0: np.ndarray, max_rounds: int, verbose: bool)
             converged = flipping  # the flipped branch is infeasible: the boundary is optimal
             break
         w = np.asarray(res["x"]).ravel()
-        u_new = w[nx * (N + 1) :].reshape((nu, N), order="F").T.copy()
+        u_new = nlp.controls(w)
         saved = nlp.last
         states_new, fl_new, loss_new = nlp.rollout(u_new)
         consistent_round = np.array_equal(fl_new.ravel(order="F"), try_flags)
         if verbose:
             print(
                 f"round {rounds}: {status}, {stats.get('iter_count')} it, loss {loss_new:.12g}, "
-                f"NLP {float(res['f']):.12g}, branches kept: {consistent_round}",
+                f"NLP {float(res['f']) * (nlp.cs if nlp.scaled else 1.0):.12g}, branches "
+                f"kept: {consistent_round}",
                 file=sys.stderr,
             )
         if loss_new >= best_loss - 1e-13 * abs(best_loss):
@@ -357,7 +396,7 @@ def solve_discrete(
     solve_time = time.perf_counter() - t0
     loss = discrete_loss(scene, u, contact=contact, toi=toi)
     loss0 = discrete_loss(scene, u0, contact=contact, toi=toi)
-    if loss > loss0 + 1e-12 * max(1.0, abs(loss0)):
+    if loss > loss0 + 1e-12 * max(ocp.scales.cost, abs(loss0)):  # max(1, |J|) in its units
         # the branch pattern changed along the way and IPOPT ended above its start
         raise ConvergenceError(
             f"discrete transcription ended above its warm start ({loss:.10g} > {loss0:.10g}); "

@@ -118,6 +118,7 @@ default's 4 elements doubled six times); past it, or past :data:`MAX_NLP_SIZE`, 
 whose error estimate is still above the tolerances is ``not-converged``."""
 _MAX_ADAPTIONS = 12  # refinements of one candidate
 _NLPS: weakref.WeakKeyDictionary[HybridOCP, dict[Any, Any]] = weakref.WeakKeyDictionary()
+_GUARD_SCALES: weakref.WeakKeyDictionary[HybridOCP, np.ndarray] = weakref.WeakKeyDictionary()
 
 
 # ----------------------------------------------------------------------------------------
@@ -665,6 +666,9 @@ def _guard_scales(ocp: HybridOCP) -> np.ndarray:
     sc = ocp.scales
     if sc.is_identity or not n:
         return np.ones(n)
+    known = _GUARD_SCALES.get(ocp)
+    if known is not None:  # once per problem, not per mesh of the refinement
+        return known
     x0 = np.asarray(ocp.x0, dtype=float)
     s = ca.MX.sym("s", ocp.nx)
     out = np.full(n, float(sc.length))
@@ -674,6 +678,7 @@ def _guard_scales(ocp: HybridOCP) -> np.ndarray:
         if norm > 0 and math.isfinite(norm):
             # + 0.01: a unit normal's norm computed as 0.9999999999999999 still gives 1
             out[i] = math.ldexp(1.0, math.floor(math.log2(norm) + 0.01))
+    _GUARD_SCALES[ocp] = out
     return out
 
 

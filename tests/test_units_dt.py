@@ -143,3 +143,26 @@ def test_dt_property_any_units_and_place(bases, length, time, mass, shift):
     )
     sol = hybridoc.solve(transform(scene, **corner), method="dt")
     _same_answer(base, sol, corner, 1e-9)
+
+
+@pytest.fixture(scope="module")
+def discrete_base():
+    from hybridoc.solvers.discrete_transcription import solve_discrete
+
+    scene = load_scene("single-collision").with_steps(60)
+    return scene, solve_discrete(scene)
+
+
+@pytest.mark.parametrize("corner", [dict(length=1e-6), dict(time=1e3), dict(mass=1e-6)], ids=str)
+def test_discrete_transcription_in_other_units(discrete_base, corner):
+    """The exact N-step problem (gd's floor) in other units: the same discrete loss and
+    judged cost times length**2 (before: lengths x 1e-6 a ConvergenceError, times x 1e3 and
+    masses x 1e-6 a higher local optimum, +2.1e-3 in the loss)."""
+    from hybridoc.solvers.discrete_transcription import solve_discrete
+
+    scene, base = discrete_base
+    sol = solve_discrete(transform(scene, **corner))
+    f = cost_factor(**corner)
+    assert math.isclose(sol.info["discrete_loss"] / f, base.info["discrete_loss"], rel_tol=1e-9)
+    assert math.isclose(sol.cost / f, base.cost, rel_tol=1e-9)
+    assert sol.info["converged"] and base.info["converged"]
