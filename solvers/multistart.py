@@ -62,6 +62,8 @@ def smooth_noise(rng: np.random.Generator, N: int, nu: int, modes: int = 4) -> n
 
 
 def _control_scale(ocp: HybridOCP) -> float:
+    """The size of the random starts: the guess's largest value, or half the largest finite
+    bound, or (a zero guess without bounds) the problem's control scale."""
     u0 = np.asarray(ocp.u_guess, dtype=float)
     scale = float(np.abs(u0).max(initial=0.0))
     if ocp.has_bounds:
@@ -69,7 +71,7 @@ def _control_scale(ocp: HybridOCP) -> float:
         finite = finite[np.isfinite(finite)]
         if finite.size:
             scale = max(scale, 0.5 * float(finite.max()))
-    return scale if scale > 0 else 1.0
+    return scale if scale > 0 else float(_units(ocp)[0].max())
 
 
 def _aimed(ocp: HybridOCP) -> list[np.ndarray]:
@@ -151,15 +153,16 @@ AIM_FRACTIONS = (0.3, 0.5, 0.7, 0.85)
 left after its force starts."""
 
 
-def _contact_aim(scene: Any, i: int, j: int, q: np.ndarray) -> np.ndarray:
+def _contact_aim(scene: Any, i: int, j: int, q: np.ndarray, length: float = 1.0) -> np.ndarray:
     """Where disc ``i``'s centre should be to strike disc ``j`` (at ``q``) towards ``j``'s
-    target: behind ``j`` on the line from its target (``j``'s centre when it has none)."""
+    target: behind ``j`` on the line from its target (``j``'s centre when it has none, or
+    when ``j`` is at its target to ``1e-12`` of the scene's ``length`` scale)."""
     target = getattr(scene.discs[j], "target", None)
     if target is None:
         return q
     d = q - np.asarray(target, dtype=float)
     norm = float(np.linalg.norm(d))
-    if norm < 1e-12:
+    if norm < 1e-12 * length:  # at its target already: no direction to strike it
         return q
     return q + (scene.discs[i].radius + scene.discs[j].radius) * d / norm
 
@@ -174,6 +177,8 @@ class _Aimer:
         self.grid = ocp.time_grid()
         self.T, self.N = ocp.horizon, ocp.steps
         self.e = float(getattr(self.scene, "restitution", 1.0))
+        scales = getattr(ocp, "scales", None)
+        self.length = 1.0 if scales is None else float(scales.length)
 
     def state(self, t: float, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Disc ``i``'s position and velocity at ``t`` on the guess's trajectory."""
@@ -198,7 +203,7 @@ class _Aimer:
         """Write into ``u`` (column pair ``k``) the constant force that takes a disc of mass
         ``m`` from ``p``, ``v`` at ``t_s`` to ``q`` at ``t_a``; zero after. Returns the
         velocity it arrives with and ``q``."""
-        dt = max(t_a - t_s, 1e-9)
+        dt = max(t_a - t_s, 1e-9 * self.T)
         F = m * 2 * (q - p - v * dt) / dt**2
         n_s, n_a = self.cell(t_s), min(int(np.searchsorted(self.grid, t_a, side="right")), self.N)
         u[n_s:, 2 * k : 2 * k + 2] = 0.0
@@ -213,7 +218,7 @@ class _Aimer:
         return p - (d - self.scene.discs[i].radius) * nrm
 
     def body_aim(self, i: int, j: int, t: float) -> np.ndarray:
-        return _contact_aim(self.scene, i, j, self.state(t, j)[0])
+        return _contact_aim(self.scene, i, j, self.state(t, j)[0], self.length)
 
 
 def diverse_controls(

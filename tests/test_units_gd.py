@@ -171,3 +171,20 @@ def test_controls_transform() -> None:
         rtol=0,
         atol=1e-3 * np.abs(transform_controls(base.controls, **kw)).max(),
     )
+
+
+@pytest.mark.parametrize("extra", [dict(starts=6), dict(hops=2)], ids=str)
+@pytest.mark.parametrize(
+    "kw", [dict(time=2.0**10), dict(length=2.0**-20, mass=2.0**20), dict(length=1e-6)], ids=str
+)
+def test_multistart_and_hops_in_other_units(extra: dict, kw: dict) -> None:
+    """The multi-start's batched L-BFGS (aimed and random starts) and the hops' batched
+    restarts work in the scaled units too: the same optimum."""
+    key = str(extra)
+    if key not in _BASES:
+        _BASES[key] = hybridoc.solve(SMALL, method="gd", **extra)
+    sol = hybridoc.solve(transform(SMALL, **kw), method="gd", **extra)
+    _same_answer(sol, _BASES[key], kw, RTOL)
+
+
+_BASES: dict[str, hybridoc.Solution] = {}
