@@ -25,6 +25,26 @@ link gives ``lambda(0)`` and ``lambda(gamma_k+)`` exactly (they are sensitivitie
 optimal cost). For disc scenes the optimal flows are polynomials of degree <= 3 in time, so
 degree-3 collocation represents the optimum exactly and the answers agree with the HMP
 reference to round-off.
+
+Units
+    The NLP is built in the problem's own units (:attr:`HybridOCP.scales
+    <hybridoc.ocp.HybridOCP.scales>`, issue #32): its variables are the scaled states
+    ``(s - s0) / sigma_s``, controls ``u / sigma_u`` and phase durations ``h / sigma_t``, its
+    objective ``J / sigma_J``; the collocation defects, the initial condition and the reset links
+    are divided by the state scales (a link is written as the jump ``g(s) - s``, so that the
+    components a reset keeps link exactly, without the rounding of ``s0 + sigma_s s~``), each
+    guard's rows (the guard, free space, the approach condition) by that guard's scale (the
+    power of two at or below the norm of its gradient in the scaled state: the length for a
+    disc's gap). Multipliers, costates and the result are given back in the problem's units,
+    and dt's own tolerances (the refinement's, the comparison with a known cheaper control,
+    the guess's perturbation, the bound tolerance) are relative to the scales. So the same
+    physical problem in other units or moved gives the same answer: tests/test_units_dt.py
+    checks lengths, times and masses scaled by ``1e-6`` to ``1e6`` and moves of up to ``1e6``
+    lengths (cost times ``L**2`` within ``1e-9``, the same events and status). A problem whose
+    scales are the identity is transcribed exactly as before. A scene moved by more than
+    about ``1e6`` of its own lengths has its positions rounded to ``eps |s|``: IPOPT's
+    acceptable level and the refinement's tolerance are raised above that rounding
+    (``eps max |s0| / sigma_s``), and the answer is as good as the data.
 """
 
 from __future__ import annotations
