@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FAR_FACTOR", "Scales", "disc_scales", "pow2", "snap_offset"]
+__all__ = ["FAR_FACTOR", "Scales", "disc_scales", "far_points", "pow2", "snap_offset"]
 
 OFFSET_QUANTUM = 1024.0
 """Offsets are multiples of this many length scales: a scene near the origin keeps offset 0."""
@@ -160,6 +160,16 @@ class Scales:
         return np.asarray(u_tilde, dtype=float) * self.control_array
 
 
+def far_points(points: np.ndarray, radii: Sequence[float]) -> np.ndarray:
+    """Which of the ``(k, 2)`` ``points`` are far (:data:`FAR_FACTOR`), as booleans."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    med = np.median(pts, axis=0)
+    with np.errstate(over="ignore"):  # a point at 1e300 is far, whatever its distance
+        dist = np.hypot(*(pts - med).T)
+    typical = max(float(np.max(radii)), float(np.median(dist)))
+    return ~(dist <= FAR_FACTOR * typical)
+
+
 def disc_scales(
     positions: Sequence[Sequence[float]],
     radii: Sequence[float],
@@ -179,12 +189,9 @@ def disc_scales(
     mass * length / time**2, the cost as length**2.
     """
     pts = np.array([*positions, *targets, *wall_points], dtype=float).reshape(-1, 2)
-    med = np.median(pts, axis=0)
-    dist = np.hypot(*(pts - med).T)
-    typical = max(float(np.max(radii)), float(np.median(dist)))
-    near = dist <= FAR_FACTOR * typical
-    if not near.all():
-        pts = pts[near]  # far points set no scale (FAR_FACTOR)
+    far = far_points(pts, radii)
+    if far.any():
+        pts = pts[~far]  # far points set no scale (FAR_FACTOR)
     center = pts.mean(axis=0)
     spread = float(np.max(np.hypot(*(pts - center).T)))
     raw_length = max(float(np.max(radii)), spread)

@@ -84,6 +84,19 @@ class DiscOCP(HybridOCP):
         with _LOCK:
             _COMPILED.setdefault(self.structure, [None])
 
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_scene_cache", None)
+        # whether the functions are the scene's travels with a pickle (a worker process)
+        state["_scene_compiled"] = self.structure in _COMPILED
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        compiled = state.pop("_scene_compiled", False)
+        self.__dict__.update(state)
+        if compiled:
+            self.mark_compiled()
+
     def local_frame(self) -> tuple[HybridOCP, np.ndarray] | None:
         """The same problem with every position taken relative to the scales' offset, and
         that offset: ``(local, offset)`` with ``state = local_state + offset`` exactly.

@@ -183,3 +183,26 @@ def test_non_commuting_jumps_are_refused_at_any_scale() -> None:
         hybridoc.evaluate(scene(1.0))
     with pytest.raises(SimultaneousEventError):
         hybridoc.evaluate(scene(1e-9))
+
+
+def test_a_feedback_policy_sees_the_scene_where_it_is() -> None:
+    """In the local frame the judge hands a policy the state in the scene's own coordinates:
+    a feedback on the striker's position relative to ``(-1, -1.5)`` gives the same cost near
+    the origin and moved by 1e6."""
+    scene = load_scene("single-collision")
+    shift = (1e6, -1e6)
+    far = transform(scene, shift=shift)
+    near = moved_back(far, shift)
+
+    def policy(aim: np.ndarray):
+        def pi(t: float, s: np.ndarray) -> np.ndarray:
+            return np.array([0.0, 3.0]) + 0.5 * (aim - s[:2])
+
+        return pi
+
+    aim_near = np.array([-1.0, -1.5])
+    aim_far = np.array([-1.0 + shift[0], -1.5 + shift[1]])
+    ev_near = hybridoc.evaluate(near, policy=policy(aim_near))
+    ev_far = hybridoc.evaluate(far, policy=policy(aim_far))
+    assert len(ev_near.events) == 1
+    _same(ev_near, ev_far)
