@@ -153,11 +153,16 @@ def discrete_base():
     return scene, solve_discrete(scene)
 
 
-@pytest.mark.parametrize("corner", [dict(length=1e-6), dict(time=1e3), dict(mass=1e-6)], ids=str)
+@pytest.mark.parametrize(
+    "corner",
+    [dict(length=1e-6), dict(time=1e3), dict(mass=1e-6), dict(shift=(1e6, -1e6))],
+    ids=str,
+)
 def test_discrete_transcription_in_other_units(discrete_base, corner):
     """The exact N-step problem (gd's floor) in other units: the same discrete loss and
     judged cost times length**2 (before: lengths x 1e-6 a ConvergenceError, times x 1e3 and
-    masses x 1e-6 a higher local optimum, +2.1e-3 in the loss)."""
+    masses x 1e-6 a higher local optimum, +2.1e-3 in the loss; moved by 1e6, 2e-9 of the
+    loss lost to rollouts rounded at 1e6)."""
     from hybridoc.solvers.discrete_transcription import solve_discrete
 
     scene, base = discrete_base
