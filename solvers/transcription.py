@@ -1441,12 +1441,13 @@ def _evaluate_guess(ocp: HybridOCP, u0: np.ndarray) -> tuple[Evaluation, np.ndar
     for k in range(1, _GUESS_PERTURBATIONS + 1):
         u = np.clip(u0 + scale * k * z * su, ocp.u_min, ocp.u_max)
         try:
-            return evaluate(ocp, u), u, scale * k
+            return evaluate(ocp, u), u, scale * k * float(np.max(su))  # in u's units
         except SimultaneousEventError:
             continue
     raise SimultaneousEventError(
         f"{first} (also with the initial guess perturbed by up to "
-        f"{scale * _GUESS_PERTURBATIONS:.1e}); give another initial guess or a sequence",
+        f"{scale * _GUESS_PERTURBATIONS * float(np.max(su)):.1e}); give another initial guess "
+        "or a sequence",
         guards=first.guards,
         time=first.time,
     ) from None
