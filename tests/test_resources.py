@@ -84,6 +84,15 @@ def test_dataset_samples_beyond_memory_is_refused_at_once(tmp_path):
     assert cpu < 1.0  # before: the nominal solve (7 s) ran first
 
 
+def test_train_policy_samples_beyond_memory_is_refused_before_drawing(tmp_path):
+    scene = tmp_path / "strike.toml"
+    scene.write_text(strike_scene(f"strike-{uuid.uuid4().hex[:8]}", steps=40))
+    res, cpu = _timed("train-policy", str(scene), "--samples", "9999999999", "--out",
+                      str(tmp_path / "tp"))  # fmt: skip
+    _one_error(res, "samples=9999999999 would need about ", "TiB of memory", "--allow-large")
+    assert cpu < 10.0  # torch imported; before: it drew states one by one until memory ran out
+
+
 def test_crossval_starts_beyond_memory_is_refused_before_any_solve():
     res, cpu = _timed("crossval", "single-collision", "--starts", "1000000000",
                       "--no-progress")  # fmt: skip

@@ -484,6 +484,7 @@ def training_draws(
         No distribution, or one that cannot be drawn.
     """
     from hybridoc.problems import Scene
+    from hybridoc.resources import check_samples_of
     from hybridoc.workflows.datasets import (
         check_count,
         distribution_problem,
@@ -493,6 +494,7 @@ def training_draws(
 
     samples = check_count(samples, "samples", 1)
     source = distribution_problem(problem, distribution)
+    check_samples_of(source, samples)  # before drawing: the draws alone can exhaust memory
     seed = source_seed(source, None) + 1 if seed is None else check_count(seed, "seed", 0)
     if isinstance(source, Scene):
         dist = source.distribution
