@@ -18,7 +18,9 @@ folder). The rules, the same for every case:
 
 Found by these tests and fixed: ``validate-policy`` wrote its dataset through a symbolic
 link planted at ``<out>/<name>_dataset`` (``dataset.npz`` and ``manifest.json`` landed in the
-folder the link pointed to, outside ``--out``).
+folder the link pointed to, outside ``--out``); ``crossval``, ``validate`` and
+``convergence`` refused a planted name only after their solves, and lost their answer
+when a write failed at the end.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_here import run_here
 from conftest import examples
@@ -49,6 +52,9 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("inputs")
     (d / "scene.toml").write_text(strike_scene(SLUG, steps=60))
     (d / "pol.py").write_text("import numpy as np\n\ndef p(t, s):\n    return np.zeros(2)\n")
+    import hybridoc
+
+    np.save(d / "u.npy", np.asarray(hybridoc.as_ocp("bouncing-ball").u_guess, dtype=float))
     return d
 
 
@@ -77,6 +83,13 @@ def _commands(d: Path) -> dict[str, tuple[list[str], list[str]]]:
                          [f"{SLUG}_train-policy.{x}" for x in ("json", "npz")]
                          + [f"{SLUG}_train-policy_report.json"]),
         "export": (["export", "mjcf", "single-collision"], ["model.xml"]),
+        "crossval": (["crossval", b, "--no-progress"],
+                     [f"{b}_crossval{e}" for e in (".json", "_controls.png",
+                                                   "_trajectories.png", "_learning_curve.png")]),
+        "validate": (["validate", b, "--controls", str(d / "u.npy")],
+                     [f"{b}_validate{e}" for e in (".json", "_controls.png", "_trajectories.png")]),
+        "convergence": (["convergence", b, "--steps", "20", "40", "--no-gd"],
+                        [f"{b}_convergence{e}" for e in (".json", ".png")]),
         "dataset": (["dataset", scene, *few], ["dataset.npz", "manifest.json"]),
         "validate-policy": (["validate-policy", scene, "--policy", pol, *few],
                             [f"{SLUG}_dataset", f"{SLUG}_dataset/dataset.npz",
@@ -166,6 +179,26 @@ def test_validate_policy_never_writes_its_dataset_through_a_link(
 
 
 @posix
+@pytest.mark.parametrize("command", ["crossval", "validate", "convergence"])
+def test_the_validation_commands_refuse_a_link_before_their_solves(
+    tmp_path: Path, files: Path, command: str
+) -> None:
+    # found by the tests above: they solved first (crossval: three methods) and then
+    # refused, losing the answer
+    outside = tmp_path / "elsewhere" / "precious.txt"
+    outside.parent.mkdir()
+    outside.write_bytes(PRECIOUS)
+    out = tmp_path / "out"
+    out.mkdir()
+    at = out / _commands(files)[command][1][0]
+    _plant(at, "link-to-file", outside)
+    done, lines = _run(files, command, out)
+    assert done.returncode == 2 and done.stdout == ""
+    assert len(lines) == 1 and str(at) in lines[0], lines  # no "solving ..." line before it
+    _unchanged(at, "link-to-file", outside)
+
+
+@posix
 @pytest.mark.parametrize("command", COMMANDS)
 def test_an_unwritable_output_folder_is_refused_before_the_work(
     tmp_path: Path, files: Path, command: str
@@ -184,8 +217,8 @@ ANSWERS = [
     c if c != "reference" else pytest.param(c, marks=pytest.mark.xfail(
         strict=True, reason="cli/reference.py writes before it prints (not this helper's "
         "file; solve's write_error pattern is the fix)"))
-    for c in COMMANDS if c not in ("export", "dataset")
-]  # fmt: skip
+    for c in COMMANDS if c not in ("export", "dataset", "crossval", "convergence")
+] + [pytest.param(c, marks=pytest.mark.slow) for c in ("crossval", "convergence")]  # fmt: skip
 
 
 def _failing_writes(monkeypatch: pytest.MonkeyPatch, code: int) -> None:

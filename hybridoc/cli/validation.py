@@ -68,6 +68,11 @@ def cmd_crossval(args: argparse.Namespace) -> int:
 
     ocp = load_problem_arg(args.problem)
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    if out is not None:  # a link or a user's file at an output name: refused now
+        from hybridoc.outputs import check_targets
+
+        stem = output_stem(out, problem_slug(args.problem, ocp), "crossval")
+        check_targets(*(f"{stem}{end}" for end in _CROSSVAL_ENDS))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     names = ["reference"] + [m for m in methods if m != "reference"]
     tolerances = dict(args.tolerance or [])
@@ -93,12 +98,13 @@ def cmd_crossval(args: argparse.Namespace) -> int:
         ocp, methods=methods, options=options, tolerances=tolerances,
         progress=not args.no_progress,
     )  # fmt: skip
-    written = [] if out is None else _write_crossval(out, problem_slug(args.problem, ocp), ocp,
-                                                     report, sols)  # fmt: skip
     if args.json:
         emit_json(report)
     else:
         _print_crossval(args, ocp, report)
+    # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
+    written = [] if out is None else _write_crossval(out, problem_slug(args.problem, ocp), ocp,
+                                                     report, sols)  # fmt: skip
     for p in written:
         say(args, f"wrote {p}")
     if not report["agree"]:
@@ -107,6 +113,12 @@ def cmd_crossval(args: argparse.Namespace) -> int:
         return 1
     # a report without a status (one written before it had one) agrees with a proven J*
     return exit_code(report.get("status", "success"), report.get("verdict", ""))
+
+
+#: the files crossval writes: the report, then the figures of crossval_figures
+_CROSSVAL_ENDS = (".json", "_controls.png", "_trajectories.png", "_learning_curve.png")
+#: the files validate writes: the figures of validation_figures, then the report
+_VALIDATE_ENDS = (".json", "_controls.png", "_trajectories.png")
 
 
 def _write_crossval(
@@ -218,21 +230,16 @@ def cmd_validate(args: argparse.Namespace) -> int:
     path = _validate_controls_path(args)
     fine, u, source = load_substep_controls_arg(path, ocp, args.substeps)
     k = fine.steps // ocp.steps
-    out = None if args.out is None else ensure_dir(args.out)
+    out = None if args.out is None else ensure_dir(args.out)  # fail before the reference
+    if out is not None:  # a link or a user's file at an output name: refused now
+        from hybridoc.outputs import check_targets
+
+        stem = output_stem(out, problem_slug(args.problem, ocp), "validate")
+        check_targets(*(f"{stem}{end}" for end in _VALIDATE_ENDS))
     ref = solve(ocp, "reference")
     report = validate_controls(ocp, u, reference=ref, substeps=k)
     report["controls_file"] = source
     broken = _violated(report)
-    written: list[Path] = []
-    if out is not None:
-        stem = output_stem(out, problem_slug(args.problem, ocp), "validate")
-        # on the controls' grid: the reference's values held over the K substeps
-        shown = ref if k == 1 else dataclasses.replace(
-            ref, controls=np.repeat(ref.controls, k, axis=0), time_grid=fine.time_grid()
-        )  # fmt: skip
-        for name, fig in validation_figures(fine, u, shown, label=path.stem).items():
-            written.append(save(fig, f"{stem}_{name}.png"))
-        written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
         emit_json(report)
     else:
@@ -251,6 +258,16 @@ def cmd_validate(args: argparse.Namespace) -> int:
             say(args, "  event sequence DIFFERS from the reference's")
         if broken:
             say(args, f"  INFEASIBLE        violates the {', the '.join(broken)}")
+    # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
+    written: list[Path] = []
+    if out is not None:
+        # on the controls' grid: the reference's values held over the K substeps
+        shown = ref if k == 1 else dataclasses.replace(
+            ref, controls=np.repeat(ref.controls, k, axis=0), time_grid=fine.time_grid()
+        )  # fmt: skip
+        for name, fig in validation_figures(fine, u, shown, label=path.stem).items():
+            written.append(save(fig, f"{stem}_{name}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
     for p in written:
         say(args, f"wrote {p}")
     # the controls' own verdict first: a reference that is not proven (best-found, issue #29)
@@ -293,13 +310,13 @@ def cmd_convergence(args: argparse.Namespace) -> int:
     ocp = load_problem_arg(args.problem)
     steps = tuple(args.steps) if args.steps else DEFAULT_STEPS
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
+    if out is not None:  # a link or a user's file at an output name: refused now
+        from hybridoc.outputs import check_targets
+
+        stem = output_stem(out, problem_slug(args.problem, ocp), "convergence")
+        check_targets(f"{stem}.png", f"{stem}.json")
     say(args, f"{ocp.name}: convergence study, N = {', '.join(map(str, steps))} ...")
     report = convergence(ocp, steps=steps, include_gd=not args.no_gd)
-    written: list[Path] = []
-    if out is not None:
-        stem = output_stem(out, problem_slug(args.problem, ocp), "convergence")
-        written.append(save(convergence_figure(report), f"{stem}.png"))
-        written.append(_write_json(Path(f"{stem}.json"), report))
     if args.json:
         emit_json(report)
     else:
@@ -327,6 +344,11 @@ def cmd_convergence(args: argparse.Namespace) -> int:
             "; gd: gradient descent re-run at N, true continuous cost." if "gd" in report else "."
         )
         say(args, "piecewise constant" + tail)
+    # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
+    written: list[Path] = []
+    if out is not None:
+        written.append(save(convergence_figure(report), f"{stem}.png"))
+        written.append(_write_json(Path(f"{stem}.json"), report))
     for p in written:
         say(args, f"wrote {p}")
     return 0
