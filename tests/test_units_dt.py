@@ -182,3 +182,28 @@ def test_discrete_transcription_in_other_units(discrete_base, corner):
     assert math.isclose(sol.info["discrete_loss"] / f, base.info["discrete_loss"], rel_tol=1e-9)
     assert math.isclose(sol.cost / f, base.cost, rel_tol=1e-9)
     assert sol.info["converged"] and base.info["converged"]
+
+
+@pytest.mark.parametrize(
+    "corner",
+    [dict(length=1e-6), dict(length=1e3, time=1e-2, mass=1e5, shift=(1e3, 2e3))],
+    ids=str,
+)
+def test_dt_costates_in_other_units(bases, corner):
+    """The multipliers come back in the problem's units: a position's costate scales as
+    cost / length = L, a velocity's as cost / (length / time) = L T, the jump multiplier of
+    a gap (a length) as L, and the costate times as T (the reference starts from them)."""
+    scene, base = bases["single-collision"]
+    sol = hybridoc.solve(transform(scene, **corner), method="dt")
+    L, T = corner.get("length", 1.0), corner.get("time", 1.0)
+    n = scene.n_discs
+    fac = np.array([L] * (2 * n) + [L * T] * (2 * n))
+    scale = np.max(np.abs(base.costates))
+    np.testing.assert_allclose(sol.costates / fac, base.costates, rtol=0, atol=1e-10 * scale)
+    np.testing.assert_allclose(
+        np.array(sol.info["lambda0"]) / fac, base.info["lambda0"], atol=1e-10 * scale
+    )
+    np.testing.assert_allclose(
+        np.array(sol.info["jump_multipliers"]) / L, base.info["jump_multipliers"], rtol=1e-10
+    )
+    np.testing.assert_allclose(sol.costate_times / T, base.costate_times, rtol=0, atol=1e-12)
