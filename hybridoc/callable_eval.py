@@ -19,6 +19,7 @@ constant on each piece even by the Runge-Kutta stages that fall exactly on ``a``
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -106,12 +107,52 @@ def evaluate_callable(
     ocp = as_ocp(problem)
     if (control is None) == (state_feedback is None):
         raise ControlsError("give exactly one of control (u(t)) and state_feedback (pi(t, s))")
+    # a scene far from the origin is simulated in its local frame (as hybridoc.evaluate
+    # does): a feedback sees the state where the scene is, the results are moved back
+    outer, off = ocp, None
+    frame_of = getattr(ocp, "local_frame", None)
+    frame = frame_of() if frame_of is not None else None
+    if frame is not None:
+        ocp, off = frame
+        if state_feedback is not None:
+            feedback, shift = state_feedback, off
+
+            def state_feedback(t: float, s: np.ndarray) -> Any:
+                return feedback(t, s + shift)
+
     u_at = _control_function(ocp, control, state_feedback)
     sim = _Simulation(ocp, u_at, graze_tol, rtol, atol, penetration_tol, max_events)
     if event_controls is not None:
         sim.resolver = EventResolver(ocp, sim.num, sim.graze_tol, event_controls)
     sim.run(breakpoints)
-    return sim.evaluation()
+    ev = sim.evaluation()
+    if off is None:
+        return ev
+    off_z = np.concatenate([off, [0.0]])  # the running cost is not moved
+    return dataclasses.replace(
+        ev,
+        ocp=outer,
+        states=ev.states + off,
+        final_state=ev.final_state + off,
+        events=[
+            dataclasses.replace(
+                e, state_before=e.state_before + off, state_after=e.state_after + off
+            )
+            for e in ev.events
+        ],
+        dense_pieces=[(t0, t1, _Moved(dense, off_z)) for t0, t1, dense in ev.dense_pieces],
+    )
+
+
+class _Moved:
+    """A dense output moved by ``off`` (out of the local frame)."""
+
+    def __init__(self, dense: Any, off: np.ndarray) -> None:
+        self.dense, self.off = dense, off
+
+    def __call__(self, t: Any) -> np.ndarray:
+        z = np.asarray(self.dense(t), dtype=float)
+        return z + (self.off if z.ndim == 1 else self.off[:, None])
 
 
 _Piece = tuple[float, float, Any, float, float]  # (t0, t1, dense output, lo, hi)

@@ -206,3 +206,25 @@ def test_a_feedback_policy_sees_the_scene_where_it_is() -> None:
     ev_far = hybridoc.evaluate(far, policy=policy(aim_far))
     assert len(ev_near.events) == 1
     _same(ev_near, ev_far)
+
+
+def test_continuous_feedback_on_a_moved_scene() -> None:
+    """``evaluate_callable`` also simulates a far scene in its local frame: the feedback
+    sees the state where the scene is, and the trajectory comes back there."""
+    scene = load_scene("single-collision")
+    shift = (1e6, -1e6)
+    far = transform(scene, shift=shift)
+    near = moved_back(far, shift)
+
+    def policy(aim: np.ndarray):
+        return lambda t, s: np.array([0.0, 3.0]) + 0.5 * (aim - s[:2])
+
+    aim = np.array([-1.0, -1.5])
+    ev_near = hybridoc.evaluate_callable(near, state_feedback=policy(aim))
+    ev_far = hybridoc.evaluate_callable(far, state_feedback=policy(aim + shift))
+    assert len(ev_near.events) == 1
+    _same(ev_near, ev_far)
+    ts = np.linspace(0.0, 1.0, 7)
+    np.testing.assert_allclose(
+        ev_far.sample(ts)[:, :2] - shift, ev_near.sample(ts)[:, :2], rtol=0, atol=1e-9
+    )
