@@ -434,10 +434,11 @@ class CheckedNum:
 class GuardFunctions:
     """One CasADi function per guard, built on first use (thread-safe) and kept.
 
-    ``kind`` ``"event_jac"``: ``(s, u) -> (grad psi, d reset / ds, reset)``; ``"reset_du"``:
-    ``(s, u) -> d reset / du``, ``None`` for a reset that does not read the control. The same
-    functions as built all at once (the same symbols' names and operations), so the numbers
-    are the same bit for bit. Pickled without its symbols, which are made again on use.
+    ``kind`` ``"reset"``: ``(s, u) -> reset``; ``"event_jac"``: ``(s, u) -> (grad psi,
+    d reset / ds, reset)``; ``"reset_du"``: ``(s, u) -> d reset / du``, ``None`` for a reset
+    that does not read the control. The same functions as built all at once (the same
+    symbols' names and operations), so the numbers are the same bit for bit. Pickled without
+    its symbols, which are made again on use.
     """
 
     def __init__(self, guards: Any, sx: bool, nx: int, nu: int, kind: str) -> None:
@@ -461,6 +462,8 @@ class GuardFunctions:
             self._syms = (sym.sym("sp", self.nx), sym.sym("u", self.nu))
         sp, u = self._syms
         g = self.guards[j]
+        if self.kind == "reset":
+            return dense_fn(f"reset{j}", [sp, u], [g.reset_at(sp, u)])
         if self.kind == "event_jac":
             return dense_fn(
                 f"event_jac{j}",
@@ -581,9 +584,10 @@ class Kernels:
         self.contact_fn = dense_fn("contact", [sp, u], [psi, rate, accel, psi_noise])
         self.psi_fn = dense_fn("guards_psi", [sp], [psi])
         # every reset as (s, u) -> s (one that does not use the control ignores u)
-        self.reset_fns = [
-            dense_fn(f"reset{j}", [sp, u], [g.reset_at(sp, u)]) for j, g in enumerate(ocp.guards)
-        ]
+        # built on first use, as the adjoint's per-guard functions (only guards that fire
+        # need them): each is a dense function of the whole state (20503 of 808 outputs for
+        # 202 discs)
+        self.reset_fns = GuardFunctions(ocp.guards, self.sx, ocp.nx, ocp.nu, "reset")
         self.reset_uses_u = [g.uses_control for g in ocp.guards]
 
     def _build_adjoint_fns(
