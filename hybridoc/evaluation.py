@@ -23,7 +23,7 @@ TERMINAL_TOL = 1e-8
 def checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray:
     """``times`` as a 1-D float array in ``[0, T]``, or an error naming the argument.
 
-    Times within rounding of the ends (``64 eps max(1, T)``: a sum of phase durations that
+    Times within rounding of the ends (``64 eps T``: a sum of phase durations that
     lands an ulp past ``T``) are clamped onto them; anything further out raises, as nothing
     is extrapolated.
 
@@ -38,7 +38,7 @@ def checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray
         raise HybridocError(f"{name} must be numbers, got {times!r}") from None
     if t.ndim != 1:
         raise HybridocError(f"{name} must be a number or a 1-D array, got shape {t.shape}")
-    slack = 64 * np.finfo(float).eps * max(1.0, abs(horizon))
+    slack = 64 * np.finfo(float).eps * abs(horizon)  # relative: horizons of 1e-6 s are fine
     bad = ~np.isfinite(t) | (t < -slack) | (t > horizon + slack)
     if bad.any():
         raise HybridocError(

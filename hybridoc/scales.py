@@ -208,3 +208,20 @@ def disc_scales(
         cost=length**2,
         length=length,
     )
+
+
+def optimizer_units(ocp: object) -> tuple[np.ndarray, float, float]:
+    """The units gradient-based optimisers work in: ``(control scale (nu,), cost scale, time
+    scale)``.
+
+    From the problem's :class:`Scales` (ones where it has none). gd and the multi-start see
+    the scaled controls ``u / cs`` and the loss ``J / jc`` per scaled step ``dt / tc``, so
+    that their step sizes, line searches and stopping tests (and the smoothing weights, the
+    kink certificate, the hops' perturbations and the multi-start's batched L-BFGS) give the
+    same iterates, up to the rounding of the scales to powers of two, for the same physical
+    problem in any units; with identity scales every number is as it was.
+    """
+    sc = getattr(ocp, "scales", None)
+    if sc is None:
+        return np.ones(int(ocp.nu)), 1.0, 1.0  # type: ignore[attr-defined]
+    return sc.control_array, float(sc.cost), float(sc.time)

@@ -113,12 +113,10 @@ class DiscOCP(HybridOCP):
             return None
         with _LOCK:
             if slot[0] is None:
-                from hybridoc.problems.compile import scene_to_ocp
-
                 scene = self.source_scene
                 assert scene is not None
                 n = scene.n_discs
-                local = scene_to_ocp(translated(scene, -off[:2]))
+                local = translated(scene, -off[:2]).to_ocp()
                 if not np.array_equal(local.scales.offset_array, np.zeros(4 * n)):
                     return None  # pragma: no cover - the snapped centre moves by < 1 quantum
                 slot[0] = local

@@ -2134,7 +2134,7 @@ def _coalescing(ocp: HybridOCP, k: _Known) -> tuple[str, str, float] | None:
         ba = np.asarray(rb(ga)[0], dtype=float)
         # the judge's test: only the components the jumps change, each at its own scale (a
         # far body must not lend its size to the tolerance)
-        if commute_defect(ab, ba, s, ga, gb) > 1e-9:
+        if commute_defect(ab, ba, s, ga, gb, floor=ocp.scales.state_array) > 1e-9:
             return e1.name, e2.name, gap
     return None
 
@@ -2189,6 +2189,9 @@ def _screen_worker(
     until none is left; each outcome goes to ``results`` as ``(index, outcome)``, ``(index,
     None)`` where :func:`_search_one` raised (the parent runs it again and meets the error
     itself)."""
+    from hybridoc.children import die_with_parent
+
+    die_with_parent()  # a SIGKILLed search must not leave its screens running
     # the screening NLPs built here, while the parent solves the guess's candidates (it
     # builds those of the lengths it screens itself when it joins)
     prepare(_SEARCH_STATE["ocp"], {len(seq) for seq in tasks}, max_iter=SCREEN_NLP_ITER)
@@ -2662,6 +2665,8 @@ def _search_outcomes(
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    from hybridoc.children import die_with_parent
+
     def spent() -> bool:
         return deadline is not None and time.perf_counter() >= deadline
 
@@ -2674,7 +2679,9 @@ def _search_outcomes(
     prepare(ocp, {len(seq) for seq in todo}, max_iter=SCREEN_NLP_ITER)
     try:
         if workers > 1 and len(todo) > 4 and "fork" in mp.get_all_start_methods():
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+            with ProcessPoolExecutor(
+                workers, mp_context=mp.get_context("fork"), initializer=die_with_parent
+            ) as pool:
                 # a few sequences ahead of the workers, so that the deadline stops soon
                 pending = [pool.submit(_search_one, seq) for seq in todo[: 2 * workers]]
                 nxt = len(pending)

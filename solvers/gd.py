@@ -86,6 +86,7 @@ from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.problems.paper import PAPER_SETTINGS
 from hybridoc.progress import Progress, ProgressLike, progress_scope
+from hybridoc.scales import optimizer_units as units
 from hybridoc.solution import Solution, Status
 from hybridoc.solvers.threads import flag_interrupts
 
@@ -296,23 +297,6 @@ class GDOptions:
         parse=positive_float,
         metavar="SECONDS",
     )
-
-
-def units(ocp: Any) -> tuple[np.ndarray, float, float]:
-    """The units gd optimises in: ``(control scale (nu,), cost scale, time scale)``.
-
-    From the problem's :class:`~hybridoc.scales.Scales` (ones where it has none). The
-    optimisers see the scaled controls ``u / cs`` and the loss ``J / jc`` per scaled step
-    ``dt / tc``, so that their step sizes, line searches and stopping tests (and the
-    smoothing weights, the kink certificate, the hops' perturbations and the multi-start's
-    batched L-BFGS) give the same iterates, up to the rounding of the scales to powers of
-    two, for the same physical problem in any units; with identity scales every number is
-    as it was.
-    """
-    sc = getattr(ocp, "scales", None)
-    if sc is None:
-        return np.ones(int(ocp.nu)), 1.0, 1.0
-    return sc.control_array, float(sc.cost), float(sc.time)
 
 
 def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:

@@ -734,7 +734,7 @@ def explore(
     if starts is None:
         starts = starting_controls(ocp, count, seed=seed)
     # the batched L-BFGS runs in scaled controls u / cs on the loss (J / jc) / dt~ (the
-    # units of gd, hybridoc.solvers.gd.units): the same descent in any units
+    # units of gd, hybridoc.scales.optimizer_units): the same descent in any units
     cs, jc, tc = _units(ocp)
     per = jc * (coarse.dt / tc)
     U0 = resample(np.asarray(starts, dtype=float), coarse.steps) / cs
@@ -785,10 +785,10 @@ def explore(
 
 
 def _units(ocp: HybridOCP) -> tuple[np.ndarray, float, float]:
-    """:func:`hybridoc.solvers.gd.units` (the control, cost and time scales)."""
-    from hybridoc.solvers.gd import units
+    """:func:`hybridoc.scales.optimizer_units` (the control, cost and time scales)."""
+    from hybridoc.scales import optimizer_units
 
-    return units(ocp)
+    return optimizer_units(ocp)
 
 
 def _same(f: np.ndarray, b: int, c: int) -> bool:

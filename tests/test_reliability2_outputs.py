@@ -214,10 +214,7 @@ ERRNOS = [errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS]
 # the commands whose answer is the result of work, printed whatever becomes of the files
 # (export's answer is its file; the dataset's, its files: tested below)
 ANSWERS = [
-    c if c != "reference" else pytest.param(c, marks=pytest.mark.xfail(
-        strict=True, reason="cli/reference.py writes before it prints (not this helper's "
-        "file; solve's write_error pattern is the fix)"))
-    for c in COMMANDS if c not in ("export", "dataset", "crossval", "convergence")
+    c for c in COMMANDS if c not in ("export", "dataset", "crossval", "convergence")
 ] + [pytest.param(c, marks=pytest.mark.slow) for c in ("crossval", "convergence")]  # fmt: skip
 
 

@@ -2,7 +2,7 @@
 
 The same physical disc scene with lengths, times and masses scaled, or moved far from the
 origin (:mod:`scaling`), has the optimal cost times ``length**2`` and the same events. gd
-optimises in the problem's scaled units (:func:`hybridoc.solvers.gd.units`: controls over
+optimises in the problem's scaled units (:func:`hybridoc.scales.optimizer_units`: controls over
 their scale, the loss over the cost scale per scaled step) and simulates a scene far from
 the origin moved by its offset (:func:`hybridoc.solvers.compiled.translated`). With factors
 that are powers of two the scaled problem is the same to the last bit, so the descent is

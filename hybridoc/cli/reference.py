@@ -25,6 +25,7 @@ from hybridoc.cli._util import (
     say,
     solution_payload,
 )
+from hybridoc.errors import HybridocError
 
 __all__ = ["register", "terminal_lines", "write_landscape", "write_reference_outputs"]
 
@@ -58,11 +59,17 @@ def cmd_reference(args: argparse.Namespace) -> int:
         budget=args.budget, rtol=args.rtol, progress=True, time_limit=args.time_limit,
     )  # fmt: skip
     files: list[Path] = []
-    if out_dir is not None:
-        files = write_reference_outputs(ocp, sol, stem)
+    write_error: HybridocError | None = None
+    try:
+        if out_dir is not None:
+            files = write_reference_outputs(ocp, sol, stem)
+    except HybridocError as exc:
+        write_error = exc  # the answer is still printed, then this one line (exit 2)
     landscape = sol.info.get("landscape")
     if args.json:
         emit_json(solution_payload(sol, files=[str(f) for f in files]))
+        if write_error is not None:
+            raise write_error
         return exit_code(sol.status, sol.message)
     its = sol.info["newton_iterations"]
     details = [
@@ -91,6 +98,8 @@ def cmd_reference(args: argparse.Namespace) -> int:
         say(args, indent(format_table(["sequence", "cost", "verdict", "time s"], rows)))
     for f in files:
         say(args, f"wrote {f}")
+    if write_error is not None:
+        raise write_error
     return exit_code(sol.status, sol.message)
 
 
