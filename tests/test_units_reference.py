@@ -207,3 +207,22 @@ def test_dop853_step_needs_no_scipy_integrate():
     assert abs(float(out[0]) - math.cos(0.1)) < 1e-15
     assert abs(float(out[1]) + math.sin(0.1)) < 1e-15
     assert out[2] == "False"
+
+
+def test_a_dataset_of_a_scene_far_from_its_units_is_refused_in_one_line(tmp_path):
+    # the reference solves such a scene as its canonical scene, whose shooting unknowns a
+    # dataset's rows would hold: refused before the nominal solve (it was an AttributeError,
+    # an internal error, after it)
+    import tomllib
+
+    from small_scenes import strike_scene
+
+    from hybridoc.errors import SceneError
+    from hybridoc.problems import Scene
+    from hybridoc.workflows.datasets import make_dataset
+
+    scene = Scene.from_dict(tomllib.loads(strike_scene("far-strike", steps=40)))
+    far = transform(scene, length=1e3)
+    with pytest.raises(SceneError, match=r"^dataset: the scene is far from its own units"):
+        make_dataset(far, 2, tmp_path / "ds", progress=False)
+    assert not (tmp_path / "ds" / "dataset.npz").exists()

@@ -1161,6 +1161,25 @@ def _nominal(source: Scene | HybridOCP, tol: float, progress: Progress) -> dict[
     }
 
 
+def _check_own_units(source: Scene | HybridOCP) -> None:
+    """Refuse a disc scene the reference solves in other units (far from its own units or
+    from the origin: :func:`hybridoc.reference.units.canonical`): a dataset's rows hold the
+    reference's shooting unknowns, which are then the canonical scene's."""
+    from hybridoc.problems import Scene
+    from hybridoc.reference.units import canonical
+
+    ocp = source.to_ocp() if isinstance(source, Scene) else source
+    units = canonical(ocp)
+    if units is not None:
+        sc = ocp.scales
+        raise SceneError(
+            f"dataset: the scene is far from its own units (length scale {sc.length:g}, time "
+            f"scale {sc.time:g}, offset {sc.state_offset[:2]}); datasets are built for scenes "
+            "within a factor 4 of their units and near the origin (docs: trust, units and "
+            "place): state the scene in units of its own size"
+        )
+
+
 def make_dataset(
     problem: Any,
     samples: int,
@@ -1227,6 +1246,7 @@ def make_dataset(
     samples = check_count(samples, "samples", 1)
     source = distribution_problem(problem, distribution)
     check_samples_of(source, samples)  # before the nominal solve and any allocation
+    _check_own_units(source)
     seed = source_seed(source, seed)
     workers = usable_cores() if workers is None else check_count(workers, "workers", 1)
     check_dask(dask)
