@@ -31,7 +31,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FAR_FACTOR", "Scales", "disc_scales", "far_points", "pow2", "snap_offset"]
+__all__ = [
+    "FAR_FACTOR",
+    "Scales",
+    "disc_scales",
+    "far_points",
+    "optimizer_units",
+    "pow2",
+    "snap_offset",
+]
 
 OFFSET_QUANTUM = 1024.0
 """Offsets are multiples of this many length scales: a scene near the origin keeps offset 0."""
