@@ -51,7 +51,7 @@ __all__ = [
     "check_samples_of",
     "fmt_bytes",
     "judge_bytes",
-    "judge_guard_state_bytes",
+    "judge_guard_bytes",
     "disc_guards",
     "large_allowed",
     "memory_limit",
@@ -186,17 +186,22 @@ def check(what: str, need: float, detail: str, hint: str, error: type = Resource
 # ---------------------------------------------------------------------------------------
 # the judge
 
-JUDGE_GUARD_STATE_BYTES = (1024, 23, 4608)
-"""``(a, b, floor)``: the judge's compiled kernels take ``max(floor, a + b nx)`` bytes per
-guard and state component of a disc scene with ``nx`` states. Each guard's detector,
-rounding level (with its Hessian) and reset enter dense CasADi functions of the whole state,
-so the cost per guard grows with the state too. Measured (RSS growth of building the
-kernels, grids of discs 3 apart and one wall): 4.4 KiB per guard and state at 10 discs,
-3.4 at 20, 4.6 at 40, 5.3 at 50 (1275 guards, 1.30 GiB), 7.2 at 70 (2485 guards, 4.81 GiB);
-the model gives 4.5, 4.5, 4.6, 5.5 and 7.3."""
-JUDGE_SECONDS_PER_GUARD_STATE = 5e-5
-"""CPU seconds to compile the judge's kernels, per guard and state component (12.8 s for
-1275 guards over 200 states, 33 s for 2485 guards over 280)."""
+JUDGE_GUARD_BYTES = (180224, 40)
+"""``(a, b)``: a disc scene's judge takes ``a + b nx`` bytes per guard (176 KiB and 40 B per
+state component): the scene's guards compiled (about 30 KiB each) and the kernels' functions
+over every guard (the detectors at the sample nodes with their rounding levels, the guard
+values, rates and accelerations); the per-guard resets and adjoint Jacobians are built only
+for the guards that fire (:class:`hybridoc.kernels.GuardFunctions`). Measured (peak RSS of a
+fresh process, less its 65 MiB at start, over the scene's compile, the kernels and one
+evaluation of a grid of discs 3 apart and a wall): 180 kB per guard at 20 discs, 189 at 50
+(230 MiB), 177 at 70, 185 at 100 (892 MiB), 210 at 202 (20503 guards, 808 states: the
+``evaluate`` command's peak 4.26 GB, 143 s of CPU); the model gives 183, 188, 191, 196 and
+213. Before the per-guard functions were built lazily: 5.3 KiB per guard and state at 50
+discs (1.30 GiB), 7.2 at 70 (4.81 GiB), ``std::bad_alloc`` after 10.8 GB at 202."""
+JUDGE_SECONDS_PER_GUARD = (1.2e-3, 3.5e-6)
+"""``(a, b)``: CPU seconds to compile the judge's kernels, ``a + b nx`` per guard (measured
+2.2 s for 1275 guards over 200 states, 12.2 s for 5050 over 400, 81 s for 20503 over
+808)."""
 JUDGE_STEP_BYTES = (384, 32)
 """``(a, b)``: the judge's trajectory takes ``a + b nx`` bytes per grid step (the recorded
 states, the segments, the batched samples; measured peak growth 580 B per step at 8 states,
@@ -208,19 +213,19 @@ def disc_guards(n_discs: int, n_walls: int) -> int:
     return n_discs * (n_discs - 1) // 2 + n_discs * n_walls
 
 
-def judge_guard_state_bytes(nx: int) -> int:
-    """Bytes of the judge's kernels per guard and state component
-    (:data:`JUDGE_GUARD_STATE_BYTES`)."""
-    a, b, floor = JUDGE_GUARD_STATE_BYTES
-    return max(floor, a + b * nx)
+def judge_guard_bytes(nx: int) -> int:
+    """Bytes of the judge per guard of a disc scene with ``nx`` states
+    (:data:`JUDGE_GUARD_BYTES`)."""
+    a, b = JUDGE_GUARD_BYTES
+    return a + b * nx
 
 
 def judge_bytes(guards: int, nx: int, steps: int) -> int:
-    """The bytes one evaluation by the judge allocates: its compiled kernels
-    (:func:`judge_guard_state_bytes` per guard and state) and its trajectory
+    """The bytes one evaluation by the judge allocates: the scene's guards compiled into its
+    kernels (:func:`judge_guard_bytes` per guard) and its trajectory
     (:data:`JUDGE_STEP_BYTES` per step)."""
     a, b = JUDGE_STEP_BYTES
-    return judge_guard_state_bytes(nx) * guards * nx + (a + b * nx) * steps
+    return judge_guard_bytes(nx) * guards + (a + b * nx) * steps
 
 
 def check_judge(n_discs: int, n_walls: int, steps: int) -> None:
@@ -233,14 +238,15 @@ def check_judge(n_discs: int, n_walls: int, steps: int) -> None:
     """
     G, nx = disc_guards(n_discs, n_walls), 4 * n_discs
     need = judge_bytes(G, nx, steps)
-    secs = JUDGE_SECONDS_PER_GUARD_STATE * G * nx
+    sa, sb = JUDGE_SECONDS_PER_GUARD
+    secs = (sa + sb * nx) * G
     walls = f"{n_walls} wall{'' if n_walls == 1 else 's'}"
     a, b = JUDGE_STEP_BYTES
     check(
         f"a scene of {n_discs} discs and {walls} with {steps} steps",
         need,
         f"the judge compiles {G} contact guards over {nx} states, about "
-        f"{fmt_bytes(judge_guard_state_bytes(nx))} per guard and state, in about {secs:.3g} s "
+        f"{fmt_bytes(judge_guard_bytes(nx))} per guard, in about {secs:.3g} s "
         f"of CPU; its trajectory takes {fmt_bytes(a + b * nx)} per step",
         "use fewer discs or steps",
     )

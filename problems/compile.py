@@ -29,8 +29,8 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     """Build the hybrid OCP of a disc scene (exact polynomial flow map, impulse resets)."""
     ops = ph.CASADI
     n = scene.n_discs
-    # every pair's guard enters the judge's dense kernels: refuse at once a scene whose
-    # kernels cannot fit (202 discs took 10.8 GB and 233 s before std::bad_alloc)
+    # every pair's guard enters the judge's kernels (about 200 kB each): refuse at once a
+    # scene whose judge cannot fit (202 discs: 4.3 GB, hybridoc.resources.JUDGE_GUARD_BYTES)
     check_judge(n, len(scene.walls), scene.steps)
     nx = 4 * n
     s = ca.SX.sym("s", nx)
