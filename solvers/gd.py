@@ -1141,6 +1141,8 @@ def _status(
             "diverged; try a smaller learning rate"
         )
     if not converged:
+        if not ev.feasible:  # the stronger finding: what it returns is not admissible at all
+            return Status.INFEASIBLE, f"{_infeasible(ev)}; and {why}" if why else _infeasible(ev)
         return Status.NOT_CONVERGED, why
     if not ev.feasible:
         return Status.INFEASIBLE, _infeasible(ev)

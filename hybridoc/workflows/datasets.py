@@ -1701,13 +1701,20 @@ def check_columns(
                     "not agree with the other columns"
                 )
     events = columns.get("n_events")
-    if (
-        events is not None
-        and "K" in sizes
-        and events.size
-        and (events.min() < 0 or events.max() > sizes["K"])
-    ):
-        raise HybridocError(f"{where}: its column 'n_events' is not within [0, {sizes['K']}]")
+    if events is not None and "K" in sizes and events.size:
+        # a failed draw's row says -1 (_failed_record): no events, and not a count
+        status = columns.get("status")
+        failed = (
+            np.asarray(status) == "failed"
+            if status is not None and np.shape(status) == np.shape(events)
+            else np.zeros(np.shape(events), dtype=bool)
+        )
+        low = np.where(failed, -1, 0)
+        if np.any(events < low) or np.any(events > sizes["K"]):
+            raise HybridocError(
+                f"{where}: its column 'n_events' is not within [0, {sizes['K']}] "
+                "(-1 for a failed draw)"
+            )
     return sizes
 
 
