@@ -242,7 +242,10 @@ def test_every_method_with_no_option_agrees_in_crossval(opt) -> None:
     report, sols = hybridoc.crossval("two-tanks", options={"gd": {"starts": 1}})
     assert report["agree"], report["reasons"]
     assert set(sols) == {"reference", "dt", "gd"}
-    assert all(s.success and s.sequence == SEQ and s.modes == MODES for s in sols.values())
+    # the searches do not prove the optimum (issue #29: best-found); gd's claim is local
+    ok = (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND)
+    assert all(s.status in ok and s.sequence == SEQ and s.modes == MODES for s in sols.values())
+    assert sols["gd"].success
     assert sols["reference"].cost == pytest.approx(opt["cost"], rel=1e-10)
     assert opt["cost"] * (1 - 1e-12) <= sols["dt"].cost <= opt["cost"] * (1 + 1e-5)
     # gd: piecewise-constant controls on the 150-cell grid
