@@ -413,3 +413,35 @@ def test_touching_at_t0_is_allowed_overlap_is_not():
     Scene(horizon=1.0, discs=(a, Disc("b", (0.4, 0.0), 0.2, target=(0, 0))))
     with pytest.raises(SceneError, match="discs 'a' and 'b' overlap"):
         Scene(horizon=1.0, discs=(a, Disc("b", (0.4 - 1e-9, 0.0), 0.2, target=(0, 0))))
+
+
+def test_first_overlap_matches_the_pairwise_loop() -> None:
+    """The vectorised overlap check (blocks of rows) finds the same first pair as a loop
+    over the pairs in scene order, on random crowded scenes (block sizes that split rows)."""
+    from hybridoc.problems.scene import Disc, _first_overlap
+
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n = int(rng.integers(2, 30))
+        discs = [
+            Disc(
+                name=f"d{k}",
+                position=tuple(rng.uniform(-3, 3, 2)),
+                radius=float(rng.uniform(0.05, 0.6)),
+            )
+            for k in range(n)
+        ]
+        want = None
+        for i in range(n):
+            for j in range(i + 1, n):
+                a, b = discs[i], discs[j]
+                gap = math.dist(a.position, b.position) - (a.radius + b.radius)
+                sl = 1e-12 * max(*map(abs, a.position), *map(abs, b.position), a.radius + b.radius)
+                if gap < -sl:
+                    want = (i, j)
+                    break
+            if want:
+                break
+        for block in (1, 3, 256):
+            got = _first_overlap(discs, block=block)
+            assert (None if got is None else got[:2]) == want, (trial, block)
