@@ -294,7 +294,7 @@ def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
     L-BFGS's line search. The moved problem computes the same loss and gradient in full
     precision.
     """
-    import dataclasses
+    from hybridoc.problems.disc_ocp import translated as moved_scene
 
     scales = getattr(ocp, "scales", None)
     offset = None if scales is None else scales.offset_array
@@ -309,18 +309,8 @@ def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
     ):
         return ocp, None  # not one shift of the whole scene: simulated where it is
 
-    def moved(p: Any) -> tuple[float, float]:
-        return (float(p[0]) - dx, float(p[1]) - dy)
-
-    scene = ocp.scene
-    discs = tuple(
-        dataclasses.replace(
-            d, position=moved(d.position), target=None if d.target is None else moved(d.target)
-        )
-        for d in scene.discs
-    )
-    walls = tuple(dataclasses.replace(w, point=moved(w.point)) for w in scene.walls)
-    near = dataclasses.replace(scene, discs=discs, walls=walls, distribution=None).to_ocp()
+    # p + (-d) is p - d exactly: the same numbers as subtracting the offset
+    near = moved_scene(ocp.scene, np.array([-dx, -dy])).to_ocp()
     return near, offset.copy()
 
 
