@@ -33,6 +33,7 @@ import pytest
 from conftest import examples
 from hypothesis import assume, event, example, given, note, settings
 from hypothesis import strategies as st
+from scaling import transform
 
 import hybridoc
 from hybridoc import Disc, HybridocError, Scene, Wall
@@ -627,20 +628,6 @@ def test_a_far_body_or_wall_changes_nothing_more_cases(case: Any, far: dict[str,
     test_a_far_body_or_wall_changes_nothing.hypothesis.inner_test(case, far)  # type: ignore[attr-defined]
 
 
-def _translated(scene: Scene, c: np.ndarray) -> Scene:
-    def moved(p: Any) -> tuple[float, float]:
-        return (float(p[0] + c[0]), float(p[1] + c[1]))
-
-    discs = tuple(
-        dataclasses.replace(
-            d, position=moved(d.position), target=None if d.target is None else moved(d.target)
-        )
-        for d in scene.discs
-    )
-    walls = tuple(dataclasses.replace(w, point=moved(w.point)) for w in scene.walls)
-    return dataclasses.replace(scene, discs=discs, walls=walls)
-
-
 @settings(max_examples=examples(10))
 @given(
     case=scenes(max_discs=4, max_walls=3),
@@ -658,7 +645,7 @@ def test_translating_the_scene_changes_nothing(case: Any, log_offset: float, ang
     # the translated scene rounds every position at the scale |c| + the scene's extent
     length = float(np.abs(c).max()) + _extent(want)[0]
     spread = _conditioned_spread(ocp, u, want, T, length)
-    got = _judge(_translated(scene, c), u)
+    got = _judge(transform(scene, shift=(float(c[0]), float(c[1]))), u)
     assert not isinstance(got, Exception), f"translated by {c}: {got!r}; untranslated: fine"
     event(f"translated by 1e{math.floor(log_offset)}")
     # positions, targets and walls rounded once, then at every flow step and event

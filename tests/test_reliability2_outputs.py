@@ -103,6 +103,15 @@ def _commands(d: Path) -> dict[str, tuple[list[str], list[str]]]:
 COMMANDS = sorted(_commands(Path("x")))
 
 
+def _precious(root: Path) -> Path:
+    """A user's file outside the output folder, ``root/elsewhere/precious.txt``, that no
+    command may touch."""
+    outside = root / "elsewhere" / "precious.txt"
+    outside.parent.mkdir()
+    outside.write_bytes(PRECIOUS)
+    return outside
+
+
 def _run(d: Path, command: str, out: Path) -> tuple[object, list[str]]:
     args, _ = _commands(d)[command]
     target = out / "model.xml" if command == "export" else out
@@ -139,9 +148,7 @@ def test_whatever_stands_at_an_output_name_is_refused_before_the_work(
 ) -> None:
     command, name, kind = case
     root = tmp_path_factory.mktemp("plant")
-    outside = root / "elsewhere" / "precious.txt"
-    outside.parent.mkdir()
-    outside.write_bytes(PRECIOUS)
+    outside = _precious(root)
     out = root / "out"
     at = out / name
     at.parent.mkdir(parents=True)
@@ -164,9 +171,7 @@ def test_validate_policy_never_writes_its_dataset_through_a_link(
 ) -> None:
     # found by the test above: a link at <out>/<name>_dataset took dataset.npz and
     # manifest.json into the folder it pointed to (exit 0)
-    outside = tmp_path / "elsewhere" / "precious.txt"
-    outside.parent.mkdir()
-    outside.write_bytes(PRECIOUS)
+    outside = _precious(tmp_path)
     out = tmp_path / "out"
     out.mkdir()
     at = out / f"{SLUG}_dataset"
@@ -185,9 +190,7 @@ def test_the_validation_commands_refuse_a_link_before_their_solves(
 ) -> None:
     # found by the tests above: they solved first (crossval: three methods) and then
     # refused, losing the answer
-    outside = tmp_path / "elsewhere" / "precious.txt"
-    outside.parent.mkdir()
-    outside.write_bytes(PRECIOUS)
+    outside = _precious(tmp_path)
     out = tmp_path / "out"
     out.mkdir()
     at = out / _commands(files)[command][1][0]
