@@ -56,22 +56,12 @@ def _local(scene: Scene) -> Scene:
     scene's own lengths, not at ``eps`` times its distance from the origin (rollouts of a
     scene at ``1e6`` lost ``2e-9`` of the loss); the controls are the same. ``scene`` itself
     where the offset is zero."""
-    import dataclasses
+    from hybridoc.problems.disc_ocp import translated
 
     off = np.asarray(scene.to_ocp().scales.state_offset[:2], dtype=float)
     if not off.any():
         return scene
-    discs = []
-    for d in scene.discs:
-        kw: dict[str, Any] = {"position": tuple(np.asarray(d.position, dtype=float) - off)}
-        if d.target is not None:
-            kw["target"] = tuple(np.asarray(d.target, dtype=float) - off)
-        discs.append(dataclasses.replace(d, **kw))
-    walls = [
-        dataclasses.replace(w, point=tuple(np.asarray(w.point, dtype=float) - off))
-        for w in scene.walls
-    ]
-    return dataclasses.replace(scene, discs=tuple(discs), walls=tuple(walls))
+    return translated(scene, -off)  # p + (-off) is p - off exactly
 
 
 def _terminal(scene: Scene, s: Any) -> Any:
