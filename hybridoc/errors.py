@@ -16,6 +16,12 @@ class SceneError(HybridocError, ValueError):
     """A scene file or scene object is invalid."""
 
 
+class OptionError(SceneError):
+    """An option of a method or a workflow is invalid: an unknown name, a wrong type or a
+    value out of range. A :class:`ValueError`; a subclass of :class:`SceneError` for one
+    release, so that code which caught the old error for a bad option keeps working."""
+
+
 class ControlsError(HybridocError, ValueError):
     """A control array or controls file is invalid (shape, NaN, unreadable)."""
 

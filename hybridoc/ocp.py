@@ -98,6 +98,7 @@ from typing import Any, ClassVar
 import casadi as ca
 import numpy as np
 
+from hybridoc.capabilities import Capabilities
 from hybridoc.errors import ControlsError, SceneError
 from hybridoc.scales import Scales
 
@@ -400,6 +401,12 @@ class HybridOCP:
         methods use to work in numbers of order one. ``None`` (default):
         :meth:`Scales.identity <hybridoc.scales.Scales.identity>`. Disc scenes fill it from
         their lengths, horizon and masses. Part of the structure.
+    capabilities
+        What the problem offers beyond its functions (:class:`~hybridoc.capabilities.
+        Capabilities`: a closed-form flow, a geometry, a serialisable spec, solver hints).
+        ``None`` (default): nothing. The compilers fill it; methods and workflows ask for a
+        capability instead of a type. Part of the structure: dropped by a :meth:`replace`
+        that changes the functions.
     """
 
     f: ca.Function
@@ -425,6 +432,7 @@ class HybridOCP:
     distribution: Callable[[np.random.Generator, int], np.ndarray] | None = None
     final_mode: str | None = None
     scales: Scales | None = field(default=None, repr=False)
+    capabilities: Capabilities | None = field(default=None, repr=False)
     structure: Structure = field(default=None, repr=False)  # type: ignore[assignment]
 
     DATA_FIELDS: ClassVar[frozenset[str]] = _DATA_FIELDS
@@ -473,6 +481,19 @@ class HybridOCP:
             raise SceneError(
                 f"scales has {len(self.scales.state)} state and {len(self.scales.control)} "
                 f"control entries; the problem has {self.nx} and {self.nu}"
+            )
+        if self.capabilities is None:
+            self.capabilities = Capabilities()
+        elif not isinstance(self.capabilities, Capabilities):
+            raise SceneError(
+                "capabilities must be a hybridoc.capabilities.Capabilities, "
+                f"got {self.capabilities!r}"
+            )
+        flow = self.capabilities.flow
+        if flow is not None and (self.nx % 2 or flow.A.shape != (self.nx // 2, self.nu)):
+            raise SceneError(
+                f"capabilities.flow.A has shape {flow.A.shape}; a problem with {self.nx} states "
+                f"and {self.nu} controls needs ({self.nx // 2}, {self.nu})"
             )
         if self.path is not None:
             p = self.path
@@ -984,6 +1005,7 @@ class HybridOCP:
             if "flow_map" not in changes and self.structure.integrator_flow:
                 changes["flow_map"] = None
             changes.setdefault("scales", None)  # other functions may mean other units
+            changes.setdefault("capabilities", None)  # nor need they offer the same
         changes.setdefault("meta", dict(self.meta))
         return dataclasses.replace(self, **changes)
 

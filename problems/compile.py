@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from hybridoc.capabilities import Body, Capabilities, Geometry, LinearControlFlow, Plane
 from hybridoc.ocp import Guard
 from hybridoc.problems import physics as ph
 from hybridoc.problems.disc_ocp import DiscOCP
@@ -22,7 +23,7 @@ from hybridoc.scales import disc_scales
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problems.scene import Scene
 
-__all__ = ["disc_accelerations", "scene_to_ocp"]
+__all__ = ["disc_accelerations", "disc_capabilities", "scene_to_ocp"]
 
 
 def scene_to_ocp(scene: Scene) -> DiscOCP:
@@ -74,6 +75,7 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
             [d.mass for d in scene.discs if d.actuated],
             [w.point for w in scene.walls],
         ),
+        capabilities=disc_capabilities(scene, a_flat, u),
         meta={
             "n_discs": n,
             "disc_names": [d.name for d in scene.discs],
@@ -85,6 +87,22 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
     )
     ocp.mark_compiled()  # its functions are the scene's: DiscOCP.local_frame may move it
     return ocp
+
+
+def disc_capabilities(scene: Scene, a_flat: ca.SX, u: ca.SX) -> Capabilities:
+    """What a compiled scene offers (:class:`~hybridoc.capabilities.Capabilities`): its
+    closed-form flow ``f = (v, A u)``, ``L = eps |u|^2``, its geometry and its spec."""
+    A = np.asarray(ca.DM(ca.jacobian(a_flat, u)), dtype=float).reshape(a_flat.numel(), u.numel())
+    geometry = Geometry(
+        bodies=tuple(Body(d.name, d.radius, d.mass, d.actuated, d.target) for d in scene.discs),
+        planes=tuple(Plane(w.name, w.point, w.normal) for w in scene.walls),
+        restitution=scene.restitution,
+    )
+    return Capabilities(
+        flow=LinearControlFlow(A, scene.control_weight),
+        geometry=geometry,
+        spec={"kind": "scene", "toml": scene.to_toml()},
+    )
 
 
 def disc_accelerations(scene: Scene, u: ca.SX) -> list[ca.SX]:

@@ -32,6 +32,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hybridoc.errors",
             "hybridoc.ocp",
             "hybridoc.scales",
+            "hybridoc.capabilities",
+            "hybridoc.tolerances",
             "hybridoc.children",
             "hybridoc.resources",
             "hybridoc.kernels",
