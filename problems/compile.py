@@ -91,7 +91,8 @@ def scene_to_ocp(scene: Scene) -> DiscOCP:
 
 def disc_capabilities(scene: Scene, a_flat: ca.SX, u: ca.SX) -> Capabilities:
     """What a compiled scene offers (:class:`~hybridoc.capabilities.Capabilities`): its
-    closed-form flow ``f = (v, A u)``, ``L = eps |u|^2``, its geometry and its spec."""
+    closed-form flow ``f = (v, A u)``, ``L = eps |u|^2``, its geometry, its spec and its
+    solver hints (the scene's ``[hints.<method>]`` tables)."""
     A = np.asarray(ca.DM(ca.jacobian(a_flat, u)), dtype=float).reshape(a_flat.numel(), u.numel())
     geometry = Geometry(
         bodies=tuple(Body(d.name, d.radius, d.mass, d.actuated, d.target) for d in scene.discs),
@@ -102,6 +103,7 @@ def disc_capabilities(scene: Scene, a_flat: ca.SX, u: ca.SX) -> Capabilities:
         flow=LinearControlFlow(A, scene.control_weight),
         geometry=geometry,
         spec={"kind": "scene", "toml": scene.to_toml()},
+        hints=scene.hints,
     )
 
 

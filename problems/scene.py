@@ -35,6 +35,10 @@ TOML layout::
     position = { uniform = [0.3, 0.3] }   # nominal +- half-widths per coordinate
     velocity = { normal = [0.1, 0.1] }    # nominal + N(0, sigma^2) per coordinate
     target = { range = [[-0.1, 0.1], [0.0, 0.2]] }  # absolute [low, high] per coordinate
+
+    [hints.gd]                         # optional: option defaults per method (solver hints)
+    lr = 200.0                         # numbers, strings or booleans; a user's option wins
+    iters = 500
 """
 
 from __future__ import annotations
@@ -118,6 +122,7 @@ _DISC_KEYS = {
     "target",
 }
 _WALL_KEYS = {"name", "point", "normal"}
+_TABLES = {"discs", "walls", "distribution", "hints"}
 
 
 def _vec2(value: Any, what: str) -> tuple[float, float]:
@@ -564,6 +569,12 @@ class Scene:
     distribution
         Optional :class:`Distribution` of initial states (and targets) around this scene,
         for :meth:`draw_scenes` and datasets.
+    hints
+        Solver hints: per method name (``"gd"``), option defaults the scene's author tuned
+        (``{"lr": 200.0, "iters": 500}``); names match :data:`NAME_PATTERN`, values are
+        finite numbers, strings or booleans. They reach the methods as
+        :meth:`Capabilities.hints_for <hybridoc.capabilities.Capabilities.hints_for>`, and a
+        user's option wins. Read-only.
     """
 
     horizon: float
@@ -575,6 +586,7 @@ class Scene:
     name: str = "scene"
     description: str = ""
     distribution: Distribution | None = None
+    hints: Mapping[str, Mapping[str, Any]] = field(default_factory=dict, hash=False)
     _derived: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -646,6 +658,7 @@ class Scene:
                         f"disc {a.name!r} overlaps wall {w.name!r} at t = 0 "
                         f"(penetration {-gap:.6g}; the wall normal points into free space)"
                     )
+        object.__setattr__(self, "hints", _checked_hints(self.hints))
         self._check_range()
         if self.distribution is not None:
             if not isinstance(self.distribution, Distribution):
@@ -815,6 +828,7 @@ class Scene:
             name=self.name,
             description=self.description,
             distribution=self.distribution,
+            hints=self.hints,
         )
 
     def to_ocp(self) -> DiscOCP:
@@ -877,11 +891,11 @@ class Scene:
         """Build a scene from a mapping with the TOML layout (see module docstring)."""
         if not isinstance(data, Mapping):
             raise SceneError(f"scene must be a table, got {type(data).__name__}")
-        unknown = set(data) - _TOP_KEYS - {"discs", "walls", "distribution"}
+        unknown = set(data) - _TOP_KEYS - _TABLES
         if unknown:
             raise SceneError(
                 f"unknown top-level key(s): {', '.join(sorted(unknown))} "
-                f"(allowed: {', '.join(sorted(_TOP_KEYS | {'discs', 'walls', 'distribution'}))})"
+                f"(allowed: {', '.join(sorted(_TOP_KEYS | _TABLES))})"
             )
         if "horizon" not in data:
             raise SceneError("missing required key 'horizon'")
@@ -934,6 +948,8 @@ class Scene:
                 kwargs[key] = data[key]
         if "distribution" in data:
             kwargs["distribution"] = Distribution.from_dict(data["distribution"])
+        if "hints" in data:
+            kwargs["hints"] = data["hints"]
         return cls(
             horizon=data["horizon"],
             discs=tuple(discs),
@@ -1006,7 +1022,55 @@ class Scene:
             ]
         if self.distribution is not None:
             lines += ["", *self.distribution.toml_lines()]
+        for method, options in self.hints.items():
+            lines += ["", f"[hints.{method}]"]
+            lines += [f"{key} = {_toml_value(value)}" for key, value in options.items()]
         return "\n".join(lines) + "\n"
+
+
+def _hint_value(value: Any, what: str) -> float | int | str | bool:
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, str):
+        return value
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return _number(value, what)
+    raise SceneError(f"{what} must be a number, a string or a boolean, got {value!r}")
+
+
+def _checked_hints(hints: Any) -> dict[str, dict[str, Any]]:
+    """A validated copy of a scene's ``hints`` (method -> option -> value), or one
+    :class:`SceneError` line naming the first bad entry."""
+    if not isinstance(hints, Mapping):
+        raise SceneError(
+            "hints must be a table of methods ([hints.gd] with option = value lines), "
+            f"got {hints!r}"
+        )
+    out: dict[str, dict[str, Any]] = {}
+    for method, options in hints.items():
+        if not isinstance(method, str) or _NAME_RE.fullmatch(method) is None:
+            raise SceneError(f"hints: method name {method!r} is not allowed ({NAME_PATTERN})")
+        if not isinstance(options, Mapping):
+            raise SceneError(f"hints.{method} must be a table of option = value, got {options!r}")
+        table: dict[str, Any] = {}
+        for key, value in options.items():
+            if not isinstance(key, str) or _NAME_RE.fullmatch(key) is None:
+                raise SceneError(
+                    f"hints.{method}: option name {key!r} is not allowed ({NAME_PATTERN})"
+                )
+            table[key] = _hint_value(value, f"hints.{method}.{key}")
+        out[method] = table
+    return out
+
+
+def _toml_value(value: float | int | str | bool) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return _toml_str(value)
+    return repr(value)  # an int, or a finite float (repr reads back bit for bit)
 
 
 def _toml_str(s: str) -> str:
