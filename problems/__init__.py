@@ -8,6 +8,9 @@ hybrid OCPs (installed as ``hybridoc.problems``).
 
 from __future__ import annotations
 
+import dataclasses
+import tomllib
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,9 +29,12 @@ __all__ = [
     "Scene",
     "Wall",
     "builtin_names",
+    "from_spec",
     "library_names",
+    "library_ocp",
     "load_problem",
     "load_scene",
+    "scene_of",
 ]
 
 
@@ -102,9 +108,7 @@ def load_problem(problem: str | Path | Scene | HybridOCP) -> Scene | HybridOCP:
     if text in builtin_names():
         return load_scene(text)
     if text in library_names():
-        from hybridoc.problems.library import LIBRARY
-
-        return LIBRARY[text]()
+        return library_ocp(text)
     path_part, _, func = (
         text.partition(":") if ".py:" in text or text.endswith(".py") else (text, "", "")
     )
@@ -120,6 +124,76 @@ def load_problem(problem: str | Path | Scene | HybridOCP) -> Scene | HybridOCP:
             f"unknown problem {text!r}: not a built-in ({', '.join(names)}), not a .toml file "
             "and not path/to/file.py:function"
         ) from exc
+
+
+def library_ocp(name: str) -> HybridOCP:
+    """The library problem registered as ``name`` (:func:`library_names`), with its defaults
+    and the spec ``{"kind": "library", "name": name}`` that :func:`from_spec` rebuilds it
+    from.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For a name that is not a library problem.
+    """
+    if not isinstance(name, str) or name not in library_names():
+        raise SceneError(
+            f"unknown library problem {name!r} (library: {', '.join(library_names())})"
+        )
+    from hybridoc.problems.library import LIBRARY
+
+    ocp = LIBRARY[name]()
+    # a fresh problem: its record gains the spec (its functions are those of the name)
+    ocp.capabilities = dataclasses.replace(ocp.capabilities, spec={"kind": "library", "name": name})
+    return ocp
+
+
+def from_spec(spec: Mapping[str, Any]) -> HybridOCP:
+    """Rebuild a problem from its spec (:attr:`Capabilities.spec
+    <hybridoc.capabilities.Capabilities.spec>`): the same functions and the data the spec
+    was made with.
+
+    Parameters
+    ----------
+    spec
+        ``{"kind": "scene", "toml": text}`` (a disc scene, compiled again) or
+        ``{"kind": "library", "name": name}`` (a library problem, looked up in the
+        registry). Nothing in a spec is run as code.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        For an unknown kind, a missing or mistyped field, an invalid scene or an unknown
+        library name (one line).
+    """
+    if not isinstance(spec, Mapping):
+        raise SceneError(f"a problem spec must be a mapping, got {type(spec).__name__}")
+    kind = spec.get("kind")
+    if kind == "scene":
+        text = spec.get("toml")
+        if not isinstance(text, str):
+            raise SceneError('a scene spec needs its TOML text under "toml"')
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"the scene spec is not valid TOML: {exc}") from None
+        return Scene.from_dict(data).to_ocp()
+    if kind == "library":
+        name = spec.get("name")
+        if not isinstance(name, str):
+            raise SceneError('a library spec needs the problem\'s name under "name"')
+        return library_ocp(name)
+    raise SceneError(f"unknown problem spec kind {kind!r} (known: scene, library)")
+
+
+def scene_of(problem: Any) -> Scene | None:
+    """The :class:`Scene` of a disc problem (a Scene, or a :class:`DiscOCP` with its
+    current data), else ``None``: the one place above which nothing tests for the type."""
+    if isinstance(problem, Scene):
+        return problem
+    if isinstance(problem, DiscOCP):
+        return problem.scene
+    return None
 
 
 def _from_python(path: Path, func: str, *, explicit: bool) -> Any:
