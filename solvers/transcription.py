@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import inspect
 import math
 import signal
 import sys
@@ -65,19 +66,20 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import (
     ConvergenceError,
     EvaluationError,
     HybridocError,
+    OptionError,
     SceneError,
     SimultaneousEventError,
 )
-from hybridoc.evaluation import TERMINAL_TOL, Evaluation
+from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
 from hybridoc.methods import Method, option, positive_float, settings_lines
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
-from hybridoc.problems.disc_ocp import DiscOCP
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status, lagrange_pieces
 from hybridoc.solvers.threads import flag_interrupts
@@ -95,6 +97,7 @@ __all__ = [
     "control_function",
     "nlp_size",
     "resample_controls",
+    "run_dt",
     "solve_dt",
     "solve_dt_sequence",
 ]
@@ -114,20 +117,21 @@ Problems of the documentation and tests stay under 20 000. Beyond this bound a s
 run for hours: reduce ``mesh``, the events (``sequence``, another initial guess) or the
 bodies."""
 _MAX_ITER = 500  # IPOPT iterations per candidate NLP
-_BOUND_TOL = 1e-9  # judged control-bound violation above which a result is INFEASIBLE
-_PATH_TOL = 1e-6  # judged path-constraint violation above which a result is INFEASIBLE
+_BOUND_TOL = tolerances.FEASIBILITY  # judged control-bound violation: INFEASIBLE above it
+_PATH_TOL = tolerances.PATH  # judged path-constraint violation: INFEASIBLE above it
 _NEAR_MISS = 1e-3  # event-time mismatch (relative to T) that a finer mesh may fix
 _GUESS_PERTURBATIONS = 3  # perturbed retries of a guess with simultaneous events
 _TERMINAL_REFINEMENTS = 4  # mesh doublings (default mesh 4 -> up to 64) for terminal constraints
 _NEAR_MISS_REFINEMENTS = 3  # mesh doublings (default mesh 4 -> up to 32) for a near miss
-_CHEAPER_RTOL = 1e-9  # a known control cheaper by more than this makes a result not-optimal
-REFINE_RTOL = 1e-7
+_CHEAPER_RTOL = tolerances.CHEAPER  # a known control cheaper by more: the result is not-optimal
+TERMINAL_TOL = tolerances.TERMINAL  # the default judged terminal-constraint violation
+REFINE_RTOL = tolerances.value("refine")
 """The default mesh is refined until the judged cost of the transcription's control and the
 NLP's objective agree within ``REFINE_RTOL * max(1, |J|)`` and, on the first mesh, the
 collocation defects between the collocation points stay within :data:`DEFECT_TOL`, or after
 a refinement the judged costs of the last two meshes agree within the same
 (``info["error_estimate"]``)."""
-DEFECT_TOL = 1e-4
+DEFECT_TOL = tolerances.value("defect")
 """The largest collocation defect between collocation points that the default mesh accepts:
 ``h_e |x'(t_m) - f(x(t_m), u(t_m))|`` at the midpoints ``t_m`` of consecutive nodes of each
 element, relative to ``max(1, max |x_i|)`` on the phase (the state's local error over one
@@ -1011,9 +1015,9 @@ def _is_int(x: Any) -> bool:
 
 
 def _checked_degree(degree: Any) -> int:
-    """``degree`` as an int in ``[1, MAX_DEGREE]``, or a :class:`SceneError`."""
+    """``degree`` as an int in ``[1, MAX_DEGREE]``, or an :class:`OptionError`."""
     if not _is_int(degree) or not 1 <= degree <= MAX_DEGREE:
-        raise SceneError(
+        raise OptionError(
             f"degree must be an integer from 1 to {MAX_DEGREE} (the Radau collocation tables "
             f"go up to {MAX_DEGREE}), got {degree!r}"
         )
@@ -1027,16 +1031,16 @@ def _checked_mesh(mesh: Any, phases: int | None) -> list[int]:
         mesh = _DEFAULT_MESH
     values = [mesh] if _is_int(mesh) else mesh
     if isinstance(values, str) or not isinstance(values, Sequence | np.ndarray):
-        raise SceneError(f"mesh must be an integer or a list of integers, got {mesh!r}")
+        raise OptionError(f"mesh must be an integer or a list of integers, got {mesh!r}")
     values = list(values)
     if not values or not all(_is_int(m) and 1 <= m <= MAX_MESH for m in values):
-        raise SceneError(
+        raise OptionError(
             f"mesh must be elements per phase, integers from 1 to {MAX_MESH}, got {mesh!r}"
         )
     if _is_int(mesh):
         return [int(mesh)] * (phases or 1)
     if phases is not None and len(values) != phases:
-        raise SceneError(f"mesh must be one integer or {phases} (one per phase), got {mesh!r}")
+        raise OptionError(f"mesh must be one integer or {phases} (one per phase), got {mesh!r}")
     return [int(m) for m in values]
 
 
@@ -1484,14 +1488,20 @@ class _Judged:
 
 
 def _checked_time_limit(time_limit: Any) -> None:
-    """A :class:`SceneError` unless ``time_limit`` is ``None`` or a positive finite number."""
+    """An :class:`OptionError` unless ``time_limit`` is ``None`` or a positive finite number."""
     if time_limit is not None and not (
         isinstance(time_limit, int | float)
         and not isinstance(time_limit, bool)
         and math.isfinite(time_limit)
         and time_limit > 0
     ):
-        raise SceneError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+        raise OptionError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+
+
+def _checked_terminal_tol(terminal_tol: Any) -> None:
+    """An :class:`OptionError` unless ``terminal_tol`` is a positive finite number."""
+    if not (isinstance(terminal_tol, int | float) and 0 < terminal_tol < math.inf):
+        raise OptionError(f"terminal_tol must be a positive number, got {terminal_tol!r}")
 
 
 def _parse_bounded_int(text: str, what: str, most: int) -> int:
@@ -1515,16 +1525,23 @@ def _parse_degree(text: str) -> int:
 
 @dataclass(frozen=True)
 class DTOptions:
-    """The options of :func:`solve_dt` (``method="dt"``); ``hybridoc solve`` offers those
-    with ``cli`` metadata as flags (``--sequence``, ``--mesh``, ``--degree``,
-    ``--time-limit``)."""
+    """The options of :func:`solve_dt` (``method="dt"``), declared once: their defaults are
+    :func:`solve_dt`'s keywords' and ``hybridoc solve`` offers those with ``cli`` metadata as
+    flags (``--sequence``, ``--mesh``, ``--degree``, ``--time-limit``, ``--terminal-tol``).
 
-    sequence: str | tuple[str, ...] | None = option(
+    Every value is checked when the options are made (:meth:`__post_init__`), the one place
+    they are checked: an out-of-range ``degree``, ``mesh``, ``time_limit`` or
+    ``terminal_tol`` is an :class:`~hybridoc.errors.OptionError`. What depends on the problem
+    (``sequence``'s guard names, a ``mesh`` of one value per phase) is checked by
+    :func:`run_dt` against the problem.
+    """
+
+    sequence: str | Sequence[str] | None = option(
         None,
         "comma-separated guard names in event order ('' for none)",
         metavar="EVENTS",
     )
-    mesh: int | tuple[int, ...] | None = option(
+    mesh: int | Sequence[int] | None = option(
         None,
         f"collocation elements per phase, at most {MAX_MESH} (default {_DEFAULT_MESH})",
         parse=_parse_mesh,
@@ -1548,6 +1565,30 @@ class DTOptions:
     )
     verbose: bool = option(False, "print IPOPT's log and the candidates to stderr", cli=False)
 
+    def __post_init__(self) -> None:
+        """Check the options (:class:`~hybridoc.errors.OptionError`); ``degree`` becomes an
+        ``int``."""
+        object.__setattr__(self, "degree", _checked_degree(self.degree))
+        _checked_mesh(self.mesh, None)
+        _checked_time_limit(self.time_limit)
+        _checked_terminal_tol(self.terminal_tol)
+
+
+def _options_signature(run: Callable[..., Any], options: type) -> inspect.Signature:
+    """``run``'s signature with its ``**options`` replaced by one keyword per field of the
+    dataclass ``options``, with the field's default: what ``run`` accepts, and the defaults
+    it applies, written once in the dataclass (:meth:`hybridoc.methods.Method.check_signature`
+    and the documentation read it)."""
+    sig = inspect.signature(run)
+    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    params += [
+        inspect.Parameter(
+            f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default, annotation=f.type
+        )
+        for f in dataclasses.fields(options)
+    ]
+    return sig.replace(parameters=params)
+
 
 # ----------------------------------------------------------------------------------------
 # the public solver
@@ -1556,16 +1597,15 @@ class DTOptions:
 def solve_dt(
     problem: ProblemLike,
     *,
-    sequence: Sequence[str] | str | None = None,
     initial: ControlsLike | None = None,
-    degree: int = 3,
-    mesh: int | Sequence[int] | None = None,
-    verbose: bool = False,
     progress: ProgressLike = None,
-    time_limit: float | None = None,
-    terminal_tol: float = TERMINAL_TOL,
+    **options: Any,
 ) -> Solution:
     """Solve a hybrid OCP by multi-phase direct transcription (LGR collocation + IPOPT).
+
+    The options are the fields of :class:`DTOptions`, with its defaults (where they are
+    written, once); ``solve_dt(problem, **options)`` is
+    ``run_dt(problem, DTOptions(**options))`` (:func:`run_dt`).
 
     Terminal constraints ``h(s(T)) = 0`` / ``>= 0`` are constraints of the NLP at the last
     phase's final node; a free final time (``horizon_bounds``) makes the sum of the phase
@@ -1576,18 +1616,23 @@ def solve_dt(
     problem
         A :class:`~hybridoc.HybridOCP`, a :class:`~hybridoc.problems.Scene` or a built-in
         scene name.
-    sequence
-        Event sequence as guard names, e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
-        ``"ball1|ball2,ball2|wall"`` (``[]``: no event). Default:
-        discovered from ``initial``: its simulated events and every sequence with one of them
-        dropped are solved, and the lowest-cost one whose control, re-simulated by the
-        event-exact evaluator, produces exactly the modelled events is kept.
     initial
         Initial guess: ``None`` (the problem's ``u_guess``), an ``(N, nu)`` control array, or
         a :class:`~hybridoc.solution.Solution` (its controls and its events). The phases are
         initialised from the guess's simulated trajectory. A guess whose simulation has two
         events at the same instant that do not commute (a symmetric scene) is perturbed by
         about ``1e-6`` so that they happen one after the other.
+    progress
+        ``True``: stage lines on stderr once the run has lasted a few seconds (a
+        :class:`~hybridoc.progress.ProgressMeter`): the candidate, its NLP's size and
+        IPOPT's iteration; ``False``/``None``: silent; or a caller's
+        :class:`~hybridoc.progress.Progress`.
+    sequence
+        Event sequence as guard names, e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
+        ``"ball1|ball2,ball2|wall"`` (``[]``: no event). Default:
+        discovered from ``initial``: its simulated events and every sequence with one of them
+        dropped are solved, and the lowest-cost one whose control, re-simulated by the
+        event-exact evaluator, produces exactly the modelled events is kept.
     degree
         Collocation degree, 1 to :data:`MAX_DEGREE` (``>= 3`` recommended; disc optima are
         cubic, so 3 is exact).
@@ -1603,13 +1648,6 @@ def solve_dt(
         per phase.
         A mesh given here is kept (its estimate is reported in ``info["error_estimate"]``;
         above the tolerances the result is ``not-converged``).
-    verbose
-        Print IPOPT's log and the candidates to stderr.
-    progress
-        ``True``: stage lines on stderr once the run has lasted a few seconds (a
-        :class:`~hybridoc.progress.ProgressMeter`): the candidate, its NLP's size and
-        IPOPT's iteration; ``False``/``None``: silent; or a caller's
-        :class:`~hybridoc.progress.Progress`.
     time_limit
         Seconds of wall time: past them IPOPT (or the refinement) is stopped and the best
         candidate judged so far is returned as ``not-converged``; before any candidate is
@@ -1623,6 +1661,8 @@ def solve_dt(
         constraints at its collocated final state; the re-simulation misses them by the
         collocation's error, so at the default mesh a candidate above the tolerance is
         solved again with twice the elements, up to 4 times (mesh 64).
+    verbose
+        Print IPOPT's log and the candidates to stderr.
 
     Returns
     -------
@@ -1663,10 +1703,16 @@ def solve_dt(
 
     Raises
     ------
+    TypeError
+        A keyword that is not an option of :class:`DTOptions`.
+    OptionError
+        ``degree``, ``mesh``, ``time_limit`` or ``terminal_tol`` is out of range, or a
+        ``mesh`` per phase does not match the given ``sequence`` (a
+        :class:`~hybridoc.errors.SceneError`).
     SceneError
-        ``sequence`` names an event that is not a guard of the problem, ``degree``, ``mesh``
-        or ``time_limit`` is out of range, or a candidate's NLP would have more than
-        :data:`MAX_NLP_SIZE` variables and constraints (:func:`nlp_size`).
+        ``sequence`` names an event that is not a guard of the problem, or a candidate's
+        NLP would have more than :data:`MAX_NLP_SIZE` variables and constraints
+        (:func:`nlp_size`).
     HybridocError
         The run passed ``time_limit`` before any candidate was judged.
     ConvergenceError
@@ -1676,15 +1722,50 @@ def solve_dt(
         The judge cannot simulate the initial guess, or the control of any converged
         candidate (e.g. sustained contact).
     """
+    unknown = [k for k in options if k not in _OPTION_NAMES]
+    if unknown:
+        raise TypeError(f"solve_dt() got an unexpected keyword argument {unknown[0]!r}")
+    return run_dt(problem, DTOptions(**options), initial=initial, progress=progress)
+
+
+solve_dt.__signature__ = _options_signature(solve_dt, DTOptions)  # type: ignore[attr-defined]
+_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(DTOptions))
+
+
+def run_dt(
+    problem: ProblemLike,
+    options: DTOptions | None = None,
+    *,
+    initial: ControlsLike | None = None,
+    progress: ProgressLike = None,
+) -> Solution:
+    """:func:`solve_dt` with its options as one :class:`DTOptions` (checked when it was
+    made; ``None``: the defaults).
+
+    Parameters
+    ----------
+    problem
+        A :class:`~hybridoc.HybridOCP`, a :class:`~hybridoc.problems.Scene` or a built-in
+        scene name.
+    options
+        The options (:class:`DTOptions`).
+    initial, progress
+        As :func:`solve_dt`'s.
+
+    Returns
+    -------
+    Solution
+        As :func:`solve_dt`'s.
+    """
+    opts = DTOptions() if options is None else options
     ocp = as_ocp(problem)
     t_start = time.perf_counter()
+    sequence = opts.sequence
     if sequence is not None:
         sequence = ocp.admissible_sequence(sequence)
-    degree = _checked_degree(degree)  # before any work
-    _checked_mesh(mesh, None if sequence is None else len(sequence) + 1)
-    _checked_time_limit(time_limit)
-    if not (isinstance(terminal_tol, int | float) and 0 < terminal_tol < math.inf):
-        raise SceneError(f"terminal_tol must be a positive number, got {terminal_tol!r}")
+        _checked_mesh(opts.mesh, len(sequence) + 1)  # one per phase of this sequence
+    degree, mesh, verbose = opts.degree, opts.mesh, opts.verbose
+    time_limit, terminal_tol = opts.time_limit, opts.terminal_tol
     with progress_scope(progress, "dt") as meter:
         monitor = _Monitor(meter, time_limit)
         token = _MONITOR.set(monitor)
@@ -2421,7 +2502,6 @@ def _assemble(
     assert best_ev is not None
     grid = _at(ocp, best).time_grid()
     controls = best.cell_averages(grid)
-    scene_name = ocp.scene.name if isinstance(ocp, DiscOCP) else ocp.name
     info = {
         "sequence": best.sequence,
         "event_times": [float(t) for t in best.event_times],
@@ -2457,7 +2537,7 @@ def _assemble(
         arrays["event_controls"] = np.array(best.event_controls)
     sol = Solution(
         method="dt",
-        scene=scene_name,
+        scene=ocp.name,
         controls=controls,
         time_grid=grid,
         cost=float(best_ev.cost),
