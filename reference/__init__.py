@@ -1,6 +1,7 @@
 """The reference: optimal control by shooting on the hybrid minimum principle.
 
-See :func:`solve_reference`. The HMP system of one event sequence is in
+See :func:`solve_reference` and its options, :class:`ReferenceOptions`
+(:mod:`hybridoc.reference.options`). The HMP system of one event sequence is in
 :mod:`hybridoc.reference.shooting`, the solve of one sequence and its verification in
 :mod:`hybridoc.reference.sequence`, the reference's own candidate sequences in
 :mod:`hybridoc.reference.candidates`, the protocol of the candidate sources it is given (or
@@ -19,14 +20,10 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.reference.options import ReferenceOptions
     from hybridoc.reference.result import ReferenceResult, reference_control
     from hybridoc.reference.sequence import verify_reference
-    from hybridoc.reference.solve import (
-        METHOD,
-        ReferenceOptions,
-        reference_supports,
-        solve_reference,
-    )
+    from hybridoc.reference.solve import METHOD, reference_supports, solve_reference
     from hybridoc.reference.sources import (
         CandidateSource,
         PhaseCostates,
@@ -63,7 +60,7 @@ _EXPORTS = {
     "CandidateSource": "hybridoc.reference.sources",
     "PhaseCostates": "hybridoc.reference.sources",
     "Proposal": "hybridoc.reference.sources",
-    "ReferenceOptions": "hybridoc.reference.solve",
+    "ReferenceOptions": "hybridoc.reference.options",
     "ReferenceResult": "hybridoc.reference.result",
     "SequenceStarter": "hybridoc.reference.sources",
     "SourceContext": "hybridoc.reference.sources",

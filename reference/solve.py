@@ -64,7 +64,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import sys
 import time
 import warnings
@@ -74,6 +73,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.cores import usable_cores
 from hybridoc.errors import (
     ConvergenceError,
@@ -84,7 +84,7 @@ from hybridoc.errors import (
 )
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate, gradient
-from hybridoc.methods import FEATURES, Method, option, positive_float, problem_features
+from hybridoc.methods import FEATURES, Method, problem_features
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import NullProgress, Progress, ProgressLike, progress_scope
@@ -95,13 +95,21 @@ from hybridoc.reference.candidates import (
     guess_times,
     lower_bound,
 )
+from hybridoc.reference.options import (
+    DEFAULT_BUDGET,
+    MAX_EVENTS,
+    MAX_SEARCH,
+    MULTISTART,
+    ReferenceOptions,
+    option_keywords,
+    parse_budget,
+    parse_search,
+)
 from hybridoc.reference.result import ReferenceResult, make_result, reference_control
 from hybridoc.reference.sequence import (
     COST_RTOL,
-    RTOL_RANGE,
     SCREEN_NLP_ITER,
     TERMINAL_TOL,
-    check_rtol,
     judged_reference,
     judged_violation,
     solve_sequence,
@@ -152,22 +160,7 @@ __all__ = [
     "solve_reference",
 ]
 
-_OPT_RTOL = 1e-9  # a known control cheaper by more than this makes the extremal not optimal
-MAX_SEARCH = 8
-"""The longest sequences ``search`` may enumerate. Their number grows about sevenfold per
-event on two- and three-disc scenes (multiple-collision: 151 sequences of up to 5 events,
-3 048 of up to 8, 169 668 of up to 12), each a Newton solve: beyond 8 a search runs for hours
-and its lists fill the memory."""
-MAX_EVENTS = 40
-"""The longest event sequence the reference solves. Its disc NLP (event times and phase
-controls, in single shooting) has dense derivatives: measured on 2 cores, one sequence of
-32 events took 3 s and 0.3 GB, 63 events 22 s and 1.4 GB, 126 events 220 s and 8.8 GB
-(time ~ K^3, memory ~ K^2.7), and a whole run tries the guess's sequence, its neighbours and
-the transcription (39 events: 63 s in all). Longer sequences are not attempted (a given one
-is refused); ``hybridoc evaluate``, ``solve --method gd`` or ``--method dt`` handle long
-horizons."""
-MULTISTART = 8
-"""Starts of the batched multi-start source that proposes sequences (0 to skip it)."""
+_OPT_RTOL = tolerances.CHEAPER  # a known control cheaper by more than this: not optimal
 MAX_WORKERS = 8
 """Worker processes of the search over sequences, at most (one per usable core)."""
 FAILED_SHOWN = 4
@@ -175,7 +168,7 @@ FAILED_SHOWN = 4
 KNOWN_STARTS = 2
 """A sequence whose solve failed is started again from at most this many known controls
 with its events (the cheapest)."""
-PATH_TOL = 1e-9
+PATH_TOL = tolerances.FEASIBILITY
 """The largest violation of the path constraints a control may show and still count as
 feasible (the judge's :attr:`~hybridoc.Evaluation.feasible`): a known control beyond it
 bounds nothing, an extremal beyond it is ``infeasible``."""
@@ -187,9 +180,6 @@ the judge's own."""
 _IMPOSSIBLE = (
     "pruned: no control has these events (two bodies that cannot move themselves never meet)"
 )
-DEFAULT_BUDGET = 30.0
-"""Seconds the default reference (without ``sequence``) may spend: its sources get what is
-left of it, and the enumeration stops when it is spent (``budget``)."""
 PROOF_STARTS = 2
 """Distinct starts of Newton that must reach the optimum's extremal (the same cost, to
 :data:`START_RTOL`) for a ``success``: one start can land on a worse stationary point of
@@ -226,105 +216,6 @@ def reference_supports(ocp: HybridOCP) -> str | None:
         or hamiltonian_check(ocp)
         or path_check(ocp)
         or saturation_check(ocp)
-    )
-
-
-def parse_search(text: str) -> int:
-    """The ``--search K`` value: an integer from 0 to :data:`MAX_SEARCH`.
-
-    Raises
-    ------
-    ValueError
-        With a one-line reason.
-    """
-    try:
-        k = int(text)
-    except ValueError:
-        raise ValueError(f"search must be an integer >= 0, got {text!r}") from None
-    if k < 0:
-        raise ValueError(f"search must be an integer >= 0, got {text!r}")
-    if k > MAX_SEARCH:
-        raise ValueError(
-            f"search must be at most {MAX_SEARCH} events (the number of sequences grows "
-            f"about sevenfold per event), got {k}"
-        )
-    return k
-
-
-def parse_budget(text: str) -> float:
-    """The ``--budget SECONDS`` value: a positive number of seconds.
-
-    Raises
-    ------
-    ValueError
-        With a one-line reason.
-    """
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"budget must be a number of seconds > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"budget must be a number of seconds > 0, got {text!r}")
-    return value
-
-
-@dataclass(frozen=True)
-class ReferenceOptions:
-    """The options of :func:`solve_reference` (method ``"reference"``)."""
-
-    sequence: str | tuple[str, ...] | None = option(
-        None,
-        "comma-separated guard names in event order, e.g. 'ball1|ball2,ball2|wall' (an "
-        "empty string: no event); default: search for the optimum",
-        metavar="EVENTS",
-    )
-    search: int | None = option(
-        None,
-        "also enumerate every feasible event sequence of up to K events and report the "
-        f"landscape of extremals (K at most {MAX_SEARCH})",
-        parse=parse_search,
-        metavar="K",
-    )
-    budget: float = option(
-        DEFAULT_BUDGET,
-        "seconds the search for the optimum may take (the sources get what is left; the "
-        "enumeration of sequences stops when it is spent, and the coverage says so); "
-        f"default {DEFAULT_BUDGET:g}",
-        parse=parse_budget,
-        metavar="SECONDS",
-    )
-    time_limit: float | None = option(
-        None,
-        "a hard wall-clock limit over the whole solve, sources included (checked between "
-        "stages and sequences): the best verified extremal found by then is returned as "
-        "not-converged; default none (the budget stays the search's soft limit)",
-        parse=positive_float,
-        metavar="SECONDS",
-    )
-    verbose: bool = option(False, "print Newton's iterations and the candidates to stderr")
-    rtol: float = option(
-        COST_RTOL,
-        "relative accuracy of the cost: the integration of generic problems is refined until "
-        "its error estimate is within it, and the judge's re-simulation must agree to it "
-        f"(from {RTOL_RANGE[0]:g} to {RTOL_RANGE[1]:g}); default {COST_RTOL:g}",
-        parse=check_rtol,
-        metavar="RTOL",
-    )
-    tol: float = option(1e-10, "max-norm of the HMP residual required", cli=False)
-    verify: bool = option(
-        True, "re-simulate the result with the judge (only a given sequence may skip it)",
-        cli=False,
-    )  # fmt: skip
-    transcription: bool = option(
-        True, "use the candidate source 'transcription' (proposals and warm starts)", cli=False
-    )
-    multistart: int = option(
-        MULTISTART, "starts of the candidate source 'multi-start' (0 to skip it)", cli=False
-    )
-    sources: tuple[Any, ...] | None = option(
-        None,
-        "candidate sources (hybridoc.reference.sources); default: the registered ones",
-        cli=False,
     )
 
 
@@ -828,22 +719,14 @@ def _initial_controls(ocp: HybridOCP, initial: Any) -> tuple[np.ndarray, bool]:
     return ocp.check_controls(controls, what="initial"), True
 
 
+@option_keywords(ReferenceOptions)
 def solve_reference(
     problem: ProblemLike,
+    options: ReferenceOptions | None = None,
     *,
-    sequence: Sequence[str] | str | None = None,
     initial: ControlsLike | None = None,
-    search: int | None = None,
-    budget: float = DEFAULT_BUDGET,
-    time_limit: float | None = None,
-    verbose: bool = False,
-    rtol: float = COST_RTOL,
-    tol: float = 1e-10,
-    verify: bool = True,
-    transcription: bool = True,
-    multistart: int = MULTISTART,
-    sources: Sequence[Any] | None = None,
     progress: ProgressLike = False,
+    **overrides: Any,
 ) -> Solution:
     """The optimal control by shooting on the hybrid minimum principle.
 
@@ -857,6 +740,10 @@ def solve_reference(
         is solved in them and the answer stated in the scene's
         (:mod:`hybridoc.reference.units`), so that the same physical scene in any units, or
         moved, gets the same answer.
+    options
+        A :class:`ReferenceOptions`; the keywords below replace its fields (default: the
+        defaults). ``solve_reference(problem, search=2)`` and
+        ``solve_reference(problem, ReferenceOptions(search=2))`` are the same solve.
     sequence
         Guard names in event order (e.g. ``["ball1|ball2", "ball2|wall"]`` or the string
         ``"ball1|ball2,ball2|wall"``; ``[]`` for no event): the extremal of that sequence.
@@ -955,9 +842,14 @@ def solve_reference(
 
     Raises
     ------
+    OptionError
+        A bad option (``tol``, ``search``, ``rtol``, ``budget``, ``time_limit``, a source),
+        from :class:`ReferenceOptions`.
+    TypeError
+        A keyword that is not an option.
     SceneError
-        A bad ``sequence``, ``tol``, ``search`` or source, a ``sequence`` of more than
-        :data:`MAX_EVENTS` events, or a problem the reference cannot handle. Without
+        A bad ``sequence``, a ``sequence`` of more than :data:`MAX_EVENTS` events, or a
+        problem the reference cannot handle. Without
         ``sequence``, candidates longer than :data:`MAX_EVENTS` are not attempted (listed in
         ``info["candidates"]`` with the reason).
     ConvergenceError
@@ -965,30 +857,14 @@ def solve_reference(
         or the time limit (or an interrupt) came before any did.
     """
     t_start = time.perf_counter()
+    opts = ReferenceOptions.of(options, overrides)
     ocp = as_ocp(problem)
-    seq = _check_arguments(ocp, sequence, tol, search)
-    try:
-        rtol = check_rtol(rtol)
-    except ValueError as exc:
-        raise SceneError(str(exc)) from None
-    if (
-        isinstance(budget, bool)
-        or not isinstance(budget, numbers.Real)
-        or not (math.isfinite(budget) and budget > 0)
-    ):
-        raise SceneError(f"budget must be a number of seconds > 0, got {budget!r}")
-    if time_limit is not None and (
-        isinstance(time_limit, bool)
-        or not isinstance(time_limit, numbers.Real)
-        or not (math.isfinite(time_limit) and time_limit > 0)
-    ):
-        raise SceneError(f"time_limit must be a number of seconds > 0, got {time_limit!r}")
-    proposers, starters, kind = _active_sources(sources, transcription, multistart)
+    seq = _check_arguments(ocp, opts.sequence)
+    proposers, starters, kind = _active_sources(opts.sources, opts.transcription, opts.multistart)
     run = _Run(
-        seq=seq, initial=initial, search=search, budget=float(budget), verbose=verbose, tol=tol,
-        rtol=rtol, time_limit=None if time_limit is None else float(time_limit),
-        verify=verify,
-        transcription=transcription, multistart=multistart, sources=sources,
+        seq=seq, initial=initial, search=opts.search, budget=opts.budget, verbose=opts.verbose,
+        tol=opts.tol, rtol=opts.rtol, time_limit=opts.time_limit, verify=opts.verify,
+        transcription=opts.transcription, multistart=opts.multistart, sources=opts.sources,
         proposers=proposers, starters=starters, kind=kind, t_start=t_start,
     )  # fmt: skip
     units = canonical(ocp)
@@ -999,7 +875,7 @@ def solve_reference(
     run = dataclasses.replace(run, initial=units.initial_in(initial))
     with progress_scope(progress, "reference") as meter, in_problem_units(units):
         sol = _solve(units.ocp, run, meter)
-    return units.to_problem(sol, ocp, rtol)
+    return units.to_problem(sol, ocp, opts.rtol)
 
 
 @dataclass(frozen=True)
@@ -1037,25 +913,14 @@ class _Run:
         )  # fmt: skip
 
 
-def _check_arguments(
-    ocp: HybridOCP, sequence: Sequence[str] | str | None, tol: Any, search: Any
-) -> list[str] | None:
-    """The checked sequence (or ``None``); a :class:`SceneError` for a bad argument."""
+def _check_arguments(ocp: HybridOCP, sequence: Sequence[str] | str | None) -> list[str] | None:
+    """The checked sequence (or ``None``); a :class:`SceneError` for a problem the reference
+    cannot solve or a sequence it does not have (the options themselves are checked by
+    :class:`ReferenceOptions`)."""
     reason = reference_supports(ocp)
     if reason:
         raise SceneError(f"{ocp.name!r}: {reason}")
     seq = None if sequence is None else ocp.admissible_sequence(sequence)
-    if not (isinstance(tol, numbers.Real) and math.isfinite(tol) and tol > 0):
-        raise SceneError(f"tol must be a positive finite number, got {tol!r}")
-    if search is not None and (
-        isinstance(search, bool) or not isinstance(search, numbers.Integral) or search < 0
-    ):
-        raise SceneError(f"search must be an integer >= 0, got {search!r}")
-    if search is not None and search > MAX_SEARCH:
-        raise SceneError(
-            f"search must be at most {MAX_SEARCH} events (the number of sequences grows "
-            f"about sevenfold per event), got {search}"
-        )
     if seq is not None and len(seq) > MAX_EVENTS:
         raise SceneError(_too_long(len(seq)))
     return seq
@@ -1096,16 +961,8 @@ def _active_sources(
                 "sequences only",
                 stacklevel=3,
             )
-    else:
-        if isinstance(sources, str) or not isinstance(sources, Sequence):
-            raise SceneError(f"sources must be a list of candidate sources, got {sources!r}")
+    else:  # a list of sources, checked by ReferenceOptions
         chosen, kind = tuple(sources), "given"
-    for s in chosen:
-        if not isinstance(s, CandidateSource | SequenceStarter):
-            raise SceneError(
-                "a candidate source needs a name and a propose(ocp, context) or "
-                f"start(ocp, sequence, guess, controls) method, got {type(s).__name__}"
-            )
     off = {"transcription"} if not transcription else set()
     off |= {"multi-start"} if not multistart else set()
     kept = [s for s in chosen if s.name not in off]
@@ -1605,7 +1462,7 @@ def _verdict(
             )
             cheapest = rival
     bounds_violation = ocp.bound_violation(best.cell_averages()) if ocp.has_bounds else 0.0
-    if bounds_violation > 1e-9:
+    if bounds_violation > tolerances.FEASIBILITY:
         status = Status.INFEASIBLE
         message = (
             f"the HMP extremal violates the control bounds by {bounds_violation:.3g} (its "
@@ -2134,7 +1991,8 @@ def _coalescing(ocp: HybridOCP, k: _Known) -> tuple[str, str, float] | None:
         ba = np.asarray(rb(ga)[0], dtype=float)
         # the judge's test: only the components the jumps change, each at its own scale (a
         # far body must not lend its size to the tolerance)
-        if commute_defect(ab, ba, s, ga, gb, floor=ocp.scales.state_array) > 1e-9:
+        defect = commute_defect(ab, ba, s, ga, gb, floor=ocp.scales.state_array)
+        if defect > tolerances.value("commute"):
             return e1.name, e2.name, gap
     return None
 

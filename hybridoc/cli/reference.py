@@ -9,6 +9,7 @@ from typing import Any
 from hybridoc.cli._util import (
     add_initial_arg,
     add_json_out,
+    add_method_options,
     emit_json,
     ensure_dir,
     exit_code,
@@ -16,8 +17,7 @@ from hybridoc.cli._util import (
     indent,
     load_controls_arg,
     load_problem_arg,
-    nonnegative_int,
-    option_type,
+    method_options_given,
     output_stem,
     print_solution,
     problem_arg,
@@ -28,6 +28,9 @@ from hybridoc.cli._util import (
 from hybridoc.errors import HybridocError
 
 __all__ = ["register", "terminal_lines", "write_landscape", "write_reference_outputs"]
+
+# the arguments of ``hybridoc reference`` itself, which no option may be called
+_RESERVED = ("problem", "initial", "json", "out", "func", "command")
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
@@ -40,7 +43,7 @@ def cmd_reference(args: argparse.Namespace) -> int:
     reported; a result that is not the optimum it would claim to be exits with code 1.
     """
     from hybridoc.reference import solve_reference
-    from hybridoc.reference.solve import coverage_line, families_line
+    from hybridoc.reference.solve import METHOD, coverage_line, families_line
 
     ocp = load_problem_arg(args.problem)
     initial = None
@@ -54,10 +57,8 @@ def cmd_reference(args: argparse.Namespace) -> int:
         ends = (".npz", ".json", "_trajectory.png", "_controls.png", "_costates.png",
                 "_landscape.png")  # fmt: skip
         check_targets(*(f"{stem}{end}" for end in ends))  # a link or a user's file: refused now
-    sol = solve_reference(
-        ocp, sequence=args.sequence, initial=initial, verbose=args.verbose, search=args.search,
-        budget=args.budget, rtol=args.rtol, progress=True, time_limit=args.time_limit,
-    )  # fmt: skip
+    options = method_options_given(args, METHOD.name, {METHOD.name: METHOD})
+    sol = solve_reference(ocp, initial=initial, progress=True, **options)
     files: list[Path] = []
     write_error: HybridocError | None = None
     try:
@@ -223,57 +224,15 @@ def register(sub: Any) -> None:
 
 
 def _reference_arguments(p: argparse.ArgumentParser) -> None:
-    from hybridoc.methods import positive_float
-    from hybridoc.reference.sequence import COST_RTOL, RTOL_RANGE, check_rtol
-    from hybridoc.reference.solve import DEFAULT_BUDGET, MAX_SEARCH, ReferenceOptions, parse_budget
+    """The arguments of ``hybridoc reference``: the problem, one flag per command-line
+    option of :class:`~hybridoc.reference.ReferenceOptions` (built as ``hybridoc solve``
+    builds them, :func:`~hybridoc.cli._util.add_method_options`), the initial guess and the
+    outputs."""
+    from hybridoc.reference.solve import METHOD
 
     problem_arg(p)
-    p.add_argument(
-        "--sequence",
-        metavar="EVENTS",
-        default=None,
-        help="comma-separated guard names in event order, e.g. 'ball1|ball2,ball2|wall' "
-        "(an empty string: no event)",
-    )
-    p.add_argument(
-        "--search",
-        metavar="K",
-        type=nonnegative_int,
-        default=None,
-        help="also enumerate every feasible event sequence of up to K events and print the "
-        f"landscape of extremals (K at most {MAX_SEARCH})",
-    )
-    p.add_argument(
-        "--budget",
-        metavar="SECONDS",
-        type=option_type(parse_budget, "budget"),
-        default=DEFAULT_BUDGET,
-        help="seconds the search for the optimum may take: the sources get what is left, "
-        "the enumeration of sequences stops when it is spent and the coverage line says "
-        f"so (default {DEFAULT_BUDGET:g})",
-    )
-    p.add_argument(
-        "--time-limit",
-        metavar="SECONDS",
-        type=option_type(positive_float, "time limit"),
-        default=None,
-        help=ReferenceOptions.__dataclass_fields__["time_limit"].metadata["help"],
-    )
-    p.add_argument(
-        "--rtol",
-        metavar="RTOL",
-        type=option_type(check_rtol, "rtol"),
-        default=COST_RTOL,
-        help="relative accuracy of the cost: the integration of a generic problem is refined "
-        "until its error estimate is within it, and the judge's re-simulation must agree to "
-        f"it (from {RTOL_RANGE[0]:g} to {RTOL_RANGE[1]:g}; default {COST_RTOL:g})",
-    )
+    add_method_options(p, {METHOD.name: METHOD}, reserved=_RESERVED)
     add_initial_arg(p)
-    p.add_argument(
-        "--verbose",
-        action="store_true",
-        help="print Newton's iterations and the integration's refinements to stderr",
-    )
     add_json_out(
         p,
         out_help="write DIR/<problem>_reference.npz + .json and three figures (four with "
