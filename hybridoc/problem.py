@@ -73,13 +73,15 @@ def disc_scene(problem: ProblemLike) -> Scene:
     hybridoc.errors.SceneError
         For a problem that is not a disc scene.
     """
-    from hybridoc.problems import DiscOCP, Scene
+    from hybridoc.problems import scene_of
 
-    if isinstance(problem, Scene):
-        return problem
+    scene = scene_of(problem, compiled=False)
+    if scene is not None:
+        return scene
     ocp = as_ocp(problem)
-    if not isinstance(ocp, DiscOCP):
+    scene = scene_of(ocp)
+    if scene is None:
         raise SceneError(
             f"{ocp.name!r} is not a disc scene (a generic HybridOCP): this needs a disc scene"
         )
-    return ocp.scene
+    return scene

@@ -34,7 +34,9 @@ __all__ = [
     "library_ocp",
     "load_problem",
     "load_scene",
+    "load_spec",
     "scene_of",
+    "spec_of",
 ]
 
 
@@ -148,6 +150,36 @@ def library_ocp(name: str) -> HybridOCP:
     return ocp
 
 
+def load_spec(spec: Mapping[str, Any]) -> Scene | HybridOCP:
+    """What a problem spec names, as :func:`load_problem` gives it: the :class:`Scene` of
+    ``{"kind": "scene", "toml": text}`` (with its ``[distribution]`` table), the library
+    problem of ``{"kind": "library", "name": name}``. :func:`from_spec` compiles it.
+
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        As :func:`from_spec`.
+    """
+    if not isinstance(spec, Mapping):
+        raise SceneError(f"a problem spec must be a mapping, got {type(spec).__name__}")
+    kind = spec.get("kind")
+    if kind == "scene":
+        text = spec.get("toml")
+        if not isinstance(text, str):
+            raise SceneError('a scene spec needs its TOML text under "toml"')
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"the scene spec is not valid TOML: {exc}") from None
+        return Scene.from_dict(data)
+    if kind == "library":
+        name = spec.get("name")
+        if not isinstance(name, str):
+            raise SceneError('a library spec needs the problem\'s name under "name"')
+        return library_ocp(name)
+    raise SceneError(f"unknown problem spec kind {kind!r} (known: scene, library)")
+
+
 def from_spec(spec: Mapping[str, Any]) -> HybridOCP:
     """Rebuild a problem from its spec (:attr:`Capabilities.spec
     <hybridoc.capabilities.Capabilities.spec>`): the same functions and the data the spec
@@ -166,32 +198,36 @@ def from_spec(spec: Mapping[str, Any]) -> HybridOCP:
         For an unknown kind, a missing or mistyped field, an invalid scene or an unknown
         library name (one line).
     """
-    if not isinstance(spec, Mapping):
-        raise SceneError(f"a problem spec must be a mapping, got {type(spec).__name__}")
-    kind = spec.get("kind")
-    if kind == "scene":
-        text = spec.get("toml")
-        if not isinstance(text, str):
-            raise SceneError('a scene spec needs its TOML text under "toml"')
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(f"the scene spec is not valid TOML: {exc}") from None
-        return Scene.from_dict(data).to_ocp()
-    if kind == "library":
-        name = spec.get("name")
-        if not isinstance(name, str):
-            raise SceneError('a library spec needs the problem\'s name under "name"')
-        return library_ocp(name)
-    raise SceneError(f"unknown problem spec kind {kind!r} (known: scene, library)")
+    problem = load_spec(spec)
+    return problem.to_ocp() if isinstance(problem, Scene) else problem
 
 
-def scene_of(problem: Any) -> Scene | None:
-    """The :class:`Scene` of a disc problem (a Scene, or a :class:`DiscOCP` with its
-    current data), else ``None``: the one place above which nothing tests for the type."""
+def spec_of(problem: Scene | HybridOCP) -> Mapping[str, Any] | None:
+    """The spec of a problem (:func:`load_spec` gives it back): a Scene's
+    ``{"kind": "scene", "toml": ...}`` without compiling it, else the problem's
+    :attr:`Capabilities.spec <hybridoc.capabilities.Capabilities.spec>` (``None`` where it
+    has none)."""
+    if isinstance(problem, Scene):
+        return {"kind": "scene", "toml": problem.to_toml()}
+    return problem.capabilities.spec
+
+
+def scene_of(problem: Any, *, compiled: bool = True) -> Scene | None:
+    """The :class:`Scene` of a disc problem, else ``None``: the one place the layers above
+    ``problems/`` ask whether a problem is a disc scene (they import neither class).
+
+    Parameters
+    ----------
+    problem
+        Any object (a name is not loaded: ``None``).
+    compiled
+        Whether a compiled disc problem (a :class:`DiscOCP`) counts: its scene with its
+        current data. ``False``: only a :class:`Scene` itself (for example the source of
+        draws from its ``[distribution]`` table).
+    """
     if isinstance(problem, Scene):
         return problem
-    if isinstance(problem, DiscOCP):
+    if compiled and isinstance(problem, DiscOCP):
         return problem.scene
     return None
 

@@ -125,7 +125,7 @@ from hybridoc.solvers.threads import usable_cores
 
 if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.ocp import HybridOCP
-    from hybridoc.problems import DiscOCP, Scene
+    from hybridoc.problems import Scene
     from hybridoc.reference import ReferenceResult
 
 try:
@@ -226,10 +226,10 @@ def distribution_scene(problem: Any) -> Scene:
     SceneError
         The scene has no ``[distribution]`` table (or cannot be loaded).
     """
-    from hybridoc.problems import Scene, load_problem
+    from hybridoc.problems import load_problem, scene_of
 
     obj = load_problem(problem)
-    if not isinstance(obj, Scene):
+    if scene_of(obj, compiled=False) is None:
         raise HybridocError(
             f"datasets need a disc scene with a [distribution] table; {obj.name!r} is a "
             "generic HybridOCP"
@@ -267,16 +267,19 @@ def distribution_problem(problem: Any, distribution: Any = None) -> Scene | Hybr
     SceneError
         No distribution anywhere, or one that is not callable.
     """
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problem import as_ocp
-    from hybridoc.problems import DiscOCP, Scene, load_problem
+    from hybridoc.problems import load_problem, scene_of
 
     obj = load_problem(problem) if isinstance(problem, str | Path) else problem
     if distribution is None:
-        if isinstance(obj, Scene) and obj.distribution is not None:
-            return obj
-        if isinstance(obj, DiscOCP) and obj.distribution is None:
-            if obj.scene.distribution is not None:
-                return obj.scene
+        # a scene's [distribution] table: the scene's own, or a compiled scene's without a
+        # Python distribution
+        table = scene_of(obj, compiled=False)
+        if table is None and isinstance(obj, HybridOCP) and obj.distribution is None:
+            table = scene_of(obj)
+        if table is not None and table.distribution is not None:
+            return table
     ocp = as_ocp(obj)
     dist = distribution if distribution is not None else ocp.distribution
     if dist is None:
@@ -285,7 +288,7 @@ def distribution_problem(problem: Any, distribution: Any = None) -> Scene | Hybr
             "problem.replace(distribution=...): a callable (rng, M) -> (M, nx) initial states; "
             "see docs: datasets)"
         )
-        if isinstance(ocp, DiscOCP):
+        if scene_of(ocp) is not None:
             raise SceneError(
                 f"scene {ocp.name!r} has no [distribution] table: add one to draw initial "
                 f"states, or give the problem {python}"
@@ -433,9 +436,10 @@ def draw_context(spec: dict[str, Any]) -> DrawContext:
     Parameters
     ----------
     spec
-        ``{"scene": TOML text, "seed", "tol", "full", "nominal": None or {"sequence",
-        "z"}}``; for a problem with a Python distribution ``"problem"``, ``"load"`` and
-        ``"x0"`` (:func:`problem_spec`) instead of ``"scene"``.
+        ``{"spec": the scene's spec, "seed", "tol", "full", "nominal": None or {"sequence",
+        "z"}}`` (:func:`~hybridoc.problems.load_spec`: ``{"kind": "scene", "toml": TOML
+        text}``); for a problem with a Python distribution ``"problem"``, ``"load"`` and
+        ``"x0"`` (:func:`problem_spec`) instead of ``"spec"``.
     """
     key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
     ctx = _CONTEXTS.get(key)
@@ -453,12 +457,10 @@ def draw_context(spec: dict[str, Any]) -> DrawContext:
             if nominal is None or nominal.get("status", "success") == "success"
             else "best-found",
         }
-        if "scene" in spec:
-            import tomllib
+        if "spec" in spec:
+            from hybridoc.problems import load_spec
 
-            from hybridoc.problems import Scene
-
-            scene = Scene.from_dict(tomllib.loads(spec["scene"]), default_name="scene")
+            scene = load_spec(spec["spec"])
             ctx = DrawContext(scene=scene, ocp=scene.to_ocp(), **common)
         else:
             x0 = np.array(spec["x0"], dtype=float)
@@ -468,7 +470,7 @@ def draw_context(spec: dict[str, Any]) -> DrawContext:
     return ctx
 
 
-def draw_ocp(ctx_scene: Scene, ocp: DiscOCP, scene_i: Scene) -> DiscOCP:
+def draw_ocp(ctx_scene: Scene, ocp: HybridOCP, scene_i: Scene) -> HybridOCP:
     """The problem of one draw: the nominal's compiled structure with another ``x0`` when
     only positions and velocities changed, a fresh compile when a target did."""
     same = all(a.target == b.target for a, b in zip(ctx_scene.discs, scene_i.discs, strict=True))
@@ -1069,17 +1071,24 @@ class Dataset:
             A dataset of a problem with a Python distribution (its settings name the
             problem and the SHA-256 of its initial states instead).
         """
-        import tomllib
+        from hybridoc.problems import load_spec
 
-        from hybridoc.problems import Scene
-
-        settings = self.manifest["settings"]
-        if "scene" not in settings:
+        spec = self.spec
+        if spec is None:
+            settings = self.manifest["settings"]
             raise HybridocError(
                 f"the dataset in {str(self.path)!r} was drawn from a problem with a Python "
                 f"distribution ({settings.get('problem')!r}), not from a scene"
             )
-        return Scene.from_dict(tomllib.loads(settings["scene"]))
+        return load_spec(spec)
+
+    @property
+    def spec(self) -> dict[str, Any] | None:
+        """The spec (:func:`hybridoc.problems.load_spec`) of the scene whose
+        ``[distribution]`` table the draws come from, ``{"kind": "scene", "toml": ...}``;
+        ``None`` for a problem with a Python distribution. A manifest of before issue #30
+        holds the TOML text alone (``settings.scene``): read as its spec."""
+        return settings_spec(self.manifest["settings"])
 
     @property
     def ok(self) -> np.ndarray:
@@ -1097,12 +1106,14 @@ def _settings(
     source: Scene | HybridOCP, samples: int, seed: int, tol: float, full: bool,
     x0: np.ndarray | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """The settings a dataset is made with (a resumed run must have the same): the scene as
-    TOML, or a problem's name with the SHA-256 of its drawn initial states."""
+    """The settings a dataset is made with (a resumed run must have the same): the scene's
+    spec (:func:`~hybridoc.problems.spec_of`, its TOML), or a problem's name with the
+    SHA-256 of its drawn initial states."""
     from hybridoc import __version__
+    from hybridoc.problems import spec_of
 
     if x0 is None:
-        what: dict[str, Any] = {"scene": source.to_toml()}
+        what: dict[str, Any] = {"spec": spec_of(source)}
     else:
         what = {
             "problem": source.name,
@@ -1128,15 +1139,16 @@ def _notice(text: str) -> None:
 
 
 def _nominal(source: Scene | HybridOCP, tol: float, progress: Progress) -> dict[str, Any] | None:
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of
     from hybridoc.reference import solve_reference
 
-    label = "nominal scene" if isinstance(source, Scene) else "nominal problem"
+    table = scene_of(source, compiled=False)
+    label = "nominal scene" if table is not None else "nominal problem"
     progress.stage(label)
     t0 = time.perf_counter()
     nominal = (
-        dataclasses.replace(source, distribution=None)
-        if isinstance(source, Scene)
+        dataclasses.replace(table, distribution=None)
+        if table is not None
         else source.replace(distribution=None)
     )
     try:
@@ -1165,10 +1177,10 @@ def _check_own_units(source: Scene | HybridOCP) -> None:
     """Refuse a disc scene the reference solves in other units (far from its own units or
     from the origin: :func:`hybridoc.reference.units.canonical`): a dataset's rows hold the
     reference's shooting unknowns, which are then the canonical scene's."""
-    from hybridoc.problems import Scene
+    from hybridoc.problem import as_ocp
     from hybridoc.reference.units import canonical
 
-    ocp = source.to_ocp() if isinstance(source, Scene) else source
+    ocp = as_ocp(source)
     units = canonical(ocp)
     if units is not None:
         sc = ocp.scales
@@ -1282,14 +1294,15 @@ def source_seed(source: Scene | HybridOCP, seed: int | None) -> int:
 def source_draws(
     source: Scene | HybridOCP, problem: Any, samples: int, seed: int
 ) -> dict[str, Any]:
-    """The draws' part of a task specification (:func:`draw_context`): a scene's TOML, or
+    """The draws' part of a task specification (:func:`draw_context`): a scene's spec, or
     a problem's initial states drawn here (:func:`problem_spec`). Draw 0 of a scene is made
     here too, so that a distribution that cannot be drawn fails in this process."""
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of, spec_of
 
-    if isinstance(source, Scene):
-        source.distribution.draw(source, 0, seed)
-        return {"scene": source.to_toml()}
+    table = scene_of(source, compiled=False)
+    if table is not None:
+        table.distribution.draw(table, 0, seed)
+        return {"spec": spec_of(table)}
     text = str(problem) if isinstance(problem, str | Path) else None
     return problem_spec(source, text, draw_initial_states(source, samples, seed))
 
@@ -1483,7 +1496,8 @@ def _write_json(path: Path, obj: Any) -> None:
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _SETTINGS_COMMON = {"format", "hybridoc", "samples", "seed", "chunk", "tol", "full"}
-_SETTINGS_SCENE = _SETTINGS_COMMON | {"scene"}
+_SETTINGS_SPEC = _SETTINGS_COMMON | {"spec"}
+_SETTINGS_SCENE = _SETTINGS_COMMON | {"scene"}  # before issue #30: the TOML text alone
 _SETTINGS_PROBLEM = _SETTINGS_COMMON | {"problem", "nominal_x0", "x0_sha256"}
 _MANIFEST_KEYS = {"format", "complete", "settings", "nominal"}
 _COMPLETE_KEYS = {"versions", "counts", "methods", "sha256", "columns", "last_run"}
@@ -1503,6 +1517,18 @@ def _counts(v: Any) -> bool:
     return isinstance(v, dict) and all(
         isinstance(k, str) and _is_int(n) and n >= 0 for k, n in v.items()
     )
+
+
+def settings_spec(settings: dict[str, Any]) -> dict[str, Any] | None:
+    """The spec of the scene whose ``[distribution]`` table a dataset's draws come from,
+    from its manifest's settings (checked by :func:`check_manifest`): ``settings.spec``, or
+    the TOML text of a manifest of before issue #30 (``settings.scene``) as a spec; ``None``
+    for a problem with a Python distribution."""
+    if "spec" in settings:
+        return dict(settings["spec"])
+    if "scene" in settings:
+        return {"kind": "scene", "toml": settings["scene"]}
+    return None
 
 
 def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
@@ -1543,7 +1569,9 @@ def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
     st = manifest["settings"]
     if not isinstance(st, dict):
         raise bad("settings", "a JSON object", st)
-    keys = _SETTINGS_SCENE if "scene" in st else _SETTINGS_PROBLEM
+    keys = (
+        _SETTINGS_SPEC if "spec" in st else _SETTINGS_SCENE if "scene" in st else _SETTINGS_PROBLEM
+    )
     if set(st) != keys:
         extra, lack = sorted(set(st) - keys), sorted(keys - set(st))
         raise HybridocError(
@@ -1559,6 +1587,9 @@ def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
         ("chunk", "a positive integer", lambda v: _is_int(v) and v >= 1),
         ("tol", "a positive finite number", lambda v: _is_number(v) and v > 0),
         ("full", "true or false", lambda v: isinstance(v, bool)),
+        ("spec", 'a scene\'s spec {"kind": "scene", "toml": TOML text}',
+         lambda v: isinstance(v, dict) and set(v) == {"kind", "toml"}
+         and v["kind"] == "scene" and isinstance(v["toml"], str)),
         ("scene", "the scene as TOML text", lambda v: isinstance(v, str)),
         ("problem", "the problem's name", lambda v: isinstance(v, str)),
         ("nominal_x0", "a list of finite numbers",
@@ -1741,7 +1772,8 @@ def check_draws(ds: Dataset) -> None:
     x0 = np.asarray(cols["x0"])
     if cols["index"].shape != (M,) or not np.array_equal(cols["index"], np.arange(M)):
         raise HybridocError(f"{where}: its index column is not 0..{M - 1}")
-    if "scene" not in st:
+    spec = settings_spec(st)
+    if spec is None:
         if x0.shape != (M, len(st["nominal_x0"])):
             raise HybridocError(f"{where}: its initial states have shape {x0.shape}")
         if initial_states_sha256(x0) != st["x0_sha256"]:
@@ -1750,16 +1782,14 @@ def check_draws(ds: Dataset) -> None:
                 "(x0_sha256): they were changed after it was written"
             )
         return
-    import tomllib
-
-    from hybridoc.problems import Scene
+    from hybridoc.problems import load_spec
 
     try:
-        scene = Scene.from_dict(tomllib.loads(st["scene"]), default_name="scene")
+        scene = load_spec(spec)
         if scene.distribution is None:
             raise HybridocError("it has no [distribution]")
         draws = [scene.distribution.draw(scene, i, seed) for i in range(M)]
-    except (HybridocError, tomllib.TOMLDecodeError) as exc:
+    except HybridocError as exc:
         raise HybridocError(f"{where}: the scene in its manifest cannot be drawn: {exc}") from None
     want_x0 = np.array([d.initial_state() for d in draws], dtype=float).reshape(M, -1)
     want_targets = np.array([d.targets() for d in draws], dtype=float)

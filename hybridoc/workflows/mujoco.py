@@ -50,11 +50,11 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from hybridoc.errors import ControlsError, HybridocError, SceneError
-from hybridoc.ocp import as_float_array
+from hybridoc.ocp import HybridOCP, as_float_array
 from hybridoc.problem import ProblemLike, as_ocp, disc_scene
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.problems import DiscOCP, Scene
+    from hybridoc.problems import Scene
 
 __all__ = [
     "DEFAULT_STIFFNESS",
@@ -240,10 +240,11 @@ def _check_settings(scene: Scene, substeps: int, stiffness: float) -> tuple[floa
 
 def _export_scene(problem: Scene | ProblemLike) -> Scene:
     """The scene to export, or a SceneError naming what the export cannot carry."""
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of
 
-    if isinstance(problem, Scene):
-        return problem
+    scene = scene_of(problem, compiled=False)
+    if scene is not None:
+        return scene
     ocp = as_ocp(problem)
     scene = disc_scene(ocp)
     if ocp.has_bounds:
@@ -424,7 +425,8 @@ class MujocoModel:
     Attributes
     ----------
     problem
-        The scene's :class:`~hybridoc.problems.DiscOCP` (its ``L`` and ``phi`` are the cost).
+        The scene's problem (a :class:`~hybridoc.problems.DiscOCP`; its ``L`` and ``phi``
+        are the cost).
     model
         The ``mujoco.MjModel``.
     substeps
@@ -433,7 +435,7 @@ class MujocoModel:
         The MJCF text the model was compiled from.
     """
 
-    problem: DiscOCP
+    problem: HybridOCP
     model: Any
     substeps: int
     xml: str
@@ -475,7 +477,7 @@ class MujocoModel:
     @property
     def scene(self) -> Scene:
         """The scene."""
-        return self.problem.scene
+        return disc_scene(self.problem)
 
     def __repr__(self) -> str:
         return (

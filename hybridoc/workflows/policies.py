@@ -527,18 +527,19 @@ def _references(
 
 
 def _check_references(ds: Dataset, source: Scene | HybridOCP, seed: int, samples: int) -> None:
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of, spec_of
 
     settings = ds.manifest.get("settings", {})
-    if isinstance(source, Scene):
-        same = settings.get("scene") == source.to_toml()
+    table = scene_of(source, compiled=False)  # draws from the scene's [distribution] table
+    if table is not None:
+        same = ds.spec == spec_of(table)
     else:  # the initial states of the dataset's draws, drawn again here
         x0 = draw_initial_states(source, int(settings.get("samples", 0)), seed)
         same = initial_states_sha256(x0) == settings.get("x0_sha256") and np.array_equal(
             x0, ds.columns["x0"]
         )
     if not same or int(settings.get("seed", -1)) != seed:
-        what = "scene" if isinstance(source, Scene) else "problem, distribution"
+        what = "scene" if table is not None else "problem, distribution"
         raise HybridocError(
             f"the dataset in {str(ds.path)!r} was drawn from another {what} or seed than "
             f"{source.name!r} with seed {seed}"

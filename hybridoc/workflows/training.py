@@ -67,6 +67,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -75,7 +76,7 @@ import torch
 from hybridoc.errors import ControlsError, EvaluationError, SceneError
 from hybridoc.evaluator import adjoint, evaluate
 from hybridoc.ocp import HybridOCP, as_float_array
-from hybridoc.problem import ProblemLike, as_ocp, disc_scene
+from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solvers.optimizers import LBFGS, lbfgs_torch_step
 from hybridoc.solvers.simulator import Simulator
@@ -276,9 +277,9 @@ def mlp_policy(
     if hidden < 1 or layers < 0:
         raise SceneError(f"hidden must be >= 1 and layers >= 0, got {hidden}, {layers}")
     gen = torch.Generator().manual_seed(int(seed))
-    if _is_disc(scene):
-        return _disc_mlp(disc_scene(scene), int(hidden), int(layers), gen)
     ocp = as_ocp(scene)
+    if ocp.capabilities.geometry is not None:
+        return _disc_mlp(ocp, int(hidden), int(layers), gen)
     s_mean, s_scale, u_offset, u_scale = _generic_scales(ocp, distribution)
     clip = saturate and ocp.has_bounds
     return MLPPolicy(
@@ -290,37 +291,39 @@ def mlp_policy(
 
 def _is_disc(problem: ProblemLike) -> bool:
     """Whether ``problem`` is a disc scene (the differentiable simulator's model)."""
-    from hybridoc.problems import DiscOCP, Scene
+    from hybridoc.problems import load_problem, scene_of
 
-    if isinstance(problem, Scene | DiscOCP):
-        return True
-    if isinstance(problem, HybridOCP):
-        return False
-    return isinstance(as_ocp(problem), DiscOCP)
+    obj = load_problem(problem) if isinstance(problem, str | Path) else problem
+    return scene_of(obj) is not None
 
 
-def _disc_mlp(sc: Any, hidden: int, layers: int, gen: torch.Generator) -> MLPPolicy:
-    """:func:`mlp_policy` of a disc scene (its docstring: "A disc scene")."""
-    x0 = sc.initial_state()
-    n = sc.n_discs
-    pts = [d.position for d in sc.discs] + [d.target for d in sc.discs if d.target is not None]
+def _disc_mlp(ocp: HybridOCP, hidden: int, layers: int, gen: torch.Generator) -> MLPPolicy:
+    """:func:`mlp_policy` of bodies in the plane (its docstring: "A disc scene"), from the
+    problem's geometry (:attr:`Capabilities.geometry
+    <hybridoc.capabilities.Capabilities.geometry>`) and data."""
+    geometry = ocp.capabilities.geometry
+    assert geometry is not None
+    x0 = np.array(ocp.x0, dtype=float)
+    n = geometry.n_bodies
+    pts = [tuple(geometry.position(x0, i)) for i in range(n)]
+    pts += [b.target for b in geometry.bodies if b.target is not None]
     pts_a = np.array(pts, dtype=float)
     length = max(1.0, float(np.max(pts_a.max(0) - pts_a.min(0))))
-    u0 = sc.initial_controls()
+    u0 = np.array(ocp.u_guess, dtype=float)
     u_mag = float(np.max(np.abs(u0))) if u0.size else 0.0
-    m_min = min(d.mass for d in sc.discs)
-    speed = max(1.0, u_mag * sc.horizon / m_min)
+    m_min = min(b.mass for b in geometry.bodies)
+    speed = max(1.0, u_mag * ocp.horizon / m_min)
     s_scale = np.r_[np.full(2 * n, length), np.full(2 * n, speed)]
     return MLPPolicy(
         4 * n,
-        sc.n_controls,
+        ocp.nu,
         hidden=hidden,
         layers=layers,
-        horizon=sc.horizon,
+        horizon=ocp.horizon,
         s_mean=x0,
         s_scale=s_scale,
         u_offset=u0.mean(0),
-        u_scale=np.full(sc.n_controls, max(1.0, u_mag)),
+        u_scale=np.full(ocp.nu, max(1.0, u_mag)),
         generator=gen,
     )
 
@@ -483,7 +486,7 @@ def training_draws(
     SceneError
         No distribution, or one that cannot be drawn.
     """
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of
     from hybridoc.resources import check_samples_of
     from hybridoc.workflows.datasets import (
         check_count,
@@ -496,9 +499,10 @@ def training_draws(
     source = distribution_problem(problem, distribution)
     check_samples_of(source, samples)  # before drawing: the draws alone can exhaust memory
     seed = source_seed(source, None) + 1 if seed is None else check_count(seed, "seed", 0)
-    if isinstance(source, Scene):
-        dist = source.distribution
-        x0 = np.stack([dist.draw(source, i, seed).initial_state() for i in range(samples)])
+    table = scene_of(source, compiled=False)  # draws from a scene's [distribution] table
+    if table is not None:
+        dist = table.distribution
+        x0 = np.stack([dist.draw(table, i, seed).initial_state() for i in range(samples)])
     else:
         x0 = draw_initial_states(source, samples, seed)
     return x0, seed
