@@ -830,18 +830,45 @@ class Solution:
         out = np.array([fn(float(tk)) for tk in times]).reshape(times.size, -1)
         return out[0] if np.ndim(t) == 0 else out
 
-    def evaluation(self, problem: Any = None) -> Evaluation:
+    @property
+    def evaluation(self) -> Evaluation | None:
+        """The judge's :class:`~hybridoc.Evaluation` this Solution's cost came from: kept by
+        :meth:`from_evaluation`, :meth:`judge`, :meth:`with_evaluation` and :meth:`to_grid`,
+        so that figures and reports use it without judging again. ``None`` where there is
+        none: a Solution loaded from a file or unpickled (the file format does not store it),
+        or one whose ``cost``, ``terminal_cost`` or ``running_cost`` was changed since (it
+        would not be where they came from). To judge a Solution anew (another problem, a
+        loaded file): ``hybridoc.evaluate(problem, sol)``."""
+        ev = self.__dict__.get("_evaluation")
+        if ev is None:
+            return None
+        parts = (self.cost, self.terminal_cost, self.running_cost)
+        judged = (float(ev.cost), float(ev.terminal_cost), float(ev.running_cost))
+        return ev if all(_same(a, b) for a, b in zip(parts, judged, strict=True)) else None
+
+    def with_evaluation(self, ev: Evaluation) -> Solution:
+        """Take ``cost``, ``terminal_cost`` and ``running_cost`` from the judge's evaluation
+        ``ev`` of this Solution's control and keep ``ev`` as :attr:`evaluation`; returns
+        ``self``. A method that judged its control itself (the same evaluation as
+        ``hybridoc.evaluate(problem, sol)``, bit for bit) calls it instead of setting the
+        cost parts one by one."""
+        self.cost = float(ev.cost)
+        self.terminal_cost = float(ev.terminal_cost)
+        self.running_cost = float(ev.running_cost)
+        self.__dict__["_evaluation"] = ev
+        return self
+
+    def _judged(self, problem: Any = None) -> Evaluation:
         """The judge's evaluation of :meth:`control`: ``hybridoc.evaluate(problem, self)``
         (default: the bound problem)."""
         return _hook(JUDGE)(self._ocp(problem), self)
 
     def judge(self, problem: Any = None) -> Evaluation:
         """Set ``cost``, ``terminal_cost`` and ``running_cost`` to the judge's, of
-        :meth:`control`, and return that evaluation (methods call it on what they return)."""
-        ev = self.evaluation(problem)
-        self.cost = float(ev.cost)
-        self.terminal_cost = float(ev.terminal_cost)
-        self.running_cost = float(ev.running_cost)
+        :meth:`control`, keep that evaluation (:attr:`evaluation`) and return it (methods
+        call it on what they return)."""
+        ev = self._judged(problem)
+        self.with_evaluation(ev)
         return ev
 
     def to_grid(self, N: int | None = None, problem: Any = None) -> Solution:
@@ -942,7 +969,7 @@ class Solution:
             For a time outside ``[0, T]`` (named ``t``), or no problem to simulate.
         """
         times = _checked_times(t, self.horizon, "t")
-        ev = self.evaluation(problem)
+        ev = self._judged(problem)
         states = ev.sample(times)
         fn = self.control_function(ev.ocp)
         controls = np.array([fn(float(tk)) for tk in times]).reshape(times.size, -1)
@@ -965,6 +992,7 @@ class Solution:
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state.pop("_bound_problem", None)  # compiled functions: bind again after unpickling
+        state.pop("_evaluation", None)  # holds the problem too: judge again if needed
         return state
 
     def __repr__(self) -> str:
@@ -1028,6 +1056,7 @@ class Solution:
             arrays=dict(arrays or {}),
         )
         sol.__dict__["_bound_problem"] = ev.ocp
+        sol.__dict__["_evaluation"] = ev
         return sol
 
     # ------------------------------------------------------------------ comparison

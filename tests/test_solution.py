@@ -111,6 +111,30 @@ def test_from_evaluation_with_gradient_round_trip(tmp_path):
     assert Solution.load(tmp_path / "deep" / "dir" / "s.json") == sol
 
 
+def test_the_evaluation_it_was_judged_with_is_kept(tmp_path):
+    """``Solution.evaluation`` is the judge's evaluation the cost came from (no second
+    judge for figures); ``None`` after a load, a pickle or a changed cost."""
+    import pickle
+
+    ocp = hybridoc.as_ocp("single-collision")
+    ev = hybridoc.evaluate(ocp)
+    sol = Solution.from_evaluation(ev, method="initial-guess", scene=ocp.name)
+    assert sol.evaluation is ev
+    sol.save(tmp_path / "s")
+    loaded = Solution.load(tmp_path / "s")
+    assert loaded == sol and loaded.evaluation is None
+    assert pickle.loads(pickle.dumps(sol)).evaluation is None
+    judged = loaded.bind(ocp).judge()
+    assert loaded.evaluation is judged and judged.cost == ev.cost
+    other = hybridoc.evaluate(ocp, ev.controls * 0.5)
+    assert loaded.with_evaluation(other) is loaded and loaded.evaluation is other
+    assert loaded.cost == other.cost and loaded.running_cost == other.running_cost
+    loaded.cost += 1.0  # no longer the cost the kept evaluation gave
+    assert loaded.evaluation is None
+    grid = sol.to_grid(N=ocp.steps // 2)
+    assert grid.evaluation is not None and grid.evaluation.cost == grid.cost
+
+
 def test_versions_filled_automatically():
     sol = _full_solution()
     assert set(sol.versions) == {"hybridoc", "python", "numpy", "scipy", "casadi", "torch"}
