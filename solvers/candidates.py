@@ -91,9 +91,9 @@ DIVERSE_JUDGED = 6
 GD_FACTOR = 4
 """Starts of gradient descent's multi-start per ``context.multistart`` (0 skips it).
 
-On a disc scene the multi-start source first runs gradient descent's multi-start
-(:func:`gd_multistart`) from this many times ``context.multistart`` starts: 32 by default,
-as ``solve_gd(starts=32)`` runs it in cross-validation
+On a problem with a geometry (a disc scene) the multi-start source first runs gradient
+descent's multi-start (:func:`gd_multistart`) from this many times ``context.multistart``
+starts: 32 by default, as ``solve_gd(starts=32)`` runs it in cross-validation
 (:data:`hybridoc.solvers.gd.GD_STARTS`)."""
 GD_BUDGET_SHARE = 0.5
 """The share of ``context.budget_s`` gradient descent's multi-start may take."""
@@ -113,22 +113,21 @@ def rich_scene(ocp: HybridOCP) -> str:
     """Why ``ocp`` gets the diverse multi-start, or an empty string.
 
     A disc scene with walls (bounce-first sequences), several actuated discs, or passive
-    discs already moving (sequences that add a strike to a body's own events)."""
-    from hybridoc.problems.disc_ocp import DiscOCP
-
-    if not isinstance(ocp, DiscOCP):
+    discs already moving (sequences that add a strike to a body's own events): read off the
+    problem's :attr:`~hybridoc.capabilities.Capabilities.geometry` and initial state."""
+    geo = ocp.capabilities.geometry
+    if geo is None:
         return ""
-    scene = ocp.scene
-    act = set(scene.actuated_indices)
+    act = set(geo.actuated_indices)
     why = []
     if len(act) > 1:
         why.append("several actuated discs")
     if any(
-        i not in act and any(abs(float(x)) > 0 for x in d.velocity)
-        for i, d in enumerate(scene.discs)
+        i not in act and any(abs(float(x)) > 0 for x in geo.velocity(ocp.x0, i))
+        for i in range(geo.n_bodies)
     ):
         why.append("passive discs in motion")
-    if scene.walls:
+    if geo.planes:
         why.append("walls")
     return ", ".join(why)
 
@@ -330,8 +329,6 @@ class MultiStartSource:
 
     def propose(self, ocp: HybridOCP, context: SourceContext) -> list[Proposal]:
         """Every judged result as a known control; each distinct sequence to solve."""
-        from hybridoc.problems.disc_ocp import DiscOCP
-
         if not context.multistart:
             return []
         t0 = time.perf_counter()
@@ -340,7 +337,7 @@ class MultiStartSource:
             context.say("multi-start: not run, the time budget is spent")
             return []
         out: list[Proposal] = []
-        if isinstance(ocp, DiscOCP) and GD_FACTOR:
+        if ocp.capabilities.geometry is not None and GD_FACTOR:
             share = None if deadline is None else t0 + GD_BUDGET_SHARE * (deadline - t0)
             out += gd_multistart(ocp, context, share)
         # each distinct sequence solved once (the first proposal of it: gd's refined control)

@@ -30,7 +30,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.errors import ControlsError, SceneError
-from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.problems import scene_of
 from hybridoc.solvers.codegen import Accelerated
 from hybridoc.solvers.contacts import ContactModel, contact_model
 
@@ -125,14 +125,13 @@ class CompiledLoss:
         path_weight: float = 1e5,
     ) -> None:
         from hybridoc.problem import as_ocp
-        from hybridoc.problems import Scene
 
         if simulation not in SIMULATIONS:
             raise SceneError(
                 f"simulation must be one of {', '.join(SIMULATIONS)}, got {simulation!r}"
             )
-        ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
-        is_disc = isinstance(ocp, DiscOCP)
+        ocp = as_ocp(problem)  # a Scene's to_ocp()
+        is_disc = scene_of(ocp) is not None
         # a disc scene far from the origin is simulated moved by its offset (exactly): the
         # same numbers as at the origin, not rounded to the ulp of the far positions
         sim, self._offset = translated(ocp) if is_disc and simulation != "generic" else (ocp, None)
@@ -282,7 +281,7 @@ class CompiledLoss:
         return torch.as_tensor(np.stack(xs), dtype=u.dtype, device=u.device)
 
 
-def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
+def translated(ocp: HybridOCP) -> tuple[HybridOCP, np.ndarray | None]:
     """A disc problem moved by its position offset (:attr:`~hybridoc.scales.Scales.state_offset`)
     to near the origin, with that offset ``(nx,)``; ``(ocp, None)`` where it has none.
 
@@ -300,7 +299,8 @@ def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
     offset = None if scales is None else scales.offset_array
     if offset is None or not offset.any() or ocp.path is not None:
         return ocp, None  # (path constraints are functions of the state where it is)
-    n = ocp.scene.n_discs
+    scene = scene_of(ocp)
+    n = scene.n_discs
     dx, dy = float(offset[0]), float(offset[1])
     if not (
         np.all(offset[0 : 2 * n : 2] == dx)
@@ -310,15 +310,15 @@ def translated(ocp: DiscOCP) -> tuple[DiscOCP, np.ndarray | None]:
         return ocp, None  # not one shift of the whole scene: simulated where it is
 
     # p + (-d) is p - d exactly: the same numbers as subtracting the offset
-    near = moved_scene(ocp.scene, np.array([-dx, -dy])).to_ocp()
+    near = moved_scene(scene, np.array([-dx, -dy])).to_ocp()
     return near, offset.copy()
 
 
-def _disc_step(ocp: DiscOCP, model: ContactModel, integrator: str) -> ca.Function:
+def _disc_step(ocp: HybridOCP, model: ContactModel, integrator: str) -> ca.Function:
     """``(s, u) -> (s_next, eps |u|^2 dt)``: the disc scene's step under ``model``."""
     from hybridoc.solvers.casadi_step import make_step
 
-    scene = ocp.scene
+    scene = scene_of(ocp)
     step = make_step(scene, model, integrator)
     s, u = ca.SX.sym("s", ocp.nx), ca.SX.sym("u", ocp.nu)
     return ca.Function("step", [s, u], [step(s, u), scene.control_weight * scene.dt * ca.sumsqr(u)])
@@ -411,10 +411,9 @@ class TerminalLoss:
 
     def __init__(self, problem: ProblemLike, *, max_events: int = 2, path_weight: float = 1e5):
         from hybridoc.problem import as_ocp
-        from hybridoc.problems import Scene
         from hybridoc.solvers.toi_sim import toi_step
 
-        ocp = problem.to_ocp() if isinstance(problem, Scene) else as_ocp(problem)
+        ocp = as_ocp(problem)  # a Scene's to_ocp()
         self.ocp = ocp
         self.steps = N = ocp.steps
         self.nx = nx = ocp.nx

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import inspect
 import math
 import numbers
 import signal
@@ -70,8 +71,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridoc import resources
-from hybridoc.errors import SceneError
+from hybridoc import resources, tolerances
+from hybridoc.errors import OptionError
 from hybridoc.evaluator import evaluate
 from hybridoc.methods import (
     Method,
@@ -83,8 +84,7 @@ from hybridoc.methods import (
 )
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problem import ProblemLike, as_ocp
-from hybridoc.problems.disc_ocp import DiscOCP
-from hybridoc.problems.paper import PAPER_SETTINGS
+from hybridoc.problems import scene_of
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.scales import optimizer_units as units
 from hybridoc.solution import Solution, Status
@@ -121,6 +121,7 @@ __all__ = [
     "memory_limit",
     "parse_smoothing",
     "pinned_events",
+    "run_gd",
     "solve_gd",
     "units",
 ]
@@ -132,10 +133,13 @@ OPTIMIZERS = ("gd", "adam", "lbfgs")
 PATHS = ("auto", "compiled", "torch")
 """Where the loss is computed (``path`` of :func:`solve_gd`)."""
 
+PATH_WEIGHT = 1e5
+"""Default weight of the quadratic penalty on path-constraint violations (``path_weight``)."""
+
 DEFAULT_SMOOTHING = (1e-4, 1e-5, 1e-6)
 """Default continuation weights of ``lbfgs`` (see ``smoothing`` in :func:`solve_gd`)."""
 
-STALL_RTOL = 1e-9
+STALL_RTOL = tolerances.value("stall")
 """Convergence test at the iteration limit (:func:`solve_gd`): the loss changed by at most
 this, relative, over the last :func:`stall_window` iterations."""
 
@@ -272,10 +276,10 @@ class GDOptions:
         cli=False,
     )
     path_weight: float = option(
-        1e5, "weight of the quadratic penalty on path-constraint violations", cli=False
+        PATH_WEIGHT, "weight of the quadratic penalty on path-constraint violations", cli=False
     )
     terminal_tol: float = option(
-        1e-8,
+        tolerances.TERMINAL,
         "terminal constraints: the largest violation the judge may find at s(T) for a "
         "success (default 1e-8)",
         parse=positive_float,
@@ -298,26 +302,95 @@ class GDOptions:
         metavar="SECONDS",
     )
 
+    def __post_init__(self) -> None:
+        _check_options(self)
 
-def default_settings(problem: Any, optimizer: str) -> tuple[float, int]:
-    """Default ``(learning rate, iterations)`` of an optimiser on a scene.
 
-    Plain ``gd`` uses the paper's settings on the paper's problems
-    (:data:`hybridoc.problems.paper.PAPER_SETTINGS`) and otherwise a learning rate of
-    ``0.1 / dt`` (the gradient with respect to one control value scales with ``dt``; in the
-    scaled units of :func:`units`, ``dt / tc``) for 1000 iterations; ``adam`` uses 0.05 for
+def _check_choice(name: str, value: Any, choices: Sequence[str]) -> None:
+    """Raise :class:`~hybridoc.errors.OptionError` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise OptionError(f"unknown {name} {value!r}; choose one of {', '.join(choices)}")
+
+
+def _check_options(o: GDOptions) -> None:
+    """Every check of gd's options that does not depend on the problem, in one place (run
+    by :class:`GDOptions` on construction): an :class:`~hybridoc.errors.OptionError` of one
+    line for an unknown name or a value out of range. The contact model's name and TOI
+    setting are checked where they are resolved (:func:`checked_options`), the sizes'
+    memory against the problem (:func:`_check_memory`)."""
+    _check_choice("optimizer", o.optimizer, OPTIMIZERS)
+    if o.integrator is not None:
+        _check_choice("integrator", o.integrator, INTEGRATORS)
+    _check_choice("path", o.path, PATHS)
+    # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
+    if o.iters is not None and not _whole(o.iters, 0):
+        raise OptionError(f"iters must be an integer >= 0, got {o.iters!r}")
+    if o.lr is not None and not _positive(o.lr):
+        raise OptionError(f"lr must be a positive finite number, got {o.lr!r}")
+    if o.max_step is not None and not _positive(o.max_step):
+        raise OptionError(f"max_step must be a positive finite number or None, got {o.max_step!r}")
+    if not _whole(o.starts, 1):
+        raise OptionError(f"starts must be an integer >= 1, got {o.starts!r}")
+    if not _whole(o.hops, 0):
+        raise OptionError(f"hops must be an integer >= 0, got {o.hops!r}")
+    if not (_positive(o.terminal_tol) and _positive(o.terminal_rho)):
+        raise OptionError(
+            "terminal_tol and terminal_rho must be positive finite numbers, got "
+            f"{o.terminal_tol!r} and {o.terminal_rho!r}"
+        )
+    if not _whole(o.terminal_iters, 1):
+        raise OptionError(f"terminal_iters must be an integer >= 1, got {o.terminal_iters!r}")
+    if o.time_limit is not None and not _positive(o.time_limit):
+        raise OptionError(f"time_limit must be a positive number of seconds, got {o.time_limit!r}")
+    _checked_smoothing(o.smoothing)
+
+
+def _options_signature(run: Callable[..., Any], options: type) -> inspect.Signature:
+    """``run``'s signature with its ``**options`` spelled out as the keyword-only fields of
+    the dataclass ``options``, with their defaults: what :func:`inspect.signature`, the
+    documentation and :meth:`~hybridoc.methods.Method.check_signature` see of a thin
+    wrapper ``run(problem, *, initial=None, progress=None, **options)``, while the defaults
+    are written once, in the dataclass."""
+    sig = inspect.signature(run)
+    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    params += [
+        inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default,
+                          annotation=f.type)
+        for f in dataclasses.fields(options)
+    ]  # fmt: skip
+    return sig.replace(parameters=params)
+
+
+def default_settings(problem: HybridOCP, optimizer: str) -> tuple[float, int]:
+    """Default ``(learning rate, iterations)`` of an optimiser on a problem.
+
+    Plain ``gd`` takes the problem's own settings where its author tuned them, the hints
+    ``lr`` and ``iters`` of :meth:`~hybridoc.capabilities.Capabilities.hints_for` ``("gd")``
+    (a scene file's ``[hints.gd]`` table: the paper's scenes carry the paper's settings),
+    and otherwise a learning rate of ``0.1 / dt`` (the gradient with respect to one control
+    value scales with ``dt``; in the scaled units of :func:`units`, ``dt / tc``) and 1000
+    iterations. The hints are plain gradient descent's: the other optimisers keep their
+    own defaults. ``adam`` uses 0.05 for
     1000 iterations; ``lbfgs`` a step of 0.1 (the trial step of its line search, taken when
     it lowers the loss:
     :data:`~hybridoc.solvers.optimizers.GD_LINE_SEARCH_EVALS`) for at most 300 iterations:
     with 1.0 it leaps from the multiple-collision guess to ``u = 0``, where nothing collides.
     """
     if optimizer == "gd":
-        return PAPER_SETTINGS.get(problem.name, (0.1 / (problem.dt / units(problem)[2]), 1000))
+        hints = problem.capabilities.hints_for("gd")
+        lr = hints["lr"] if "lr" in hints else 0.1 / (problem.dt / units(problem)[2])
+        return lr, hints.get("iters", 1000)
     if optimizer == "adam":
         return 0.05, 1000
     if optimizer == "lbfgs":
         return 0.1, 300
-    raise SceneError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    raise OptionError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+
+
+def _disc(ocp: HybridOCP) -> bool:
+    """Whether the disc simulator simulates ``ocp`` (a disc scene; the generic
+    time-of-impact simulation otherwise)."""
+    return scene_of(ocp) is not None
 
 
 # ---------------------------------------------------------------------- the loss
@@ -340,7 +413,7 @@ def make_loss(
     contact: str | ContactModel,
     integrator: str,
     path: str = "auto",
-    path_weight: float = 1e5,
+    path_weight: float = PATH_WEIGHT,
 ) -> tuple[Any, str]:
     """The differentiable objective of a problem: ``(loss object, "compiled" | "torch")``.
 
@@ -372,33 +445,30 @@ def make_loss(
     from hybridoc.solvers.contacts import contact_model
 
     model = contact_model(contact)
-    if path not in PATHS:
-        raise SceneError(f"unknown path {path!r}; choose auto, compiled or torch")
-    is_disc = isinstance(ocp, DiscOCP)
-    if integrator not in INTEGRATORS:
-        raise SceneError(
-            f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
-        )
+    _check_choice("path", path, PATHS)
+    scene = scene_of(ocp)
+    is_disc = scene is not None
+    _check_choice("integrator", integrator, INTEGRATORS)
     if is_disc:
         # every registered model has a CasADi step, within limits (e.g. the scene's number of
         # contacts for the coupled impulse models): auto falls back to torch outside them
-        reason = model.casadi_unsupported(ocp.scene, integrator)
+        reason = model.casadi_unsupported(scene, integrator)
         if path == "compiled" and reason is not None:
-            raise SceneError(f"no compiled path: {reason}")
+            raise OptionError(f"no compiled path: {reason}")
         use_compiled = path == "compiled" or (path == "auto" and reason is None)
     else:
         if not _is_direct_both(model):
-            raise SceneError(
+            raise OptionError(
                 f"contact models and TOI settings apply to disc scenes; {ocp.name!r} is "
                 "simulated by the generic time-of-impact method (contact='direct', toi='both')"
             )
         if integrator != "exact":
-            raise SceneError(
+            raise OptionError(
                 f"integrator {integrator!r} applies to disc scenes; the generic time-of-impact "
                 "simulation integrates the flow exactly"
             )
         if path == "torch":
-            raise SceneError("the torch simulator simulates disc scenes only; use path='compiled'")
+            raise OptionError("the torch simulator simulates disc scenes only; use path='compiled'")
         use_compiled = True
     if not use_compiled:
         from hybridoc.solvers.simulator import Simulator
@@ -427,7 +497,7 @@ def make_loss(
 def default_integrator(ocp: HybridOCP, contact: ContactModel) -> str:
     """``"exact"`` where it exists (impulse models with both TOI corrections, generic
     problems), else the paper's ``"symplectic-euler"``."""
-    if not isinstance(ocp, DiscOCP):
+    if not _disc(ocp):
         return "exact"
     exact = contact.impulse_based and getattr(contact, "toi", None) == "both"
     return "exact" if exact else "symplectic-euler"
@@ -461,45 +531,20 @@ def checked_options(ocp: HybridOCP, options: GDOptions) -> GDOptions:
 
     Raises
     ------
-    hybridoc.errors.SceneError
-        For an unknown name or a value out of range (one line).
+    hybridoc.errors.OptionError
+        For an unknown name or a value out of range (one line), also of the problem's own
+        defaults (its hints).
     """
     from hybridoc.solvers.contacts import contact_model
 
     o = options
-    if o.optimizer not in OPTIMIZERS:
-        raise SceneError(
-            f"unknown optimizer {o.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}"
-        )
     lr0, it0 = default_settings(ocp, o.optimizer)
-    lr = lr0 if o.lr is None else o.lr
-    iters = it0 if o.iters is None else o.iters
-    # checked strictly: int(1.5) or float("1e-3") would hide a mistake in the caller
-    if not _whole(iters, 0):
-        raise SceneError(f"iters must be an integer >= 0, got {iters!r}")
-    if not _positive(lr):
-        raise SceneError(f"lr must be a positive finite number, got {lr!r}")
-    if o.max_step is not None and not _positive(o.max_step):
-        raise SceneError(f"max_step must be a positive finite number or None, got {o.max_step!r}")
+    # the problem's defaults (its hints) pass the options' checks (GDOptions.__post_init__)
+    o = dataclasses.replace(o, lr=lr0 if o.lr is None else o.lr,
+                            iters=it0 if o.iters is None else o.iters)  # fmt: skip
+    lr, iters = o.lr, o.iters
     model = contact_model(o.contact, **({} if o.toi is None else {"toi": o.toi}))
     integrator = default_integrator(ocp, model) if o.integrator is None else o.integrator
-    if integrator not in INTEGRATORS:
-        raise SceneError(
-            f"unknown integrator {integrator!r}; choose one of {', '.join(INTEGRATORS)}"
-        )
-    if not _whole(o.starts, 1):
-        raise SceneError(f"starts must be an integer >= 1, got {o.starts!r}")
-    if not _whole(o.hops, 0):
-        raise SceneError(f"hops must be an integer >= 0, got {o.hops!r}")
-    if not (_positive(o.terminal_tol) and _positive(o.terminal_rho)):
-        raise SceneError(
-            "terminal_tol and terminal_rho must be positive finite numbers, got "
-            f"{o.terminal_tol!r} and {o.terminal_rho!r}"
-        )
-    if not _whole(o.terminal_iters, 1):
-        raise SceneError(f"terminal_iters must be an integer >= 1, got {o.terminal_iters!r}")
-    if o.time_limit is not None and not _positive(o.time_limit):
-        raise SceneError(f"time_limit must be a positive number of seconds, got {o.time_limit!r}")
     smoothing = o.smoothing
     if smoothing is None:
         smoothing = DEFAULT_SMOOTHING if o.optimizer == "lbfgs" else ()
@@ -519,7 +564,7 @@ def _checked_smoothing(smoothing: Any) -> tuple[float, ...] | None:
         or weights is None
         or not all(isinstance(m, numbers.Real) and math.isfinite(m) and m >= 0 for m in weights)
     ):
-        raise SceneError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
+        raise OptionError(f"smoothing weights must be finite numbers >= 0, got {smoothing!r}")
     return tuple(float(m) for m in weights)
 
 
@@ -528,24 +573,7 @@ def solve_gd(
     *,
     initial: Any = None,
     progress: ProgressLike = None,
-    contact: str | ContactModel = "direct",
-    toi: str | None = None,
-    integrator: str | None = None,
-    optimizer: str = "lbfgs",
-    smoothing: Sequence[float] | None = None,
-    iters: int | None = None,
-    lr: float | None = None,
-    starts: int = 1,
-    seed: int | None = 0,
-    hops: int = 0,
-    callback: Callable[[int, float, np.ndarray], Any] | None = None,
-    path: str = "auto",
-    max_step: float | None = None,
-    path_weight: float = 1e5,
-    terminal_tol: float = 1e-8,
-    terminal_rho: float = 10.0,
-    terminal_iters: int = 30,
-    time_limit: float | None = None,
+    **options: Any,
 ) -> Solution:
     """Minimise the discrete objective by gradient descent through the simulation.
 
@@ -657,22 +685,50 @@ def solve_gd(
 
     Raises
     ------
-    hybridoc.errors.SceneError
-        For options out of range or that do not apply to the problem (one line), among them
-        sizes (``starts``, ``iters``, ``hops``) whose memory estimate exceeds
-        :func:`memory_limit`.
+    hybridoc.errors.OptionError
+        For options out of range or that do not apply to the problem (one line).
+    hybridoc.resources.ResourceError
+        For sizes (``starts``, ``iters``, ``hops``) whose memory estimate exceeds
+        :func:`memory_limit` (a :class:`~hybridoc.errors.SceneError`).
+    TypeError
+        For a keyword that is no option.
+    """
+    unknown = sorted(set(options) - _OPTION_NAMES)
+    if unknown:
+        raise TypeError(f"solve_gd() got an unexpected keyword argument {unknown[0]!r}")
+    return run_gd(problem, GDOptions(**options), initial=initial, progress=progress)
+
+
+solve_gd.__signature__ = _options_signature(solve_gd, GDOptions)  # type: ignore[attr-defined]
+_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(GDOptions))
+
+
+def run_gd(
+    problem: ProblemLike,
+    options: GDOptions | None = None,
+    *,
+    initial: Any = None,
+    progress: ProgressLike = None,
+) -> Solution:
+    """:func:`solve_gd` with its options as one :class:`GDOptions` (``None``: the defaults).
+
+    Parameters
+    ----------
+    problem
+        Any problem (:func:`hybridoc.problem.as_ocp`).
+    options
+        The options, checked on construction; their problem-dependent defaults are filled
+        in here (:func:`checked_options`).
+    initial, progress
+        As in :func:`solve_gd`.
+
+    Returns
+    -------
+    hybridoc.solution.Solution
+        As :func:`solve_gd`.
     """
     ocp = as_ocp(problem)
-    opts = checked_options(
-        ocp,
-        GDOptions(
-            contact=contact, toi=toi, integrator=integrator, optimizer=optimizer,
-            smoothing=smoothing, iters=iters, lr=lr, starts=starts, seed=seed, hops=hops,
-            callback=callback, path=path, max_step=max_step, path_weight=path_weight,
-            terminal_tol=terminal_tol, terminal_rho=terminal_rho, terminal_iters=terminal_iters,
-            time_limit=time_limit,
-        ),
-    )  # fmt: skip
+    opts = checked_options(ocp, GDOptions() if options is None else options)
     watch = _Watch(opts.time_limit)
     token = _WATCH.set(watch)
     # an interrupt CasADi swallows inside a loss call is still seen at the next check
@@ -831,7 +887,7 @@ def _check_memory(
 ) -> None:
     """Refuse sizes whose memory estimate (:func:`_size_estimates`) passes
     :func:`memory_limit` (a :class:`~hybridoc.resources.ResourceError`, a
-    :class:`SceneError`, naming the argument, the estimate and the limit;
+    :class:`~hybridoc.errors.SceneError`, naming the argument, the estimate and the limit;
     :func:`hybridoc.resources.check`): ``HYBRIDOC_MEMORY_LIMIT`` sets the limit,
     ``--allow-large`` or ``HYBRIDOC_ALLOW_LARGE=1`` lifts it."""
     if not all(_whole(v, 0) for v in (starts, iters, hops, terminal_iters)):
@@ -853,7 +909,7 @@ def _dispatch(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Progress)
             ocp, opts.contact, opts.integrator, opts.path, opts.path_weight
         )
         if not hasattr(loss_obj, "value_and_grad_batch"):
-            raise SceneError(
+            raise OptionError(
                 f"hops run batched rollouts on the compiled path; the {used_path} path of "
                 f"contact {opts.contact.label!r} has none"
             )
@@ -873,7 +929,7 @@ def _settings(ocp: HybridOCP, opts: GDOptions, used_path: str) -> dict[str, Any]
         "iters": opts.iters,
         "lr": opts.lr,
         "path": used_path,
-        "simulation": "disc" if isinstance(ocp, DiscOCP) else "generic",
+        "simulation": "disc" if _disc(ocp) else "generic",
     }
 
 
@@ -1334,8 +1390,8 @@ def _multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solution
     from hybridoc.solvers.multistart import distinct_basins, explore
 
     t0 = time.perf_counter()
-    if isinstance(ocp, DiscOCP) and opts.contact.name != "direct":
-        raise SceneError(
+    if _disc(ocp) and opts.contact.name != "direct":
+        raise OptionError(
             "the batched multi-start explores with the compiled exact simulation of contact "
             "'direct'; other contact models start from its result with --initial"
         )
@@ -1800,7 +1856,7 @@ def _solve_terminal(ocp: HybridOCP, opts: GDOptions, initial: Any, progress: Pro
     the augmented Lagrangian's outer loop around L-BFGS-B, judged at the final time found."""
     reason = _terminal_refusal(ocp, opts)
     if reason is not None:
-        raise SceneError(f"gd cannot solve {ocp.name!r} so: {reason}")
+        raise OptionError(f"gd cannot solve {ocp.name!r} so: {reason}")
     t_start = time.perf_counter()
     loss = _terminal_loss(ocp, opts.path_weight)
     prob = _Augmented(ocp, loss, opts, progress)
@@ -1924,7 +1980,9 @@ def _terminal_solution(
             f"terminal_tol {opts.terminal_tol:.3g}, after {len(outer)} outer iteration(s) "
             f"(penalty {prob.rho:g}); {text or 'raise terminal_iters'}"
         )
-    elif status is Status.SUCCESS and max(ev.bound_violation, ev.path_violation) > 1e-9:
+    elif status is Status.SUCCESS and max(ev.bound_violation, ev.path_violation) > (
+        tolerances.FEASIBILITY
+    ):
         status, text = Status.INFEASIBLE, _infeasible(ev)
     return sol.set_status(status, text)
 
@@ -1969,7 +2027,8 @@ def _crossval_defaults(ocp: HybridOCP, options: dict[str, Any]) -> dict[str, Any
     out = dict(options)
     if ocp.has_terminal_constraints or ocp.free_horizon:
         return out  # one augmented-Lagrangian run: the multi-start explores another loss
-    out.setdefault("starts", GD_STARTS["disc" if isinstance(ocp, DiscOCP) else "generic"])
+    aimed = ocp.capabilities.geometry is not None  # aimed starts (multistart.diverse_controls)
+    out.setdefault("starts", GD_STARTS["disc" if aimed else "generic"])
     if out.get("integrator") == "symplectic-euler":
         out.setdefault("hops", GD_HOPS)
     return out
@@ -2000,7 +2059,7 @@ METHOD = Method(
     "gradient descent through the differentiable time-of-impact simulation",
     run=solve_gd,
     options=GDOptions,
-    tolerance=5e-3,
+    tolerance=tolerances.CROSSVAL,
     supports=_supports,
     summary_lines=_summary_lines,
     crossval_defaults=_crossval_defaults,

@@ -19,12 +19,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hybridoc.errors import SceneError
-from hybridoc.problems.paper import PAPER_SETTINGS
+from hybridoc.problem import ProblemLike, as_ocp, disc_scene
 from hybridoc.progress import ProgressLike, progress_scope
 from hybridoc.solvers.contacts import CONTACT_MODELS, ContactModel, contact_model
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.problems import Scene
     from hybridoc.solution import Solution
 
 __all__ = [
@@ -65,26 +64,31 @@ def parse_models(names: str | None) -> list[ContactModel]:
 
 
 DEFAULT_GD_SETTINGS: tuple[float, int] = (50.0, 500)
-"""``(learning rate, iterations)`` of plain gradient descent on a scene the paper did not
-solve."""
+"""``(learning rate, iterations)`` of plain gradient descent on a scene whose author gave
+no gd hints."""
 
 
-def paper_gd_settings(scene: Scene) -> tuple[float, int]:
+def paper_gd_settings(scene: ProblemLike) -> tuple[float, int]:
     """``(learning rate, iterations)`` of the paper's plain gradient descent on ``scene``.
 
-    :data:`hybridoc.problems.paper.PAPER_SETTINGS` (200 and 500 on single-collision, 50 and
-    1500 on multiple-collision); :data:`DEFAULT_GD_SETTINGS` (50 and 500) elsewhere.
+    The problem's own gd hints ``lr`` and ``iters``
+    (:meth:`~hybridoc.capabilities.Capabilities.hints_for`; a scene file's ``[hints.gd]``:
+    the paper's scenes carry the paper's settings, 200 and 500 on single-collision, 50 and
+    1500 on multiple-collision, :data:`hybridoc.problems.paper.PAPER_SETTINGS`), each
+    defaulting to :data:`DEFAULT_GD_SETTINGS` (50 and 500).
 
     Parameters
     ----------
-    scene : Scene
-        The disc scene (its ``name`` is looked up).
+    scene : ProblemLike
+        The disc scene (any problem, :func:`hybridoc.problem.as_ocp`).
 
     Returns
     -------
     tuple of (float, int)
     """
-    return PAPER_SETTINGS.get(scene.name, DEFAULT_GD_SETTINGS)
+    hints = as_ocp(scene).capabilities.hints_for("gd")
+    lr, iters = DEFAULT_GD_SETTINGS
+    return hints.get("lr", lr), hints.get("iters", iters)
 
 
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
@@ -94,14 +98,14 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def gradient_errors(
-    scene: Scene, controls: np.ndarray, model: ContactModel, exact: Any = None
+    scene: ProblemLike, controls: np.ndarray, model: ContactModel, exact: Any = None
 ) -> dict[str, Any]:
     """Relative errors of one contact model's gradient against the exact gradient.
 
     Parameters
     ----------
-    scene : Scene
-        The disc scene.
+    scene : ProblemLike
+        The disc scene (:func:`hybridoc.problem.disc_scene`).
     controls : numpy.ndarray
         ``(N, nu)`` piecewise-constant controls at which both gradients are taken.
     model : ContactModel
@@ -121,6 +125,7 @@ def gradient_errors(
 
     import hybridoc
 
+    scene = disc_scene(scene)
     if exact is None:
         exact = hybridoc.gradient(scene, controls)
     from hybridoc.solvers.simulator import Simulator
@@ -146,13 +151,15 @@ def gradient_errors(
     }
 
 
-def gradcheck_points(scene: Scene, gd_iters: list[int]) -> list[tuple[str, np.ndarray]]:
-    """The controls at which ``gradcheck`` compares gradients.
+def gradcheck_points(scene: ProblemLike, gd_iters: list[int]) -> list[tuple[str, np.ndarray]]:
+    """The controls at which ``gradcheck`` compares gradients on a disc scene
+    (:func:`hybridoc.problem.disc_scene`).
 
     The initial guess and the iterates ``gd_iters`` of the paper's plain gradient descent with
     the default contact model (``direct``, TOI ``both``), so that the points follow the path an
     optimiser takes towards the optimum.
     """
+    scene = disc_scene(scene)
     points = [("initial", scene.initial_controls())]
     wanted = sorted({int(k) for k in gd_iters if int(k) > 0})
     if not wanted:
@@ -176,7 +183,7 @@ def gradcheck_points(scene: Scene, gd_iters: list[int]) -> list[tuple[str, np.nd
 
 
 def compare_contacts(
-    scene: Scene,
+    scene: ProblemLike,
     *,
     models: list[ContactModel] | None = None,
     iters: int | None = None,
@@ -190,8 +197,8 @@ def compare_contacts(
 
     Parameters
     ----------
-    scene : Scene
-        The disc scene.
+    scene : ProblemLike
+        The disc scene (any problem that names one).
     models : list of ContactModel, optional
         The contact models (default :func:`compared_models`).
     iters, lr : int and float, optional

@@ -15,12 +15,15 @@ from __future__ import annotations
 import time
 import weakref
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hybridoc.ocp import HybridOCP, Structure
-from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.problems import scene_of
+
+if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.capabilities import Geometry
 
 __all__ = [
     "EXPLORE_SMOOTHING",
@@ -86,15 +89,15 @@ def _aimed(ocp: HybridOCP) -> list[np.ndarray]:
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
 
-    if not isinstance(ocp, DiscOCP):
+    geo = ocp.capabilities.geometry
+    if geo is None:
         return []
-    scene = ocp.scene
     try:
         ev = evaluate(ocp)
     except HybridocError:
         return []
     T, N = ocp.horizon, ocp.steps
-    n = scene.n_discs
+    n = geo.n_bodies
     u0 = np.array(ocp.u_guess, dtype=float)
     grid = ocp.time_grid()
     fracs = np.array([0.3, 0.5, 0.7, 0.85])
@@ -103,13 +106,13 @@ def _aimed(ocp: HybridOCP) -> list[np.ndarray]:
     for t_s in starts:
         s_start = ev.sample([t_s])[0]
         n_s = min(int(np.searchsorted(grid, t_s, side="right")) - 1, N - 1) if t_s > 0 else 0
-        for k, i in enumerate(scene.actuated_indices):
-            d = scene.discs[i]
-            p = s_start[2 * i : 2 * i + 2]
-            v = s_start[2 * n + 2 * i : 2 * n + 2 * i + 2]
+        for k, i in enumerate(geo.actuated_indices):
+            d = geo.bodies[i]
+            p = geo.position(s_start, i)
+            v = geo.velocity(s_start, i)
             for t_a in t_s + fracs * (T - t_s):
-                aims = [ev.sample([t_a])[0][2 * j : 2 * j + 2] for j in range(n) if j != i]
-                for wall in scene.walls:
+                aims = [geo.position(ev.sample([t_a])[0], j) for j in range(n) if j != i]
+                for wall in geo.planes:
                     nrm = np.asarray(wall.normal)
                     aims.append(p - ((p - np.asarray(wall.point)) @ nrm) * nrm)
                 for q in aims:
@@ -153,38 +156,38 @@ AIM_FRACTIONS = (0.3, 0.5, 0.7, 0.85)
 left after its force starts."""
 
 
-def _contact_aim(scene: Any, i: int, j: int, q: np.ndarray, length: float = 1.0) -> np.ndarray:
-    """Where disc ``i``'s centre should be to strike disc ``j`` (at ``q``) towards ``j``'s
+def _contact_aim(geo: Geometry, i: int, j: int, q: np.ndarray, length: float = 1.0) -> np.ndarray:
+    """Where body ``i``'s centre should be to strike body ``j`` (at ``q``) towards ``j``'s
     target: behind ``j`` on the line from its target (``j``'s centre when it has none, or
-    when ``j`` is at its target to ``1e-12`` of the scene's ``length`` scale)."""
-    target = getattr(scene.discs[j], "target", None)
+    when ``j`` is at its target to ``1e-12`` of the problem's ``length`` scale)."""
+    target = geo.bodies[j].target
     if target is None:
         return q
     d = q - np.asarray(target, dtype=float)
     norm = float(np.linalg.norm(d))
     if norm < 1e-12 * length:  # at its target already: no direction to strike it
         return q
-    return q + (scene.discs[i].radius + scene.discs[j].radius) * d / norm
+    return q + (geo.bodies[i].radius + geo.bodies[j].radius) * d / norm
 
 
 class _Aimer:
-    """Constant-force aims of a disc scene's actuated discs, read off the guess's
-    trajectory (:func:`diverse_controls`)."""
+    """Constant-force aims of a problem's actuated bodies (its
+    :attr:`~hybridoc.capabilities.Capabilities.geometry`), read off the guess's trajectory
+    (:func:`diverse_controls`)."""
 
-    def __init__(self, ocp: DiscOCP, ev: Any) -> None:
-        self.ocp, self.ev, self.scene = ocp, ev, ocp.scene
-        self.n = self.scene.n_discs
+    def __init__(self, ocp: HybridOCP, geo: Geometry, ev: Any) -> None:
+        self.ocp, self.ev, self.geo = ocp, ev, geo
+        self.n = geo.n_bodies
         self.grid = ocp.time_grid()
         self.T, self.N = ocp.horizon, ocp.steps
-        self.e = float(getattr(self.scene, "restitution", 1.0))
+        self.e = float(geo.restitution)
         scales = getattr(ocp, "scales", None)
         self.length = 1.0 if scales is None else float(scales.length)
 
     def state(self, t: float, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """Disc ``i``'s position and velocity at ``t`` on the guess's trajectory."""
+        """Body ``i``'s position and velocity at ``t`` on the guess's trajectory."""
         s = self.ev.sample([t])[0]
-        n = self.n
-        return s[2 * i : 2 * i + 2].copy(), s[2 * n + 2 * i : 2 * n + 2 * i + 2].copy()
+        return self.geo.position(s, i).copy(), self.geo.velocity(s, i).copy()
 
     def cell(self, t: float) -> int:
         return min(int(np.searchsorted(self.grid, t, side="right")) - 1, self.N - 1) if t > 0 else 0
@@ -215,26 +218,29 @@ class _Aimer:
         nrm = np.asarray(wall.normal, dtype=float)
         nrm = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
         d = float((p - np.asarray(wall.point, dtype=float)) @ nrm)
-        return p - (d - self.scene.discs[i].radius) * nrm
+        return p - (d - self.geo.bodies[i].radius) * nrm
 
     def body_aim(self, i: int, j: int, t: float) -> np.ndarray:
-        return _contact_aim(self.scene, i, j, self.state(t, j)[0], self.length)
+        return _contact_aim(self.geo, i, j, self.state(t, j)[0], self.length)
 
 
 def diverse_controls(
     ocp: HybridOCP, evaluation: Any = None
 ) -> list[tuple[tuple[str, ...], np.ndarray]]:
-    """Structured starting controls of a disc scene, each with its kind (empty for other
-    problems): for every actuated disc, a constant force aimed at each other disc (behind
-    it, seen from its target, when it has one) and at each wall, from the start and from
-    each event of the guess on (a late strike of a body already in motion); bounce-first
-    starts (at a wall first, then off it at each disc); and with several actuated discs,
-    combinations (one strikes a disc, then another strikes it). The bodies' positions are
-    read off the guess's trajectory (``evaluation``, default the judge's)."""
+    """Structured starting controls of a problem with a geometry
+    (:attr:`~hybridoc.capabilities.Capabilities.geometry`: a disc scene), each with its
+    kind (empty for other problems): for every actuated disc, a constant force aimed at each
+    other disc (behind it, seen from its target, when it has one) and at each wall, from
+    the start and from each event of the guess on (a late strike of a body already in
+    motion); bounce-first starts (at a wall first, then off it at each disc); and with
+    several actuated discs, combinations (one strikes a disc, then another strikes it).
+    The bodies' positions are read off the guess's trajectory (``evaluation``, default the
+    judge's)."""
     from hybridoc.errors import HybridocError
     from hybridoc.evaluator import evaluate
 
-    if not isinstance(ocp, DiscOCP):
+    geo = ocp.capabilities.geometry
+    if geo is None:
         return []
     try:
         ev = evaluation if evaluation is not None else evaluate(ocp)
@@ -242,33 +248,31 @@ def diverse_controls(
             return []
     except HybridocError:
         return []
-    a = _Aimer(ocp, ev)
-    scene, T, n = a.scene, a.T, a.n
+    a = _Aimer(ocp, geo, ev)
+    T, n = a.T, a.n
     u0 = np.array(ocp.u_guess, dtype=float)
     zero = np.zeros_like(u0)
-    act = list(scene.actuated_indices)
+    act = list(geo.actuated_indices)
     out: list[tuple[tuple[str, ...], np.ndarray]] = []
     late = sorted({float(e.time) for e in ev.events if 0 < e.time < 0.8 * T})
     for k, i in enumerate(act):
-        m = scene.discs[i].mass
-        name = scene.discs[i].name
+        m = geo.bodies[i].mass
+        name = geo.bodies[i].name
         others = [j for j in range(n) if j != i]
         # aimed from the start (the guess's own control for the other discs: zero)
         for t_s in [0.0, *late]:
             p, v = a.state(t_s, i)
             for t_a in t_s + np.asarray(AIM_FRACTIONS) * (T - t_s):
-                aims = [
-                    (f"aim {name}>{scene.discs[j].name}", a.body_aim(i, j, t_a)) for j in others
-                ]
+                aims = [(f"aim {name}>{geo.bodies[j].name}", a.body_aim(i, j, t_a)) for j in others]
                 if t_s == 0.0:
-                    aims += [(f"aim {name}>{w.name}", a.wall_contact(i, w, p)) for w in scene.walls]
+                    aims += [(f"aim {name}>{w.name}", a.wall_contact(i, w, p)) for w in geo.planes]
                 for kind, q in aims:
                     u = (u0 if t_s > 0 else zero).copy()
                     a.push(u, k, m, p, v, q, t_s, float(t_a))
                     out.append(((kind, "late" if t_s > 0 else "early"), u))
         # bounce-first: a wall, then off it at each disc
         p0, v0 = a.state(0.0, i)
-        for w in scene.walls:
+        for w in geo.planes:
             nrm = np.asarray(w.normal, dtype=float)
             nrm = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
             c = a.wall_contact(i, w, p0)
@@ -285,7 +289,7 @@ def diverse_controls(
                         t_a = t_w + f_a * (T - t_w)
                         ub = u.copy()
                         a.push(ub, k, m, c, v1, a.body_aim(i, j, t_a), t_w, t_a)
-                        out.append(((f"bounce {name}>{w.name}>{scene.discs[j].name}",), ub))
+                        out.append(((f"bounce {name}>{w.name}>{geo.bodies[j].name}",), ub))
     # several actuated discs: one strikes a disc, then another strikes it
     for k1, i1 in enumerate(act):
         for k2, i2 in enumerate(act):
@@ -296,8 +300,8 @@ def diverse_controls(
                     u = zero.copy()
                     for k, i, f in ((k1, i1, f1), (k2, i2, f2)):
                         p, v = a.state(0.0, i)
-                        a.push(u, k, scene.discs[i].mass, p, v, a.body_aim(i, j, f * T), 0.0, f * T)
-                    names = (scene.discs[i1].name, scene.discs[i2].name, scene.discs[j].name)
+                        a.push(u, k, geo.bodies[i].mass, p, v, a.body_aim(i, j, f * T), 0.0, f * T)
+                    names = (geo.bodies[i1].name, geo.bodies[i2].name, geo.bodies[j].name)
                     out.append((("pair {}+{}>{}".format(*names),), u))
     return out
 
@@ -527,7 +531,7 @@ def exploration_loss(coarse: HybridOCP) -> Any:
     from hybridoc.solvers.compiled import CompiledLoss
     from hybridoc.solvers.contacts import contact_model
 
-    integrator = "exact" if isinstance(coarse, DiscOCP) else None
+    integrator = "exact" if scene_of(coarse) is not None else None
     return CompiledLoss(
         mode_switch(mode_slots(coarse)), contact_model("direct", toi="both"), integrator=integrator
     )
