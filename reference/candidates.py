@@ -39,13 +39,12 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from hybridoc.evaluation import Evaluation
 from hybridoc.ocp import HybridOCP
-from hybridoc.problems.disc_ocp import DiscOCP
 
 __all__ = [
     "DEPTH_SEQUENCES",
@@ -74,8 +73,10 @@ def _near_touches(ocp: HybridOCP, ev: Evaluation, limit: int = 2) -> list[tuple[
     """Local minima of guards without an event, closest first (at most ``limit``)."""
     if not ocp.guards:
         return []
-    # disc scenes: within the largest radius; other problems: a tenth of the guard's range
-    thresh = max(d.radius for d in ocp.scene.discs) if isinstance(ocp, DiscOCP) else None
+    # round bodies (disc scenes): within the largest radius; other problems: a tenth of the
+    # guard's range
+    geometry = ocp.capabilities.geometry
+    thresh = max(b.radius for b in geometry.bodies) if geometry is not None else None
     t, X = ev.times, ev.states
     fired = {(e.name, round(e.time, 3)) for e in ev.events}
     found = []
@@ -157,21 +158,51 @@ def _psi_along(ocp: HybridOCP, ev: Evaluation, j: int) -> np.ndarray:
     return hit[1]
 
 
+class _Disc(NamedTuple):
+    """A round body of the problem's geometry at its initial state."""
+
+    name: str
+    position: np.ndarray
+    velocity: np.ndarray
+    radius: float
+    mass: float
+    actuated: bool
+    target: tuple[float, float] | None
+
+
 def _disc_layout(ocp: HybridOCP) -> dict[str, Any] | None:
-    if not isinstance(ocp, DiscOCP):
+    """What the geometric screens and bounds read of a problem of round bodies and planes
+    with the closed-form flow ``f = (v, A u)``, ``L = eps |u|^2`` (its
+    :class:`~hybridoc.capabilities.Geometry` and
+    :class:`~hybridoc.capabilities.LinearControlFlow`, a disc scene's); ``None`` for any
+    other problem."""
+    caps = ocp.capabilities
+    geometry, flow = caps.geometry, caps.flow
+    if geometry is None or flow is None:
         return None
-    scene = ocp.scene
-    moving = {d.name for d in scene.discs if d.actuated or any(d.velocity)}
-    passive = {d.name for d in scene.discs if not d.actuated}
-    walls = {w.name for w in scene.walls}
+    x0 = np.asarray(ocp.x0, dtype=float)
+    discs = [
+        _Disc(
+            b.name,
+            geometry.position(x0, i),
+            geometry.velocity(x0, i),
+            b.radius,
+            b.mass,
+            b.actuated,
+            b.target,
+        )
+        for i, b in enumerate(geometry.bodies)
+    ]
+    moving = {d.name for d in discs if d.actuated or bool(np.any(d.velocity))}
+    passive = {d.name for d in discs if not d.actuated}
+    walls = {w.name for w in geometry.planes}
     return {
-        "scene": scene,
         "moving": moving,
         "passive": passive,
         "walls": walls,
-        "discs": {d.name: d for d in scene.discs},
-        "wall_of": {w.name: w for w in scene.walls},
-        "eps": float(scene.control_weight),
+        "discs": {d.name: d for d in discs},
+        "wall_of": {w.name: w for w in geometry.planes},
+        "eps": float(flow.eps),
         "T": float(ocp.horizon),
         "bodies": {g.name: tuple(g.bodies) for g in ocp.guards},
         "memo": {},

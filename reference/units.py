@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.ocp import HybridOCP
-from hybridoc.problems.disc_ocp import DiscOCP
+from hybridoc.problems import scene_of
 from hybridoc.scales import pow2
 
 __all__ = ["BAND", "Units", "canonical", "cost_shown", "in_problem_units"]
@@ -92,7 +92,7 @@ class Units:
         The offset of the positions, ``(2,)`` (a multiple of ``1024 * length`` each).
     """
 
-    ocp: DiscOCP
+    ocp: HybridOCP
     length: float
     time: float
     mass: float
@@ -276,11 +276,11 @@ def canonical(ocp: HybridOCP) -> Units | None:
     """The canonical problem of a disc scene whose scales are not the identity (module
     notes); ``None`` for any other problem (solved as it is)."""
     sc = ocp.scales
-    if not isinstance(ocp, DiscOCP) or sc is None or sc.is_identity:
+    if sc is None or sc.is_identity:
         return None
-    from hybridoc.problems.scene import Scene
-
-    scene: Scene = ocp.scene
+    scene = scene_of(ocp)  # the disc scene of the problem's data, or None
+    if scene is None:
+        return None
     n = scene.n_discs
     mass = sc.control[0] * sc.time**2 / sc.length if sc.control else 1.0
     # only whole bands of BAND (module notes): the scenes within a factor 4 of their own
@@ -317,7 +317,7 @@ def canonical(ocp: HybridOCP) -> Units | None:
         distribution=None,
     )
     c_ocp = canon.to_ocp()
-    assert isinstance(c_ocp, DiscOCP) and c_ocp.nx == 4 * n
+    assert c_ocp.capabilities.geometry is not None and c_ocp.nx == 4 * n
     # the problem's own grid guess, in canonical units (a scene's initial_control may
     # have been replaced by HybridOCP.replace)
     c_ocp = c_ocp.replace(u_guess=np.asarray(ocp.u_guess, dtype=float) / force)

@@ -130,7 +130,7 @@ def test_a_coarse_extremal_is_refined_until_the_judge_agrees(hopper: HybridOCP) 
 
 
 def test_an_unreachable_rtol_is_a_quick_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(shooting, "MAX_SUBSTEPS", 8)
+    monkeypatch.setattr(shooting.refinement, "MAX_SUBSTEPS", 8)
     hopper = masked_hopper()  # a fresh structure: no steps remembered from other tests
     t0 = time.perf_counter()
     with pytest.raises(ConvergenceError, match=r"rtol 1e-11.*MAX_SUBSTEPS = 8"):
