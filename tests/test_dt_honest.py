@@ -27,6 +27,11 @@ from hybridoc.errors import ConvergenceError
 from hybridoc.solution import Status
 from hybridoc.solvers import transcription as tr
 from hybridoc.solvers.transcription import control_function, solve_dt
+from hybridoc.solvers.transcription import ipopt as tr_ipopt
+from hybridoc.solvers.transcription import judging as tr_judging
+from hybridoc.solvers.transcription import monitor as tr_monitor
+from hybridoc.solvers.transcription import refine as tr_refine
+from hybridoc.solvers.transcription import solve as tr_solve
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +62,7 @@ def test_nudged_control_is_the_same_away_from_the_event(clock) -> None:
     r = tr.solve_dt_sequence(clock, ["switch"], guess=guess, guess_controls=clock.u_guess)
     gamma = float(r.event_times[0])
     delta = 1e-3
-    rn = tr._nudged(r, delta)
+    rn = tr_judging._nudged(r, delta)
     assert rn is not None and rn.element_bounds.size == r.element_bounds.size + 1
     t = np.linspace(0.0, 1.0, 2001)
     away = (t < gamma) | (t > gamma + delta)
@@ -67,13 +72,13 @@ def test_nudged_control_is_the_same_away_from_the_event(clock) -> None:
     before = r.control_at(np.array([gamma - 1e-9]))[0]
     np.testing.assert_allclose(rn.control_at(inside), np.tile(before, (5, 1)), atol=1e-9)
     # a nudge as large as a phase's first element is refused
-    assert tr._nudged(r, 10.0) is None
+    assert tr_judging._nudged(r, 10.0) is None
 
 
 def test_a_cheaper_known_control_makes_the_result_not_optimal(clock, monkeypatch) -> None:
     # without the nudge, the only candidate that reproduces its events is the no-event one
     # (22.77): the initial guess, judged at 7.04, is a cheaper control dt knows
-    monkeypatch.setattr(tr, "_NUDGES", ())
+    monkeypatch.setattr(tr_judging, "_NUDGES", ())
     guess_cost = evaluate(clock, clock.u_guess).cost
     sol = solve_dt(clock)
     assert sol.info["sequence"] == [] and sol.cost == pytest.approx(22.7744076765, rel=1e-9)
@@ -158,7 +163,7 @@ def test_refinement_meets_the_tolerance_on_a_fast_lqr() -> None:
 
 
 def test_refinement_bound_is_not_converged(monkeypatch) -> None:
-    monkeypatch.setattr(tr, "MAX_ADAPTIVE_MESH", 8)
+    monkeypatch.setattr(tr_refine, "MAX_ADAPTIVE_MESH", 8)
     sol = solve_dt(_lqr())
     assert sol.status is Status.NOT_CONVERGED, sol.message
     assert 4 < sol.info["mesh"][0] <= 8  # the next halving would pass the bound
@@ -207,7 +212,7 @@ def test_local_infeasibility_is_not_called_a_proof() -> None:
 
 def test_time_limit_returns_the_best_judged_candidate(clock, monkeypatch) -> None:
     # the limit passes once a candidate is judged: the refinement stops there
-    monkeypatch.setattr(tr._Monitor, "expired", lambda self: len(self.judged) >= 2)
+    monkeypatch.setattr(tr_monitor.Monitor, "expired", lambda self: len(self.judged) >= 2)
     sol = solve_dt(clock, time_limit=1000.0)
     assert sol.status is Status.NOT_CONVERGED, sol.message
     assert sol.info["sequence"] == ["switch"]
@@ -219,12 +224,13 @@ def test_interrupt_returns_the_best_judged_candidate(clock, monkeypatch) -> None
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(tr, "_adapt", interrupted)
+    monkeypatch.setattr(tr_refine, "_adapt", interrupted)
     sol = solve_dt(clock)
     assert sol.status is Status.NOT_CONVERGED and sol.info["stopped"] == "interrupted (SIGINT)"
     assert sol.info["sequence"] == ["switch"]
     # nothing judged yet: the interrupt goes on
-    monkeypatch.setattr(tr, "_solve_nlp", interrupted)
+    for module in (tr_solve, tr_ipopt, tr_refine):  # where IPOPT is called from
+        monkeypatch.setattr(module, "solve_nlp", interrupted)
     with pytest.raises(KeyboardInterrupt):
         solve_dt(clock)
 
@@ -234,7 +240,7 @@ def test_sigint_inside_ipopt_returns_the_best_judged_candidate(monkeypatch) -> N
     import os
     import signal
 
-    own = tr._IterationCallback._eval
+    own = tr_monitor.IterationCallback._eval
 
     def eval_and_interrupt(self, arg):
         mon = self.monitor
@@ -242,7 +248,7 @@ def test_sigint_inside_ipopt_returns_the_best_judged_candidate(monkeypatch) -> N
             os.kill(os.getpid(), signal.SIGINT)
         return own(self, arg)
 
-    monkeypatch.setattr(tr._IterationCallback, "_eval", eval_and_interrupt)
+    monkeypatch.setattr(tr_monitor.IterationCallback, "_eval", eval_and_interrupt)
     before = signal.getsignal(signal.SIGINT)
     sol = solve_dt(lotka_volterra_relaxed())
     assert sol.status is Status.NOT_CONVERGED and sol.info["stopped"] == "interrupted (SIGINT)"

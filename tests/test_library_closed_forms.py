@@ -283,7 +283,7 @@ def test_hopper_transcription_solves_only_sequences_the_modes_admit(
     ]
     assert not any(ocp.sequence_admissible(s) for s in skipped)
     assert all(r["nlp_cost"] is not None for r in rows if r["sequence"] not in skipped)
-    monkeypatch.setattr(transcription, "_admissible_candidates", lambda ocp, c: (c, []))
+    monkeypatch.setattr(transcription.solve, "admissible_candidates", lambda ocp, c: (c, []))
     every = solve_dt(ocp)
     failed = [r["sequence"] for r in every.info["candidates"] if r["nlp_cost"] is None]
     assert failed == skipped  # IPOPT: infeasible, each of them

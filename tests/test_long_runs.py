@@ -25,8 +25,8 @@ from hybridoc.errors import HybridocError, SceneError
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference import solve_reference
 from hybridoc.reference.solve import MAX_EVENTS
-from hybridoc.solvers import transcription as tr
 from hybridoc.solvers.transcription import MAX_NLP_SIZE, nlp_size, solve_dt
+from hybridoc.solvers.transcription import nlp as tr_nlp
 
 SCENES = Path(__file__).parent / "scenes"
 
@@ -123,7 +123,7 @@ def _path_ocp() -> HybridOCP:
 def test_nlp_size_is_the_built_nlps(problem: str, events: list[str], mesh, degree) -> None:
     ocp = _path_ocp() if problem == "path" else hybridoc.as_ocp(problem)
     guards = [ocp.guard_index(e) for e in events]
-    nlp = tr._PhaseNLP(ocp, guards, degree, mesh)
+    nlp = tr_nlp.PhaseNLP(ocp, guards, degree, mesh)
     assert nlp_size(ocp, guards, degree, mesh) == (nlp.n_w, nlp.n_g)
 
 

@@ -18,7 +18,8 @@ from hybridoc.problems import load_problem
 from hybridoc.reference import solve_reference
 from hybridoc.reference.result import _buffer_call
 from hybridoc.solution import lagrange_pieces
-from hybridoc.solvers.transcription import _pieces_at_one_time, control_function, solve_dt
+from hybridoc.solvers.transcription import control_function, solve_dt
+from hybridoc.solvers.transcription.collocation import pieces_at_one_time
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
@@ -51,7 +52,7 @@ def test_polynomial_control_at_one_time_is_lagrange_pieces_bit_for_bit(degree):
         bounds = np.cumsum(np.r_[0.0, rng.uniform(0.01, 1.0, E)]) * rng.uniform(0.1, 10.0)
         values = rng.standard_normal((nu, E, degree)) * 30.0
         lo, hi = (np.full(nu, -20.0), np.full(nu, 25.0)) if bounded else (-np.inf, np.inf)
-        u = _pieces_at_one_time(bounds, nodes, values, lo, hi)
+        u = pieces_at_one_time(bounds, nodes, values, lo, hi)
         for t in _probe_times(bounds, rng, 80):
             want = lagrange_pieces(np.array([t]), bounds, nodes, values, lo, hi)[0]
             assert _same_bits(u(float(t)), want), (degree, nu, t)

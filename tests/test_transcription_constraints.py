@@ -13,11 +13,18 @@ import pytest
 from scipy.optimize import lsq_linear, minimize
 
 import hybridoc
-import hybridoc.solvers.transcription as tr
 from hybridoc import Guard, HybridOCP
 from hybridoc.errors import ConvergenceError, HybridocError, SimultaneousEventError
 from hybridoc.solution import Solution, Status
+from hybridoc.solvers.transcription import claims as tr_claims
+from hybridoc.solvers.transcription import collocation as tr_collocation
 from hybridoc.solvers.transcription import control_function, solve_dt
+from hybridoc.solvers.transcription import guess as tr_guess
+from hybridoc.solvers.transcription import judging as tr_judging
+from hybridoc.solvers.transcription import monitor as tr_monitor
+from hybridoc.solvers.transcription import nlp as tr_nlp
+from hybridoc.solvers.transcription import refine as tr_refine
+from hybridoc.solvers.transcription import solve as tr_solve
 
 
 def _judge(ocp: HybridOCP, sol: Solution) -> hybridoc.Evaluation:
@@ -33,7 +40,7 @@ def _raw_polynomial(sol: Solution, t: np.ndarray) -> np.ndarray:
     vals = sol.arrays["radau_controls"].reshape(sol.controls.shape[1], -1, d)
     idx = np.clip(np.searchsorted(eb, t, side="right") - 1, 0, eb.size - 2)
     s = (t - eb[idx]) / (eb[idx + 1] - eb[idx])
-    basis = tr._Radau.make(d).control_basis(s)
+    basis = tr_collocation.Radau.make(d).control_basis(s)
     return np.einsum("nj,unj->nu", basis, vals[:, idx, :])
 
 
@@ -128,8 +135,8 @@ def test_initial_point_is_clipped_into_the_bounds():
     ocp = _double_integrator(u_min=[-UMAX], u_max=[UMAX])
     u0 = np.full((ocp.steps, 1), 10.0)  # far outside the bounds
     ev = hybridoc.evaluate(ocp, u0)
-    nlp = tr._nlp_for(ocp, [], 3, [4])
-    w0, _ = tr._initial_point(nlp, ev, u0)
+    nlp = tr_nlp.nlp_for(ocp, [], 3, [4])
+    w0, _ = tr_guess.initial_point(nlp, ev, u0)
     _, _, U = nlp.unpack(w0)
     assert np.all(U[0] == UMAX)
     assert np.all(nlp.lbx <= w0) and np.all(w0 <= nlp.ubx)
@@ -389,10 +396,16 @@ def test_tunnelling_through_a_guard_between_nodes_is_events_differ():
     assert found.status is Status.BEST_FOUND and found.info["sequence"] == ["portal"]
 
 
+def _no_sequence_matches(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No candidate reproduces its events, in every module of the transcription that asks."""
+    for module in (tr_refine, tr_judging, tr_monitor, tr_solve):
+        monkeypatch.setattr(module, "sequence_matches", lambda *a, **k: False)
+
+
 def test_events_differ_returns_the_lowest_judged_cost(monkeypatch):
     scene = hybridoc.load_scene("single-collision")
     ocp = scene.to_ocp()
-    monkeypatch.setattr(tr, "_sequence_matches", lambda *a, **k: False)
+    _no_sequence_matches(monkeypatch)
     sol = solve_dt(ocp, mesh=4)
     assert sol.status is Status.EVENTS_DIFFER
     judged = [c["judged_cost"] for c in sol.info["candidates"] if "judged_cost" in c]
@@ -405,15 +418,15 @@ def test_events_differ_returns_the_lowest_judged_cost(monkeypatch):
 
 def test_near_miss_is_refined_while_the_gap_shrinks(monkeypatch):
     scene = hybridoc.load_scene("single-collision")
-    monkeypatch.setattr(tr, "_sequence_matches", lambda *a, **k: False)
+    _no_sequence_matches(monkeypatch)
     calls = []
-    original = tr._refined
+    original = tr_refine.solve_refined
 
     def counting(ocp, r, verbose):
         calls.append(list(r._nlp.mesh))
         return original(ocp, r, verbose)
 
-    monkeypatch.setattr(tr, "_refined", counting)
+    monkeypatch.setattr(tr_refine, "solve_refined", counting)
     sol = solve_dt(scene)
     assert sol.status is Status.EVENTS_DIFFER
     # each candidate (same events, times agree) is a near miss: refined to mesh 8; a second
@@ -511,6 +524,7 @@ def test_guess_that_stays_simultaneous_is_a_clear_error(monkeypatch):
     def always(*args, **kwargs):
         raise SimultaneousEventError("guards 'x' and 'y' fire at the same instant")
 
-    monkeypatch.setattr(tr, "evaluate", always)
+    for module in (tr_guess, tr_claims):  # where the judge runs a control array
+        monkeypatch.setattr(module, "evaluate", always)
     with pytest.raises(HybridocError, match="also with the initial guess perturbed"):
         solve_dt(hybridoc.load_scene("single-collision"))

@@ -109,14 +109,14 @@ def test_dt_far_from_origin_within_the_data_rounding(bases, corner):
 def test_guard_rows_are_measured_in_lengths():
     """The NLP divides a disc pair's guard by the length scale (its gradient's norm is
     sqrt(2) L), and the identity problems keep their NLP unscaled."""
-    from hybridoc.solvers.transcription import _guard_scales, _PhaseNLP
+    from hybridoc.solvers.transcription.nlp import PhaseNLP, guard_scales
 
     scene = load_scene("single-collision")
     assert as_ocp(scene).scales.is_identity
-    np.testing.assert_array_equal(_guard_scales(as_ocp(scene)), [1.0])
+    np.testing.assert_array_equal(guard_scales(as_ocp(scene)), [1.0])
     small = as_ocp(transform(scene, length=1e-6, shift=(3.0, 4.0)))
-    np.testing.assert_array_equal(_guard_scales(small), [small.scales.length])
-    nlp = _PhaseNLP(small, [0], 3, [2, 2])
+    np.testing.assert_array_equal(guard_scales(small), [small.scales.length])
+    nlp = PhaseNLP(small, [0], 3, [2, 2])
     h = np.array([0.4, 0.6])
     X = [np.tile(small.x0[:, None], (1, 7)), np.tile(small.x0[:, None], (1, 7))]
     force = small.scales.control_array[:, None]  # forces of the scene's own size
