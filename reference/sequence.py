@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import ConvergenceError, EvaluationError, HybridocError
 from hybridoc.evaluation import Evaluation
 from hybridoc.ocp import HybridOCP
@@ -63,9 +64,10 @@ SCREEN_NLP_ITER = 40
 BOUND_SIGN_TOL = 1e-9
 """A final time at a bound is a minimum in ``T`` when ``H(T)`` has the right sign, to this
 much relative (its residual is rounding there)."""
-TERMINAL_TOL = 1e-8
+TERMINAL_TOL = tolerances.TERMINAL
 """The largest violation of the terminal constraints the judge's re-simulation of an
-extremal may show (the shared tolerance of issue #15's methods)."""
+extremal may show: the table's ``"terminal"`` tolerance (:mod:`hybridoc.tolerances`), shared
+by the methods (issue #15)."""
 JUDGE_RETRIES = 2
 """When the judge's cost differs from the shooting's by more than ``rtol`` although the
 events agree, the extremal is refined this many times more, each to a target 100 times
@@ -246,100 +248,8 @@ def solve_sequence(
     """
     S = shooting_system(ocp, list(sequence))
     gamma0 = np.asarray(gamma0, dtype=float)
-    reasons: list[str] = []
-    found: list[ReferenceResult] = []
-
-    def solve(system: ShootingSystem, z0: np.ndarray) -> NewtonResult:
-        if screen:
-            return newton(system, z0, tol=tol, verbose=verbose, max_iter=20, min_step=1e-3)
-        return newton(system, z0, tol=tol, verbose=verbose)
-
-    def run(system: ShootingSystem, z0: np.ndarray) -> tuple[ShootingSystem, NewtonResult]:
-        nr = solve(system, z0)
-        if not (ocp.has_bounds or ocp.path is not None):
-            return system, nr
-        # control bounds: the saturated arcs (shooting.saturate), from the extremal of the
-        # clipped control (a disc scene: of its closed-form phases), else from the
-        # unconstrained one (from a poor start the clip's flat branches stall Newton)
-        tries = [(system, nr)]
-        if not system.disc:
-            tries.append((system.with_arcs(((free_mode(ocp.nu),),) * (system.K + 1)), None))
-        last = (system, nr)
-        for base, first in tries:
-            nr_b = first if first is not None else solve(base, z0)
-            if not nr_b.converged:
-                last = (base, nr_b) if first is not None else last
-                continue
-            sat, nr_sat, why = saturate(base, nr_b, tol=tol, verbose=verbose)
-            if not why:
-                return sat, nr_sat
-            reasons.append(f"saturation: {why}")
-            last = (sat, NewtonResult(nr_sat.z, nr_sat.residual, nr_sat.iterations, False))
-        return last
-
-    def keep(system: ShootingSystem, nr: NewtonResult, path: str) -> None:
-        ref = refine(system, nr, rtol=rtol, tol=tol, verbose=verbose)
-        if ref.ok:
-            found.append(make_result(ref.system, ref.newton, path, ref.error))
-        else:
-            reasons.append(f"from the {path}: {ref.reason}")
-
-    def failed(system: ShootingSystem, nr: NewtonResult, path: str) -> None:
-        if nr.residual <= tol:
-            times = ", ".join(f"{float(g):.6g}" for g in system.unpack(nr.z)[1])
-            reasons.append(
-                f"Newton from the {path} found a root with event times [{times}], not in "
-                f"order inside (0, T = {system.horizon_of(nr.z):g})"
-            )
-        else:
-            reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
-
-    def attempt(z0: np.ndarray, path: str, again: bool = True) -> None:
-        Sr, nr = run(S, z0)
-        if not S.core.free:
-            if nr.converged:
-                keep(Sr, nr, path)
-                # the first-order conditions of a reset's control hold at any stationary
-                # point of the cost in it: Newton again from other extremes of lambda+^T g
-                for z1 in _reset_controls_moved(Sr, nr.z) if again else []:
-                    attempt(Sr.core.strip_switches(z1), f"{path}, reset controls moved", False)
-            else:
-                failed(Sr, nr, path)
-            return
-        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
-        T = Sr.horizon_of(nr.z)
-        if nr.converged and lo <= T <= hi:
-            keep(Sr, nr, path)
-            return
-        if nr.converged:
-            reasons.append(
-                f"from the {path}: H(T) = 0 at T = {T:.6g}, outside [{lo:g}, {hi:g}]: "
-                "solved at the bounds"
-            )
-        else:
-            failed(Sr, nr, path)
-        _at_bounds(z0[:-1], path, T if nr.converged else S.T)
-
-    def _at_bounds(z0: np.ndarray, path: str, near: float) -> None:
-        """A final time at a bound: solved there with ``T`` fixed, kept where ``H(T)``
-        has the sign of a minimum (``>= 0`` at ``T_min``, ``<= 0`` at ``T_max``)."""
-        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
-        for bound in sorted({lo, hi}, key=lambda b: abs(b - near)):
-            Sb = shooting_system(ocp.replace(horizon=bound), list(sequence), free=False)
-            where = f"{path} at T = {bound:g}"
-            Sb, nr = run(Sb, z0)
-            if not nr.converged:
-                failed(Sb, nr, where)
-                continue
-            H_T = float(Sb.traj(nr.z)[12].item())
-            slack = BOUND_SIGN_TOL * max(1.0, abs(H_T))
-            if (bound == lo and H_T >= -slack) or (bound == hi and H_T <= slack):
-                keep(Sb, nr, where)
-            else:
-                reasons.append(
-                    f"from the {where}: H(T) = {H_T:.3g} has the sign of a larger cost "
-                    "there (not a minimum in T)"
-                )
+    tries = _Attempts(ocp, sequence, S, tol=tol, verbose=verbose, screen=screen, rtol=rtol)
+    reasons, found, attempt = tries.reasons, tries.found, tries.attempt
 
     if estimate and (S.disc or grad is not None):
         z0 = (
@@ -381,6 +291,124 @@ def solve_sequence(
         best.start_costs = tuple(float(r.cost) for r in found)
         return best, ""
     return None, "; ".join(reasons) or "no start for Newton"
+
+
+class _Attempts:
+    """The Newton runs of one sequence's :func:`solve_sequence`, one per start: the
+    extremals found (:attr:`found`) and why the other starts failed (:attr:`reasons`)."""
+
+    def __init__(
+        self,
+        ocp: HybridOCP,
+        sequence: Sequence[str],
+        S: ShootingSystem,
+        *,
+        tol: float,
+        verbose: bool,
+        screen: bool,
+        rtol: float,
+    ) -> None:
+        self.ocp, self.sequence, self.S = ocp, sequence, S
+        self.tol, self.verbose, self.screen, self.rtol = tol, verbose, screen, rtol
+        self.reasons: list[str] = []
+        self.found: list[ReferenceResult] = []
+
+    def solve(self, system: ShootingSystem, z0: np.ndarray) -> NewtonResult:
+        if self.screen:
+            return newton(
+                system, z0, tol=self.tol, verbose=self.verbose, max_iter=20, min_step=1e-3
+            )
+        return newton(system, z0, tol=self.tol, verbose=self.verbose)
+
+    def run(self, system: ShootingSystem, z0: np.ndarray) -> tuple[ShootingSystem, NewtonResult]:
+        ocp = self.ocp
+        nr = self.solve(system, z0)
+        if not (ocp.has_bounds or ocp.path is not None):
+            return system, nr
+        # control bounds: the saturated arcs (shooting.saturate), from the extremal of the
+        # clipped control (a disc scene: of its closed-form phases), else from the
+        # unconstrained one (from a poor start the clip's flat branches stall Newton)
+        tries = [(system, nr)]
+        if not system.disc:
+            tries.append((system.with_arcs(((free_mode(ocp.nu),),) * (system.K + 1)), None))
+        last = (system, nr)
+        for base, first in tries:
+            nr_b = first if first is not None else self.solve(base, z0)
+            if not nr_b.converged:
+                last = (base, nr_b) if first is not None else last
+                continue
+            sat, nr_sat, why = saturate(base, nr_b, tol=self.tol, verbose=self.verbose)
+            if not why:
+                return sat, nr_sat
+            self.reasons.append(f"saturation: {why}")
+            last = (sat, NewtonResult(nr_sat.z, nr_sat.residual, nr_sat.iterations, False))
+        return last
+
+    def keep(self, system: ShootingSystem, nr: NewtonResult, path: str) -> None:
+        ref = refine(system, nr, rtol=self.rtol, tol=self.tol, verbose=self.verbose)
+        if ref.ok:
+            self.found.append(make_result(ref.system, ref.newton, path, ref.error))
+        else:
+            self.reasons.append(f"from the {path}: {ref.reason}")
+
+    def failed(self, system: ShootingSystem, nr: NewtonResult, path: str) -> None:
+        if nr.residual <= self.tol:
+            times = ", ".join(f"{float(g):.6g}" for g in system.unpack(nr.z)[1])
+            self.reasons.append(
+                f"Newton from the {path} found a root with event times [{times}], not in "
+                f"order inside (0, T = {system.horizon_of(nr.z):g})"
+            )
+        else:
+            self.reasons.append(f"Newton from the {path}: residual {nr.residual:.2e}")
+
+    def attempt(self, z0: np.ndarray, path: str, again: bool = True) -> None:
+        S = self.S
+        Sr, nr = self.run(S, z0)
+        if not S.core.free:
+            if nr.converged:
+                self.keep(Sr, nr, path)
+                # the first-order conditions of a reset's control hold at any stationary
+                # point of the cost in it: Newton again from other extremes of lambda+^T g
+                for z1 in _reset_controls_moved(Sr, nr.z) if again else []:
+                    self.attempt(Sr.core.strip_switches(z1), f"{path}, reset controls moved", False)
+            else:
+                self.failed(Sr, nr, path)
+            return
+        lo, hi = self.ocp.horizon_bounds  # type: ignore[misc]
+        T = Sr.horizon_of(nr.z)
+        if nr.converged and lo <= T <= hi:
+            self.keep(Sr, nr, path)
+            return
+        if nr.converged:
+            self.reasons.append(
+                f"from the {path}: H(T) = 0 at T = {T:.6g}, outside [{lo:g}, {hi:g}]: "
+                "solved at the bounds"
+            )
+        else:
+            self.failed(Sr, nr, path)
+        self._at_bounds(z0[:-1], path, T if nr.converged else S.T)
+
+    def _at_bounds(self, z0: np.ndarray, path: str, near: float) -> None:
+        """A final time at a bound: solved there with ``T`` fixed, kept where ``H(T)``
+        has the sign of a minimum (``>= 0`` at ``T_min``, ``<= 0`` at ``T_max``)."""
+        ocp = self.ocp
+        lo, hi = ocp.horizon_bounds  # type: ignore[misc]
+        for bound in sorted({lo, hi}, key=lambda b: abs(b - near)):
+            Sb = shooting_system(ocp.replace(horizon=bound), list(self.sequence), free=False)
+            where = f"{path} at T = {bound:g}"
+            Sb, nr = self.run(Sb, z0)
+            if not nr.converged:
+                self.failed(Sb, nr, where)
+                continue
+            H_T = float(Sb.traj(nr.z)[12].item())
+            slack = BOUND_SIGN_TOL * max(1.0, abs(H_T))
+            if (bound == lo and H_T >= -slack) or (bound == hi and H_T <= slack):
+                self.keep(Sb, nr, where)
+            else:
+                self.reasons.append(
+                    f"from the {where}: H(T) = {H_T:.3g} has the sign of a larger cost "
+                    "there (not a minimum in T)"
+                )
 
 
 def _reset_controls_moved(S: ShootingSystem, z: np.ndarray) -> list[np.ndarray]:
