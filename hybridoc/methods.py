@@ -9,8 +9,13 @@ hybridoc). Everything that treats methods generally reads the :class:`Method`:
   :attr:`Method.options`;
 * ``hybridoc solve`` builds one flag per option field (its help, choices and parser come
   from the field's :func:`option` metadata) and prints :attr:`Method.summary_lines`;
-* ``crossval`` reads :attr:`Method.tolerance`, :attr:`Method.crossval_defaults` and
-  :attr:`Method.crossval_check`.
+* ``crossval`` reads :attr:`Method.tolerance`, :attr:`Method.crossval_defaults`,
+  :attr:`Method.crossval_check`, :attr:`Method.representation` (what its control can
+  express, hence what it is measured against), :attr:`Method.resolution_option` and
+  :attr:`Method.check_options`; ``convergence`` and the learning-curve figures read
+  :attr:`Method.representation` and :attr:`Method.loss_history`;
+* ``hybridoc crossval --set METHOD.OPTION=VALUE`` is parsed by :func:`parse_settings`
+  against :attr:`Method.options`.
 
 None of them names a method. The contract of a method's ``run``:
 ``run(ocp, *, initial=None, progress=None, **options) -> Solution``, where ``ocp`` is a
@@ -32,9 +37,11 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from hybridoc.errors import SceneError
+from hybridoc.errors import OptionError, SceneError
 
 if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
+
     from hybridoc.ocp import HybridOCP
     from hybridoc.problem import ControlsLike, ProblemLike
     from hybridoc.progress import ProgressLike
@@ -43,21 +50,27 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "BUILTIN",
     "BUILTIN_SOURCES",
+    "BUILTIN_TRAITS",
     "CLI_METHOD",
     "DEFAULT_METHOD",
     "DEFAULT_TOLERANCE",
     "FEATURES",
     "METHODS",
+    "REFERENCE_METHOD",
     "RUN_KEYWORDS",
     "Method",
     "NoOptions",
     "OptionSpec",
+    "REPRESENTATIONS",
     "get_method",
+    "loss_history",
     "load_builtin_sources",
     "nonnegative_int",
     "option",
     "option_specs",
     "parse_bool",
+    "parse_setting",
+    "parse_settings",
     "positive_float",
     "positive_int",
     "problem_features",
@@ -89,10 +102,26 @@ def problem_features(ocp: HybridOCP) -> list[str]:
     return out
 
 
+REPRESENTATIONS: dict[str, str] = {
+    "grid": "a control held constant on each cell of the problem's N-step grid; its events "
+    "fall wherever the dynamics put them",
+    "continuous": "a continuous-time control of the method's own discretisation, with the "
+    "event times among its unknowns: its cost does not depend on the problem's N",
+}
+"""What a method's control can express (:attr:`Method.representation`), and so what the
+workflows measure it against: crossval projects the reference onto the grid (cell
+averages) for ``"grid"``, and re-solves the method from the reference for ``"continuous"``;
+convergence re-runs a ``"grid"`` method at each N and averages a ``"continuous"`` one's
+control on each grid."""
+
 RUN_KEYWORDS = ("initial", "progress")
 """Keywords every method's ``run`` takes besides its options."""
 
-DEFAULT_METHOD = "reference"
+REFERENCE_METHOD = "reference"
+"""The ground truth: the method the workflows (crossval, convergence, validate) measure the
+others against."""
+
+DEFAULT_METHOD = REFERENCE_METHOD
 """The method :func:`solve` runs when none is named (the ground truth)."""
 
 CLI_METHOD = "gd"
@@ -251,6 +280,15 @@ class NoOptions:
     """The options of a method that takes none."""
 
 
+def loss_history(sol: Solution) -> np.ndarray | None:
+    """The default :attr:`Method.loss_history`: ``sol.arrays["loss_history"]`` (the loss at
+    each iteration, as gradient descent stores it), ``None`` when it is absent or empty."""
+    hist = sol.arrays.get("loss_history")
+    if hist is None or not len(hist):
+        return None
+    return hist
+
+
 def settings_lines(sol: Solution) -> list[tuple[str, str]]:
     """The default :attr:`Method.summary_lines`: one ``("settings", "k v, ...")`` line of
     ``sol.settings`` (none when it is empty); a method's own summary ends with it."""
@@ -293,6 +331,27 @@ class Method:
         :data:`FEATURES` (``"terminal"``: terminal constraints; ``"free_horizon"``: a free
         final time). :func:`solve` refuses a problem with a feature its method lacks, so
         that a method never answers a problem it silently simplified.
+    representation
+        What the method's control can express, a key of :data:`REPRESENTATIONS`:
+        ``"grid"`` (default: piecewise constant on the problem's N-step grid) or
+        ``"continuous"`` (its own discretisation, with the event times as unknowns).
+    resolution_option
+        For a ``"continuous"`` method, the option that sets its own resolution (the
+        transcription's ``mesh``): crossval's refinement check doubles it, starting from the
+        value the Solution reports in ``info`` (or ``settings``) under the same name;
+        ``None`` for a method whose resolution is the problem's grid.
+    projection_options
+        The options a ``"continuous"`` method keeps when crossval re-solves it from the
+        reference (the transcription: ``mesh`` and ``degree``); the reference's event
+        sequence is passed as ``sequence`` when the method takes that option.
+    loss_history
+        ``loss_history(sol) -> array | None``: the method's loss at each iteration, drawn as
+        a learning curve (:func:`loss_history`: ``sol.arrays["loss_history"]``).
+    check_options
+        ``check_options(ocp, options) -> Any``, ``options`` an instance of :attr:`options`:
+        the check the method's run makes of its options first, raising a
+        :class:`~hybridoc.errors.HybridocError` (a size beyond the memory limit, say);
+        ``hybridoc crossval`` calls it before any method runs. ``None``: no early check.
     """
 
     name: str
@@ -305,6 +364,11 @@ class Method:
     crossval_defaults: Callable[[HybridOCP, dict[str, Any]], dict[str, Any]] | None = None
     crossval_check: Callable[[HybridOCP, Solution], tuple[dict[str, Any], list[str]]] | None = None
     features: frozenset[str] = frozenset()
+    representation: str = "grid"
+    resolution_option: str | None = None
+    projection_options: tuple[str, ...] = ()
+    loss_history: Callable[[Solution], np.ndarray | None] = loss_history
+    check_options: Callable[[HybridOCP, Any], Any] | None = None
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.options):
@@ -312,6 +376,24 @@ class Method:
         unknown = set(self.features) - set(FEATURES)
         if unknown:
             raise TypeError(f"method {self.name!r}: unknown features {sorted(unknown)}")
+        if self.representation not in REPRESENTATIONS:
+            raise TypeError(
+                f"method {self.name!r}: representation must be one of {sorted(REPRESENTATIONS)}"
+            )
+        names = self.option_names()
+        for opt in (self.resolution_option, *self.projection_options):
+            if opt is not None and opt not in names:
+                raise TypeError(f"method {self.name!r}: {opt!r} is not one of its options")
+
+    def takes(self, option: str) -> bool:
+        """Whether ``option`` is one of the method's options."""
+        return option in self.option_names()
+
+    def checked(self, ocp: HybridOCP, options: Mapping[str, Any]) -> None:
+        """Run :attr:`check_options` on ``options`` (a mapping of option values), when the
+        method has one."""
+        if self.check_options is not None:
+            self.check_options(ocp, self.options(**options))
 
     def missing_features(self, ocp: HybridOCP) -> list[str]:
         """The features of ``ocp`` (:func:`problem_features`) this method does not honour."""
@@ -381,6 +463,42 @@ def load_builtin_sources() -> None:
         getattr(importlib.import_module(module), attr)()
 
 
+BUILTIN_TRAITS: dict[str, dict[str, Any]] = {
+    "dt": {
+        "representation": "continuous",
+        "resolution_option": "mesh",
+        "projection_options": ("mesh", "degree"),
+    },
+    "gd": {"check_options": "hybridoc.solvers.gd:checked_options"},
+    "reference": {"representation": "continuous"},
+}
+"""What the workflows ask of the built-in methods beyond the defaults of their
+:class:`Method` fields (``"module:function"`` for a function), set on a built-in record
+when the registry first loads it and only where the record itself keeps the default: a
+record that declares the field wins, and the entry can then go."""
+
+
+_FUNCTION_FIELDS = frozenset(
+    {"supports", "summary_lines", "crossval_defaults", "crossval_check", "loss_history",
+     "check_options"}
+)  # fmt: skip
+
+
+def _with_builtin_traits(method: Method) -> Method:
+    """The built-in ``method`` with its :data:`BUILTIN_TRAITS` (the same object: tests and
+    callers compare it with the module's ``METHOD``)."""
+    defaults = {f.name: f.default for f in dataclasses.fields(Method)}
+    for key, value in BUILTIN_TRAITS.get(method.name, {}).items():
+        if getattr(method, key) != defaults[key]:
+            continue  # the record declares it
+        if key in _FUNCTION_FIELDS and isinstance(value, str):
+            module, _, attr = value.partition(":")
+            value = getattr(importlib.import_module(module), attr)
+        object.__setattr__(method, key, value)  # a frozen record: once, when it is loaded
+    method.__post_init__()
+    return method
+
+
 class _Registry(Mapping[str, Method]):
     """The registered methods by name; built-in ones are imported when first looked up."""
 
@@ -396,7 +514,7 @@ class _Registry(Mapping[str, Method]):
         method = getattr(importlib.import_module(module), attr)
         if not isinstance(method, Method) or method.name != name:
             raise TypeError(f"{where} is not the Method {name!r}")
-        self._loaded[name] = method
+        self._loaded[name] = _with_builtin_traits(method)
         return method
 
     def __contains__(self, name: object) -> bool:
@@ -443,12 +561,63 @@ def get_method(name: str) -> Method:
 
     Raises
     ------
-    hybridoc.errors.SceneError
+    hybridoc.errors.OptionError
         For an unknown name (one line listing the registered ones).
     """
     if not isinstance(name, str) or name not in METHODS:
-        raise SceneError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+        raise OptionError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
     return METHODS[name]
+
+
+def parse_setting(text: str) -> tuple[str, str, Any]:
+    """One ``METHOD.OPTION=VALUE`` of ``--set``, checked against the registry.
+
+    The value is parsed by the option's parser (:attr:`OptionSpec.parser`) and checked
+    against its choices, as the option's own flag of ``hybridoc solve`` would be.
+
+    Returns
+    -------
+    tuple
+        ``(method, option, value)``.
+
+    Raises
+    ------
+    hybridoc.errors.OptionError
+        Text not of that form, an unknown method or option (one line naming the valid
+        ones), an option only the Python API takes, or a value its parser refuses.
+    """
+    head, sep, raw = str(text).partition("=")
+    method, dot, name = head.strip().partition(".")
+    if not sep or not dot or not method or not name.strip():
+        raise OptionError(f"--set expects METHOD.OPTION=VALUE (e.g. gd.starts=8), got {text!r}")
+    name = name.strip().replace("-", "_")
+    if method not in METHODS:
+        raise OptionError(
+            f"--set {text}: unknown method {method!r}; choose one of {', '.join(METHODS)}"
+        )
+    specs = {s.name: s for s in METHODS[method].specs() if s.cli}
+    if name not in specs:
+        takes = ", ".join(specs) or "none"
+        raise OptionError(f"--set {text}: {method} has no option {name!r}; it takes {takes}")
+    spec = specs[name]
+    try:
+        value = spec.parser(raw.strip())
+    except (TypeError, ValueError) as exc:
+        raise OptionError(f"--set {text}: {' '.join(str(exc).split())}") from None
+    if spec.choices is not None and value not in spec.choices:
+        choices = ", ".join(map(str, spec.choices))
+        raise OptionError(f"--set {text}: {name} must be one of {choices}")
+    return method, name, value
+
+
+def parse_settings(items: Sequence[str] | None) -> dict[str, dict[str, Any]]:
+    """``--set`` items (:func:`parse_setting`) as ``{method: {option: value}}``; a later
+    item of the same option wins, as a repeated flag does."""
+    out: dict[str, dict[str, Any]] = {}
+    for text in items or ():
+        method, name, value = parse_setting(text)
+        out.setdefault(method, {})[name] = value
+    return out
 
 
 def solve(
@@ -486,8 +655,10 @@ def solve(
 
     Raises
     ------
+    hybridoc.errors.OptionError
+        An unknown method or option (one line naming the valid ones).
     hybridoc.errors.SceneError
-        An unknown method or option, or a problem the method cannot handle (one line).
+        A problem the method cannot handle (one line).
     hybridoc.errors.ConvergenceError
         The method found no solution at all.
 
@@ -510,7 +681,9 @@ def solve(
     bad = sorted(set(options) - set(names))
     if bad:
         takes = ", ".join(names) if names else "none"
-        raise SceneError(f"method {method!r} takes no option(s) {', '.join(bad)}; it takes {takes}")
+        raise OptionError(
+            f"method {method!r} takes no option(s) {', '.join(bad)}; it takes {takes}"
+        )
     t0 = time.perf_counter()
     sol = m.function()(ocp, initial=initial, progress=progress, **options)
     sol.timings.setdefault("wall_time_s", time.perf_counter() - t0)

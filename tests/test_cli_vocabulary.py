@@ -13,10 +13,22 @@ import pytest
 
 from hybridoc.cli import build_parser, main
 from hybridoc.cli._util import output_stem, problem_slug
+from hybridoc.cli.vocabulary import (
+    SET_ALIASES,
+    VOCABULARY,
+    DeprecatedAlias,
+    DeprecatedSetAlias,
+)
+from hybridoc.methods import METHODS
 
 CONTROL_WORDS = ("control", "initial", "guess")
 OUT_IS_A_FOLDER = {"dataset"}  # a resumable dataset folder (cmd_dataset's docstring says why)
 OUT_IS_A_FILE = {"export"}  # one model file for another simulator, named by the user
+
+
+def _alias(action: argparse.Action) -> bool:
+    """A deprecated spelling: hidden from help, recording a note when used."""
+    return isinstance(action, DeprecatedAlias | DeprecatedSetAlias)
 
 
 def _commands() -> dict[str, argparse.ArgumentParser]:
@@ -43,8 +55,8 @@ def test_flag_names(name: str) -> None:
     for action in p._actions:
         flags = [s for s in action.option_strings if s.startswith("--")]
         help_text = action.help or ""
-        # a control file is --controls; another spelling only beside it, as a deprecated alias
-        if any(w in f for f in flags for w in ("--initial", "--control")):
+        # a control file is --controls; another spelling only as a deprecated alias
+        if any(w in f for f in flags for w in ("--initial", "--control")) and not _alias(action):
             assert "--controls" in flags or flags == ["--control-weight"], (name, flags)
             if len(flags) > 1:
                 assert "deprecated" in help_text, (name, flags)
@@ -96,3 +108,145 @@ def test_deprecated_aliases_still_work(tmp_path: Path) -> None:
     assert args.initial == Path("u.npy")
     args = build_parser().parse_args(["validate-policy", "x.toml", "p.json", "--samples", "1"])
     assert args.policy_positional == "p.json" and args.policy is None
+
+
+# ------------------------------------------------------------------ one word per concept
+DEPRECATED = {flag for c in VOCABULARY.values() for flag in c.deprecated}
+CANONICAL = {c.flag for c in VOCABULARY.values()}
+#: the flags of the methods' options (hybridoc solve, hybridoc reference): their names
+METHOD_FLAGS = {s.flag: s.name for m in METHODS.values() for s in m.specs() if s.cli}
+#: what a flag looks like when it names a concept of the table: then it is the table's word
+LOOKS_LIKE = {
+    "iterations": (re.compile(r"iter|epoch"), {"--iters", "--terminal-iters"}),
+    "contact model": (re.compile(r"model|contact"), {"--contact"}),
+    "progress": (re.compile(r"^--no-"), {"--no-progress"}),
+    "time of impact": (re.compile(r"toi"), {"--toi"}),
+    "tolerance": (re.compile(r"tol"), {c.flag for c in VOCABULARY.values() if "tol" in c.flag}),
+}
+
+
+def test_the_table_is_consistent() -> None:
+    """One spelling per concept, no old spelling that is another concept's word, and the
+    Python keyword where the CLI word is not simply it (--controls/initial=, --no-progress/
+    progress=False, --tolerance/tolerances=, --set)."""
+    flags = [c.flag for c in VOCABULARY.values()]
+    assert len(flags) == len(set(flags))
+    assert not DEPRECATED & CANONICAL
+    differ = {k for k, c in VOCABULARY.items()
+              if c.python is not None and c.flag != "--" + c.python.replace("_", "-")}  # fmt: skip
+    assert differ == {"controls", "progress", "agreement tolerance"}, differ
+    for command, aliases in SET_ALIASES.items():
+        for setting in aliases.values():
+            method, option = setting.split(".")
+            assert option in METHODS[method].option_names(), (command, setting)
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_flag_uses_the_vocabulary(name: str) -> None:
+    """Old spellings only as hidden deprecated aliases; a flag that names a concept of the
+    table is the table's word (or a method's option, whose flag is its Python name)."""
+    for action in COMMANDS[name]._actions:
+        flags = [s for s in action.option_strings if s.startswith("--")]
+        if _alias(action):
+            assert action.help == argparse.SUPPRESS, (name, flags)
+            assert len(flags) == 1, (name, flags)
+            if isinstance(action, DeprecatedSetAlias):
+                assert SET_ALIASES[name][flags[0]] == action.setting, (name, flags)
+            else:
+                assert flags[0] in DEPRECATED, (name, flags)
+            continue
+        for flag in flags:
+            generated = METHOD_FLAGS.get(flag) == action.dest  # a method's option
+            assert flag not in DEPRECATED or generated, (name, flag)
+            for concept, (pattern, allowed) in LOOKS_LIKE.items():
+                if pattern.search(flag) and not generated:
+                    assert flag in allowed, (name, flag, concept)
+
+
+def test_every_word_is_used() -> None:
+    used = {s for p in COMMANDS.values() for a in p._actions for s in a.option_strings}
+    assert CANONICAL - used == set()
+
+
+@pytest.mark.parametrize(
+    ("argv", "dest", "value", "note"),
+    [
+        (["gradcheck", "head-on", "--gd-iters", "5"], "gd_iters", "5", "--iters K,K"),
+        (["compare-contacts", "head-on", "--models", "lcp"], "models", "lcp", "--contact M,M"),
+        (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--epochs", "7"], "iters",
+         7, "--iters K"),
+        (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--no-toi"], "toi", "none",
+         "--toi none"),
+        (["convergence", "head-on", "--no-gd"], "no_gd", True, "--methods dt"),
+        (["solve", "head-on", "--initial", "u.npy"], "initial", Path("u.npy"), "--controls"),
+        (["crossval", "head-on", "--starts", "3", "--mesh", "8", "--gd-integrator",
+          "symplectic-euler"], "set",
+         ["gd.starts=3", "dt.mesh=8", "gd.integrator=symplectic-euler"], "--set gd.starts=3"),
+    ],
+)  # fmt: skip
+def test_old_spellings_map_onto_the_new_ones_with_a_note(
+    argv: list[str], dest: str, value: object, note: str
+) -> None:
+    args = build_parser().parse_args(argv)
+    assert getattr(args, dest) == value
+    notes = args._deprecated
+    assert notes and "deprecated" in notes[0] and note in notes[0], notes
+
+
+def test_the_new_spellings_parse_without_a_note() -> None:
+    p = build_parser()
+    args = p.parse_args(["train-policy", "x.toml", "--samples", "2", "--out", "d", "--iters",
+                         "7", "--toi", "velocity"])  # fmt: skip
+    assert (args.iters, args.toi) == (7, "velocity")
+    assert not getattr(args, "_deprecated", None)
+    args = p.parse_args(["train-policy", "x.toml", "--samples", "2", "--out", "d", "--toi"])
+    assert args.toi == "both"
+    args = p.parse_args(["crossval", "head-on", "--set", "gd.starts=3", "--set", "dt.mesh=8"])
+    assert args.set == ["gd.starts=3", "dt.mesh=8"]
+    assert p.parse_args(["solve", "head-on", "--no-progress"]).no_progress is True
+
+
+def test_set_is_checked_against_the_registry(capsys: pytest.CaptureFixture[str]) -> None:
+    """--set METHOD.OPTION=VALUE: an unknown method or option, or a bad value, is one error
+    line naming the valid choices (exit 2), before any solve."""
+    from hybridoc.errors import OptionError
+    from hybridoc.methods import parse_settings
+
+    assert parse_settings(["gd.starts=3", "dt.mesh=8", "gd.time-limit=2", "gd.starts=4"]) == {
+        "gd": {"starts": 4, "time_limit": 2.0},
+        "dt": {"mesh": 8},
+    }
+    for bad, words in [
+        ("nope.starts=1", ("unknown method 'nope'", "reference, dt, gd")),
+        ("gd.nope=1", ("gd has no option 'nope'", "starts")),
+        ("gd.starts=0", ("integer >= 1",)),
+        ("gd.integrator=euler", ("exact, symplectic-euler",)),
+        ("gd.callback=x", ("no option 'callback'",)),  # the Python API's only
+        ("gd.starts", ("METHOD.OPTION=VALUE",)),
+    ]:
+        with pytest.raises(OptionError) as info:
+            parse_settings([bad])
+        assert all(w in str(info.value) for w in words), (bad, str(info.value))
+        assert main(["crossval", "bouncing-ball", "--set", bad, "--no-progress"]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("hybridoc: error: --set"), err
+
+
+def test_a_deprecated_flag_notes_once_the_command_ran(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The note comes after the answer; after a user error the error stays the one line."""
+    import hybridoc.workflows.validation as val
+
+    def fake(ocp: object, **kwargs: object) -> object:
+        return {"problem": "x", "agree": True, "reasons": [], "options": kwargs["options"]}, {}
+
+    monkeypatch.setattr(val, "crossval", fake)
+    assert main(["crossval", "bouncing-ball", "--starts", "2", "--no-progress", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["options"] == {"gd": {"starts": 2}}
+    assert err.splitlines()[-1] == (
+        "hybridoc: warning: --starts is deprecated and will be removed; use --set gd.starts=2"
+    )
+    assert main(["crossval", "bouncing-ball", "--starts", "0", "--no-progress"]) == 2
+    assert len(capsys.readouterr().err.splitlines()) == 1

@@ -90,8 +90,8 @@ def test_method_entry_of_dt(ref):
 
 
 def test_convergence_dt_only_small():
-    rep = convergence(SCENE, steps=(60, 120), include_gd=False)
-    assert rep["steps"] == [60, 120] and "gd" not in rep
+    rep = convergence(SCENE, steps=(60, 120), methods=["dt"])
+    assert rep["steps"] == [60, 120] and "gd" not in rep and rep["methods"] == ["dt"]
     # coarser grids of the optimal control cost more; errors are relative to J*
     assert rep["dt"]["error"][0] > rep["dt"]["error"][1] > 0
     assert rep["dt"]["cost"][0] == pytest.approx(
@@ -227,12 +227,34 @@ def test_crossval_multiple_collision_multistart_agrees():
 
 
 def test_convergence_figure_with_gd(tmp_path):
-    """The convergence figure draws both methods (it once failed whenever gd was included)."""
+    """The convergence figure draws both methods (it once failed whenever gd was included):
+    dt, continuous in time, averaged on each grid; gd, on the grid, re-run at each N."""
     from hybridoc.workflows.validation import convergence, convergence_figure
 
-    report = convergence("head-on", steps=(30, 60), gd_options={"iters": 5})
+    report = convergence("head-on", steps=(30, 60), options={"gd": {"iters": 5}})
     assert set(report) >= {"dt", "gd"} and len(report["gd"]["cost"]) == 2
+    assert report["methods"] == ["dt", "gd"] and "dt_continuous_cost" in report
+    assert "solve_time_s" in report["gd"] and "solve_time_s" not in report["dt"]
     fig = convergence_figure(report)
     labels = [line.get_label() for line in fig.axes[0].get_lines()]
-    assert any("transcription" in s for s in labels) and any("gradient" in s for s in labels)
+    assert any(s.startswith("dt, cell averages") for s in labels)
+    assert any(s.startswith("gd at N") for s in labels)
     fig.savefig(tmp_path / "c.png")
+
+
+def test_convergence_deprecated_keywords_map_onto_methods_and_options():
+    """gd_options= and include_gd= (which named one method) still work, with a warning."""
+    from hybridoc.errors import OptionError
+    from hybridoc.workflows.validation import _convergence_methods
+
+    with pytest.warns(DeprecationWarning, match="deprecated"):
+        names, opts = _convergence_methods(None, None, {"iters": 5}, True)
+    assert names == ["dt", "gd"] and opts == {"dt": {}, "gd": {"iters": 5}}
+    with pytest.warns(DeprecationWarning):
+        assert _convergence_methods(None, None, None, False)[0] == ["dt"]
+    assert _convergence_methods(["gd", "reference"], {"gd": {"iters": 2}}, None, True) == (
+        ["gd"],
+        {"gd": {"iters": 2}},
+    )
+    with pytest.raises(OptionError, match="choose from"):
+        _convergence_methods(["nope"], None, None, True)

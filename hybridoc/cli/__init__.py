@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from hybridoc.cli._util import HybridocArgumentParser, add_allow_large
+from hybridoc.cli.vocabulary import print_notes
 from hybridoc.errors import HybridocError
 
 __all__ = ["COMMAND_MODULES", "build_parser", "main"]
@@ -126,6 +127,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except Exception as exc:
             code = _internal_error(exc)
     _print_warnings(caught)
+    if code in (0, 1):  # after a user error its one line stays the only one
+        print_notes(args)
     return code
 
 

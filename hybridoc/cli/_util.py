@@ -36,7 +36,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from hybridoc.methods import Method, OptionSpec
     from hybridoc.ocp import HybridOCP
-    from hybridoc.problems.scene import Scene
+    from hybridoc.problem import ProblemLike
 
 __all__ = [
     "HybridocArgumentParser",
@@ -244,13 +244,15 @@ def load_problem_arg(text: str) -> Any:
     return as_ocp(text)
 
 
-def disc_scene_of(ocp: HybridOCP, command: str) -> Scene:
-    """The Scene of a disc problem, or a one-line error naming the command."""
-    from hybridoc.problems import DiscOCP
+def disc_scene_of(ocp: HybridOCP, command: str) -> ProblemLike:
+    """The scene of a disc problem (:func:`hybridoc.problems.scene_of`), or a one-line error
+    naming the command."""
+    from hybridoc.problems import scene_of
 
-    if not isinstance(ocp, DiscOCP):
+    scene = scene_of(ocp)
+    if scene is None:
         raise HybridocError(f"{command} needs a disc scene; {ocp.name!r} is a generic HybridOCP")
-    return ocp.scene
+    return scene
 
 
 def add_allow_large(parser: argparse.ArgumentParser) -> None:
@@ -303,15 +305,18 @@ def add_controls_arg(parser: argparse.ArgumentParser) -> None:
 def add_initial_arg(parser: argparse.ArgumentParser) -> None:
     """Add ``--controls FILE`` as a solver's starting point (``args.initial``); ``--initial``
     is its deprecated alias."""
+    from hybridoc.cli.vocabulary import add_deprecated_alias
+
     parser.add_argument(
         "--controls",
-        "--initial",
         dest="initial",
         metavar="FILE",
         type=Path,
         default=None,
-        help="start from these controls: .npy, .csv or a saved Solution (.npz/.json) "
-        "(--initial is a deprecated alias)",
+        help="start from these controls: .npy, .csv or a saved Solution (.npz/.json)",
+    )
+    add_deprecated_alias(
+        parser, "--initial", dest="initial", instead="--controls FILE", type=Path, metavar="FILE"
     )
 
 

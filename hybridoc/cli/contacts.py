@@ -27,13 +27,14 @@ from hybridoc.cli._util import (
     say,
     to_jsonable,
 )
+from hybridoc.cli.vocabulary import add_deprecated_alias
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.outputs import check_folder, check_targets, write_text
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
 
-    from hybridoc.problems import Scene
+    from hybridoc.problem import ProblemLike
     from hybridoc.solution import Solution
 
 __all__ = ["register"]
@@ -47,7 +48,7 @@ def _int_list(text: str) -> list[int]:
             f"--gd-iters: expected a comma-separated list of integers, got {text!r}"
         ) from None
     if any(v < 0 for v in values):
-        raise SceneError(f"--gd-iters: iteration counts must be >= 0, got {text!r}")
+        raise SceneError(f"--iters: iteration counts must be >= 0, got {text!r}")
     return values
 
 
@@ -133,7 +134,7 @@ def _gradcheck_against(args: argparse.Namespace) -> int:
     from hybridoc.io import read_array
     from hybridoc.workflows.gradcompare import GradientError, compare_gradient, gradient_figure
 
-    flags = (("--models", args.models), ("--gd-iters", args.gd_iters))
+    flags = (("--contact", args.models), ("--iters", args.gd_iters))
     wrong = [f for f, v in flags if v is not None]
     if wrong:
         raise HybridocError(f"{', '.join(wrong)} compare contact models: not with --against")
@@ -194,7 +195,7 @@ def _write_json(path: Path, obj: Any) -> Path:
     return write_text(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
-def _learning_curves(scene: Scene, sols: dict[str, Solution]) -> Figure:
+def _learning_curves(scene: ProblemLike, sols: dict[str, Solution]) -> Figure:
     import numpy as np
     from matplotlib.figure import Figure
 
@@ -311,7 +312,9 @@ def cmd_compare_contacts(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_compare_contacts(scene: Scene, sols: dict[str, Solution], stem: Path | None) -> None:
+def _write_compare_contacts(
+    scene: ProblemLike, sols: dict[str, Solution], stem: Path | None
+) -> None:
     """Each model's Solution and the two figures of ``compare-contacts --out``, written after
     the answer is out (a write that fails at the end loses nothing shown)."""
     if stem is None:
@@ -357,17 +360,30 @@ def _model_names() -> str:
     return ", ".join(model_names())
 
 
+def _contact_arg(p: argparse.ArgumentParser) -> None:
+    """``--contact M,M``: the contact models compared, each MODEL or MODEL/TOI (``--models``
+    is its deprecated spelling)."""
+    p.add_argument(
+        "--contact", dest="models", default=None, metavar="M,M",
+        help=f"the contact models to compare, each MODEL or MODEL/TOI, e.g. "
+        f"direct/none,lcp/both,pbd (models: {_model_names()})",
+    )  # fmt: skip
+    add_deprecated_alias(p, "--models", dest="models", instead="--contact M,M", metavar="M,M")
+
+
 def _gradcheck_arguments(p: argparse.ArgumentParser) -> None:
     problem_arg(p)
     add_json_out(
         p, out_help="with --against: write DIR/<problem>_gradcheck.json and its figure (.png)"
     )
     p.add_argument(
-        "--gd-iters",
+        "--iters",
+        dest="gd_iters",
         default=None,
         metavar="K,K",
         help="also compare at these iterates of the paper's plain gd (default 20,100; '' none)",
     )
+    add_deprecated_alias(p, "--gd-iters", dest="gd_iters", instead="--iters K,K", metavar="K,K")
     p.add_argument(
         "--against", metavar="GRAD", type=Path, default=None,
         help="instead of the contact models: this gradient dJ/du (.npy or .csv; N x nu, or N*nu "
@@ -375,10 +391,7 @@ def _gradcheck_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     add_controls_arg(p)
     add_substeps_arg(p)
-    p.add_argument(
-        "--models", default=None, metavar="M,M",
-        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {_model_names()})",
-    )  # fmt: skip
+    _contact_arg(p)
 
 
 def _compare_contacts_arguments(p: argparse.ArgumentParser) -> None:
@@ -394,7 +407,4 @@ def _compare_contacts_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--lr", type=positive_float, default=None, help="learning rate (default: the paper's)"
     )
-    p.add_argument(
-        "--models", default=None, metavar="M,M",
-        help=f"subset, e.g. direct/none,lcp/both,pbd (models: {_model_names()})",
-    )  # fmt: skip
+    _contact_arg(p)

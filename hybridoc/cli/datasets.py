@@ -30,8 +30,7 @@ from hybridoc.errors import HybridocError
 from hybridoc.outputs import check_folder, check_subfolder, check_targets, write_text, write_with
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.ocp import HybridOCP
-    from hybridoc.problems import Scene
+    from hybridoc.problem import ProblemLike
     from hybridoc.workflows.policies import PolicyReport
 
 __all__ = ["register"]
@@ -59,7 +58,7 @@ def _add_engine(p: argparse.ArgumentParser) -> None:
     add_progress_arg(p)
 
 
-def _source_arg(text: str) -> Scene | HybridOCP:
+def _source_arg(text: str) -> ProblemLike:
     from hybridoc.workflows.datasets import distribution_problem
 
     return distribution_problem(text)
@@ -211,7 +210,7 @@ def cmd_validate_policy(args: argparse.Namespace) -> int:
 
 
 def _write_policy_report(
-    out: Path, slug: str, scene: Scene | HybridOCP, report: PolicyReport, payload: dict[str, Any]
+    out: Path, slug: str, scene: ProblemLike, report: PolicyReport, payload: dict[str, Any]
 ) -> list[Path]:
     """``<problem>_validate-policy.json``/``.npz`` and the figures in ``out``."""
     import numpy as np
@@ -238,7 +237,7 @@ def _policy_report_files(stem: Path) -> list[Path]:
 
 
 def _print_policy_report(
-    args: argparse.Namespace, scene: Scene | HybridOCP, report: PolicyReport
+    args: argparse.Namespace, scene: ProblemLike, report: PolicyReport
 ) -> None:
     """The summary, the gap table and the worst cases, on stdout."""
     s = report.summary

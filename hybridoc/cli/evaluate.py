@@ -53,9 +53,9 @@ def save(fig: Any, path: str | Path) -> Path:
 def write_figures(ocp: Any, ev: Any, stem: Path, *, label: str) -> list[Path]:
     """The trajectory and control figures of one evaluation, ``stem_<figure>.png``."""
     from hybridoc.plotting import plot_controls, plot_scene, plot_trajectories
-    from hybridoc.problems.disc_ocp import DiscOCP
+    from hybridoc.problems import scene_of
 
-    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
+    scene = scene_of(ocp)
     title = f"{ocp.name}: {label}, cost {ev.cost:.6g}"
     if scene is not None:
         fig = plot_scene(scene, ev, title=title)

@@ -10,7 +10,7 @@ from hybridoc.cli._util import fmt, format_table, indent, load_problem_arg, prob
 from hybridoc.errors import HybridocError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.problems.scene import Scene
+    from hybridoc.problem import ProblemLike
 
 __all__ = ["register"]
 
@@ -55,7 +55,7 @@ def cmd_problems(args: argparse.Namespace) -> int:
     return 0
 
 
-def _guess_text(scene: Scene) -> str:
+def _guess_text(scene: ProblemLike) -> str:
     parts = []
     for i in scene.actuated_indices:
         d = scene.discs[i]
@@ -73,7 +73,7 @@ def _guess_text(scene: Scene) -> str:
     return "; ".join(parts)
 
 
-def _scene_lines(scene: Scene) -> list[str]:
+def _scene_lines(scene: ProblemLike) -> list[str]:
     lines = [f"scene {scene.name}" + (f": {scene.description}" if scene.description else "")]
     lines.append(
         f"horizon T = {fmt(scene.horizon)}, steps N = {scene.steps} (dt = {fmt(scene.dt, 6)}), "
@@ -170,9 +170,9 @@ def cmd_show(args: argparse.Namespace) -> int:
         from hybridoc.plotting import figure_path
 
         figure_path(args.plot)  # a bad suffix fails before the description is printed
-    from hybridoc.problems.disc_ocp import DiscOCP
+    from hybridoc.problems import scene_of
 
-    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
+    scene = scene_of(ocp)
     lines = _scene_lines(scene) if scene is not None else _ocp_lines(ocp)
     ev = None
     try:

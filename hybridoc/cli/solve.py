@@ -15,6 +15,7 @@ from hybridoc.cli._util import (
     add_initial_arg,
     add_json_out,
     add_method_options,
+    add_progress_arg,
     emit_json,
     ensure_dir,
     exit_code,
@@ -38,7 +39,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["register"]
 
 # the arguments of ``hybridoc solve`` itself, which no method option may be called
-_RESERVED = ("problem", "method", "initial", "json", "out", "func", "command")
+_RESERVED = ("problem", "method", "initial", "json", "out", "func", "command", "no_progress")
 
 
 def _learning_curve_figure(
@@ -91,7 +92,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         ends = (".npz", ".json", "_trajectory.png", "_controls.png", "_landscape.png",
                 "_learning_curve.png")  # fmt: skip
         check_targets(*(f"{stem}{end}" for end in ends))  # a link or a user's file: refused now
-    sol = solve(ocp, method.name, initial=initial, progress=True, **options)
+    sol = solve(ocp, method.name, initial=initial, progress=not args.no_progress, **options)
     written: list[Path] = []
     write_error: HybridocError | None = None
     try:
@@ -125,9 +126,14 @@ def _write_solve_outputs(ocp: Any, sol: Any, stem: Path, method: str) -> list[Pa
 
     from hybridoc.cli.evaluate import save, write_figures
     from hybridoc.evaluator import evaluate
+    from hybridoc.workflows.validation import judged_evaluation
 
     written = list(sol.save(stem))
-    written += write_figures(ocp, evaluate(ocp, sol.controls), stem, label=method)
+    # the evaluation the solution was judged with; judged again only where it has none
+    ev = judged_evaluation(sol)
+    written += write_figures(
+        ocp, evaluate(ocp, sol.controls) if ev is None else ev, stem, label=method
+    )
     if sol.info.get("landscape"):  # any method that reports extremals by sequence
         from hybridoc.cli.reference import write_landscape
 
@@ -277,5 +283,6 @@ def _solve_arguments(p: argparse.ArgumentParser) -> None:
         help=f"{summaries} (default {CLI_METHOD})",
     )
     add_initial_arg(p)
+    add_progress_arg(p)
     add_method_options(p, METHODS, reserved=_RESERVED)
     add_json_out(p, out_help="write DIR/<problem>_solve_<method>.npz + .json and figures")

@@ -24,10 +24,14 @@ from hybridoc.cli._util import (
     to_jsonable,
     warn,
 )
+from hybridoc.cli.vocabulary import add_deprecated_alias
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.outputs import check_folder, check_targets, write_text
 
 __all__ = ["register"]
+
+#: train-policy's --toi: the time-of-impact corrections (gd's toi option's values)
+TOI_MODES = ("none", "position", "velocity", "both")
 
 
 def cmd_train_policy(args: argparse.Namespace) -> int:
@@ -40,10 +44,10 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     against the exact references.
 
     A disc scene trains through the differentiable simulator, with its time-of-impact
-    corrections (--toi, the paper's method) or without them (--no-toi). Any other problem
+    corrections (--toi both, the paper's method; --toi none: without them). Any other problem
     trains through the judge's event-exact closed loop and its exact adjoint: the loss is
-    the judged cost, and the event times' sensitivity is always in the gradient (--no-toi is
-    refused there). The training draws use the seed --seed (default: the distribution's
+    the judged cost, and the event times' sensitivity is always in the gradient (--toi none
+    is refused there). The training draws use the seed --seed (default: the distribution's
     seed + 1), so that they are not the draws that validate-policy judges by default.
 
     On a problem with control bounds the policy's output is clipped to them (the policy
@@ -54,19 +58,21 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     """
     import numpy as np
 
-    from hybridoc.problems import Scene
+    from hybridoc.problems import scene_of
     from hybridoc.workflows.policies import violation_lines, violation_summary
     from hybridoc.workflows.policy_format import save_mlp_policy
     from hybridoc.workflows.training import mlp_policy, train_policy, training_draws
 
     source = _source(args.problem)
-    disc = isinstance(source, Scene)
-    if not disc and not args.toi:
+    disc = scene_of(source, compiled=False) is not None  # a scene's own [distribution]
+    if not disc and args.toi != "both":
+        old = args.toi == "none" and _used("--no-toi", args)
+        given = "--no-toi" if old else f"--toi {args.toi}"
         raise HybridocError(
-            f"--no-toi needs a disc scene (it turns off the differentiable simulator's "
+            f"{given} needs a disc scene (it changes the differentiable simulator's "
             f"time-of-impact corrections); {source.name!r} trains through the judge's "
             "event-exact closed loop, whose exact adjoint always has the event times' "
-            "sensitivity: leave --toi on"
+            "sensitivity: leave --toi both"
         )
     out = check_folder(args.out)
     stem = output_stem(out, problem_slug(args.problem, source), "train-policy")
@@ -75,7 +81,7 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     x0, seed = training_draws(source, args.samples, seed=args.seed)
     policy = mlp_policy(source, hidden=args.hidden, layers=args.layers, seed=seed)
     res = train_policy(
-        source, policy, x0, toi="both" if args.toi else "none", iters=args.epochs, lr=args.lr,
+        source, policy, x0, toi=args.toi, iters=args.iters, lr=args.lr,
         seed=seed, progress=not args.no_progress,
     )  # fmt: skip
     payload = {
@@ -84,7 +90,8 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         "weights": str(weights),
         "samples": args.samples,
         "seed": seed,
-        "epochs": args.epochs,
+        "iters": args.iters,
+        "epochs": args.iters,  # the old name of iters, for one release
         "engine": res.engine,
         "toi": res.toi,
         "hidden": args.hidden,
@@ -108,7 +115,7 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
         emit_json(payload)
     else:
         say(args, f"problem     {source.name} ({args.samples} draws, seed {seed})")
-        say(args, f"training    {args.epochs} epochs of Adam, lr {args.lr}, through the "
+        say(args, f"training    {args.iters} iterations of Adam, lr {args.lr}, through the "
                   f"{res.engine} (toi {res.toi})")  # fmt: skip
         say(args, f"loss        {fmt(payload['initial_loss'], 8)} -> {fmt(res.final_loss, 8)} "
                   f"({what})")  # fmt: skip
@@ -136,6 +143,13 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
              "does not allow")  # fmt: skip
         return 1
     return 0
+
+
+def _used(flag: str, args: argparse.Namespace) -> bool:
+    """Whether the deprecated ``flag`` was given (its note was recorded)."""
+    from hybridoc.cli.vocabulary import NOTES
+
+    return any(note.startswith(f"{flag} ") for note in getattr(args, NOTES, None) or [])
 
 
 def _source(text: str) -> Any:
@@ -171,15 +185,17 @@ def register(sub: Any) -> None:
         "[distribution] table or a HybridOCP's distribution)",
     )  # fmt: skip
     p.add_argument(
-        "--epochs", type=positive_int, default=100, metavar="E",
+        "--iters", type=positive_int, default=100, metavar="K",
         help="full-batch Adam iterations (default 100)",
     )  # fmt: skip
+    add_deprecated_alias(p, "--epochs", dest="iters", instead="--iters K", type=positive_int)
     p.add_argument(
-        "--toi", action=argparse.BooleanOptionalAction, default=True,
-        help="disc scenes: the simulator's time-of-impact corrections (the paper's method; "
-        "default on); other problems train through the judge, whose gradient always has "
-        "the event times' sensitivity (--no-toi is refused)",
+        "--toi", choices=TOI_MODES, nargs="?", const="both", default="both",
+        help="disc scenes: the simulator's time-of-impact corrections, none, position, "
+        "velocity or both (the paper's method; the default); other problems train through "
+        "the judge, whose gradient always has the event times' sensitivity (only both)",
     )  # fmt: skip
+    add_deprecated_alias(p, "--no-toi", dest="toi", instead="--toi none", switch="none")
     p.add_argument("--lr", type=positive_float, default=1e-2, help="learning rate (default 1e-2)")
     p.add_argument(
         "--hidden", type=positive_int, default=32, metavar="H",

@@ -28,7 +28,14 @@ from hybridoc.cli._util import (
     to_jsonable,
     warn,
 )
+from hybridoc.cli.vocabulary import (
+    SET_ALIASES,
+    add_deprecated_alias,
+    add_deprecated_set_alias,
+    add_set_arg,
+)
 from hybridoc.errors import HybridocError
+from hybridoc.methods import BUILTIN, REFERENCE_METHOD
 
 __all__ = ["register"]
 
@@ -47,7 +54,8 @@ def _events_text(events: list[dict[str, Any]]) -> str:
 
 
 def cmd_crossval(args: argparse.Namespace) -> int:
-    """Run the reference, the direct transcription and gradient descent; compare them.
+    """Run registered methods (default: the reference, the direct transcription and gradient
+    descent) on one problem and compare them with the reference.
 
     Each method gets two gaps: to the reference J* (the exact optimum), and to J* projected
     onto the method's representation (J*'s cell averages on the N-step grid for gradient
@@ -62,8 +70,11 @@ def cmd_crossval(args: argparse.Namespace) -> int:
     its optimum (best-found), or with no reference (it refused the problem: dt and gd are
     then compared with each other), is status best-found, exit code 1. A method that fails
     is a row that says so; the others still run and the files are still written.
+
+    A method's options are given as --set METHOD.OPTION=VALUE (repeatable; e.g. --set
+    gd.starts=8 --set dt.mesh=16), checked against the method's own options.
     """
-    from hybridoc.methods import METHODS
+    from hybridoc.methods import METHODS, parse_settings
     from hybridoc.workflows.validation import crossval
 
     ocp = load_problem_arg(args.problem)
@@ -73,27 +84,19 @@ def cmd_crossval(args: argparse.Namespace) -> int:
 
         stem = output_stem(out, problem_slug(args.problem, ocp), "crossval")
         check_targets(*(f"{stem}{end}" for end in _CROSSVAL_ENDS))
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    names = ["reference"] + [m for m in methods if m != "reference"]
+    methods = _method_list(args.methods)
+    names = [REFERENCE_METHOD] + [m for m in methods if m != REFERENCE_METHOD]
     tolerances = dict(args.tolerance or [])
-    if args.starts is not None and "gd" in methods:
-        from hybridoc.solvers.gd import GDOptions, checked_options
-
-        # a size beyond the memory limit is refused now, not after the other solves
-        checked_options(ocp, GDOptions(starts=args.starts))
-    say(args, f"{ocp.name}: solving with {', '.join(names)} ...")
-    options: dict[str, dict[str, Any]] = {"gd": {}, "dt": {}}
-    if args.gd_integrator is not None:
-        options["gd"]["integrator"] = args.gd_integrator
-    if args.starts is not None:
-        options["gd"]["starts"] = args.starts
-    if args.mesh is not None:
-        options["dt"]["mesh"] = args.mesh
+    options = parse_settings(args.set)
     if args.time_limit is not None:
         # each method that has a time limit gets it (a limit per method, not for the whole)
         for name in names:
-            if name in METHODS and any(s.name == "time_limit" for s in METHODS[name].specs()):
+            if name in METHODS and METHODS[name].takes("time_limit"):
                 options.setdefault(name, {})["time_limit"] = args.time_limit
+    for name, given in options.items():
+        if name in names:  # a size beyond the memory limit is refused now, not after solves
+            METHODS[name].checked(ocp, given)
+    say(args, f"{ocp.name}: solving with {', '.join(names)} ...")
     report, sols = crossval(
         ocp, methods=methods, options=options, tolerances=tolerances,
         progress=not args.no_progress,
@@ -156,7 +159,7 @@ def _print_crossval(args: argparse.Namespace, ocp: Any, report: dict[str, Any]) 
             rows.append([name, "refused" if e.get("refused") else "failed", "-", "-", "-", "-",
                          e.get("error_type", "error"), "-", f"{e['wall_time_s']:.2f}"])  # fmt: skip
             continue
-        if base != "reference":  # no reference: the gap is to the baseline method
+        if base != REFERENCE_METHOD:  # no reference: the gap is to the baseline method
             gap, same = e.get("baseline_gap_relative"), e.get("baseline_sequence_matches")
         else:
             gap, same = e["cost_gap_relative"], e["sequence_matches"]
@@ -174,12 +177,13 @@ def _print_crossval(args: argparse.Namespace, ocp: Any, report: dict[str, Any]) 
                "same events", "time s"]  # fmt: skip
     right = [False, True, True, True, True, False, False, False, True]
     say(args, format_table(headers, rows, right=right))
-    if base == "reference":
-        say(args, "gap: to the reference J*. proj: J* projected onto the method's control (gd:")
-        say(args, "J*'s cell averages on the N-grid, an upper bound on the best cost the grid can")
-        say(args, "hold, not the best; dt: dt re-solved from J* on its mesh). proj gap: the")
-        say(args, "projection to J* (the discretisation, when it keeps J*'s events). to proj: the")
-        say(args, "method to its projection, the disagreement (negative: the method beats it).")
+    if base == REFERENCE_METHOD:
+        say(args, "gap: to the reference J*. proj: J* projected onto the method's control (a")
+        say(args, "grid method: J*'s cell averages on the N-grid, an upper bound on the best cost")
+        say(args, "the grid can hold, not the best; a continuous one: the method re-solved from")
+        say(args, "J* on its own mesh). proj gap: the projection to J* (the discretisation, when")
+        say(args, "it keeps J*'s events). to proj: the method to its projection, the disagreement")
+        say(args, "(negative: the method beats it).")
     elif base is not None:
         say(args, f"no reference: gap and same events are to {base}, the cheapest answer.")
     if report.get("grid_cost") is not None:
@@ -194,17 +198,18 @@ def _print_crossval(args: argparse.Namespace, ocp: Any, report: dict[str, Any]) 
             say(args, f"  {name:9s} events: {_events_text(e['events'])}")
         if e.get("terminal_violation") is not None:
             say(args, f"  {name:9s} terminal-constraint violation {e['terminal_violation']:.3g}")
-    gd = report.get("gd", {})
-    if "discrete_optimum" in gd:
-        say(
-            args,
-            f"discrete objective (N = {ocp.steps}, symplectic Euler): gd's loss "
-            f"{fmt(gd['discrete_loss'], 12)}, its optimum {fmt(gd['discrete_optimum'], 12)} "
-            f"(N-step transcription from gd's control), gap "
-            f"{gd['discrete_gap_relative']:+.2e}",
-        )
-    elif "discrete_error" in gd:
-        say(args, f"discrete objective: its transcription failed: {gd['discrete_error']}")
+    for name in names:  # a method's own check of its discrete objective (gd's)
+        e = report[name]
+        if "discrete_optimum" in e:
+            say(
+                args,
+                f"discrete objective (N = {ocp.steps}, symplectic Euler): {name}'s loss "
+                f"{fmt(e['discrete_loss'], 12)}, its optimum {fmt(e['discrete_optimum'], 12)} "
+                f"(N-step transcription from {name}'s control), gap "
+                f"{e['discrete_gap_relative']:+.2e}",
+            )
+        elif "discrete_error" in e:
+            say(args, f"discrete objective: its transcription failed: {e['discrete_error']}")
     for note in report.get("notes", []):
         say(args, f"note: {note}")
     verdict = f" ({report['verdict']})" if report.get("verdict") else ""
@@ -236,7 +241,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
         stem = output_stem(out, problem_slug(args.problem, ocp), "validate")
         check_targets(*(f"{stem}{end}" for end in _VALIDATE_ENDS))
-    ref = solve(ocp, "reference")
+    ref = solve(ocp, REFERENCE_METHOD)
     report = validate_controls(ocp, u, reference=ref, substeps=k)
     report["controls_file"] = source
     broken = _violated(report)
@@ -303,12 +308,25 @@ def _validate_controls_path(args: argparse.Namespace) -> Path:
 
 
 def cmd_convergence(args: argparse.Namespace) -> int:
-    """Costs of the transcription and gradient descent for N in 60 ... 960."""
+    """Costs of methods against N (default: the direct transcription and gradient descent,
+    N = 60 ... 960), against the reference.
+
+    A method whose control is continuous in time (the transcription) is solved once and its
+    control averaged on each N-grid; a method on the grid (gradient descent) is re-run at
+    each N. Options as --set METHOD.OPTION=VALUE.
+    """
     from hybridoc.cli.evaluate import save
+    from hybridoc.methods import parse_settings
     from hybridoc.workflows.validation import DEFAULT_STEPS, convergence, convergence_figure
 
     ocp = load_problem_arg(args.problem)
     steps = tuple(args.steps) if args.steps else DEFAULT_STEPS
+    methods = None if args.methods is None else _method_list(args.methods)
+    if args.no_gd:  # the deprecated --no-gd: the default methods but gradient descent
+        from hybridoc.methods import BUILTIN
+
+        methods = [m for m in (methods or BUILTIN) if m not in (REFERENCE_METHOD, "gd")]
+    options = parse_settings(args.set)
     out = None if args.out is None else ensure_dir(args.out)  # fail before the solves
     if out is not None:  # a link or a user's file at an output name: refused now
         from hybridoc.outputs import check_targets
@@ -316,34 +334,11 @@ def cmd_convergence(args: argparse.Namespace) -> int:
         stem = output_stem(out, problem_slug(args.problem, ocp), "convergence")
         check_targets(f"{stem}.png", f"{stem}.json")
     say(args, f"{ocp.name}: convergence study, N = {', '.join(map(str, steps))} ...")
-    report = convergence(ocp, steps=steps, include_gd=not args.no_gd)
+    report = convergence(ocp, steps=steps, methods=methods, options=options)
     if args.json:
         emit_json(report)
     else:
-        say(args, f"reference optimum J* = {report['reference_cost']!r}")
-        headers = ["N", "dt cost", "dt err", "dt order"]
-        if "gd" in report:
-            headers += ["gd cost", "gd err", "gd order"]
-        rows = []
-        for k, n in enumerate(report["steps"]):
-            row: list[Any] = [n]
-            for name in ("dt", "gd"):
-                if name not in report:
-                    continue
-                b = report[name]
-                order = b["order"][k]
-                row += [
-                    fmt(b["cost"][k], 10),
-                    f"{b['error'][k]:.2e}",
-                    "-" if order is None else f"{order:.2f}",
-                ]
-            rows.append(row)
-        say(args, format_table(headers, rows))
-        say(args, "dt: the transcription's continuous optimum averaged on the N-grid and judged")
-        tail = (
-            "; gd: gradient descent re-run at N, true continuous cost." if "gd" in report else "."
-        )
-        say(args, "piecewise constant" + tail)
+        _print_convergence(args, report)
     # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
     written: list[Path] = []
     if out is not None:
@@ -354,6 +349,46 @@ def cmd_convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_convergence(args: argparse.Namespace, report: dict[str, Any]) -> None:
+    """The table of a convergence report and what each method's cost at N is."""
+    say(args, f"reference optimum J* = {report['reference_cost']!r}")
+    names = report["methods"]
+    headers = ["N"] + [f"{name} {col}" for name in names for col in ("cost", "err", "order")]
+    rows = []
+    for k, n in enumerate(report["steps"]):
+        row: list[Any] = [n]
+        for name in names:
+            b = report[name]
+            order = b["order"][k]
+            row += [
+                fmt(b["cost"][k], 10),
+                f"{b['error'][k]:.2e}",
+                "-" if order is None else f"{order:.2f}",
+            ]
+        rows.append(row)
+    say(args, format_table(headers, rows))
+    for name in names:
+        if f"{name}_continuous_cost" in report:
+            say(args, f"{name}: its continuous optimum averaged on the N-grid and judged "
+                "piecewise constant.")  # fmt: skip
+        else:
+            say(args, f"{name}: re-run at N, true continuous cost.")
+
+
+def _method_list(text: str) -> list[str]:
+    """``--methods M,M``: registered method names (unknown: one OptionError line)."""
+    from hybridoc.errors import OptionError
+    from hybridoc.methods import METHODS
+
+    names = list(dict.fromkeys(m.strip() for m in text.split(",") if m.strip()))
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise OptionError(
+            f"--methods: unknown method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}"
+        )
+    return names
+
+
 def register(sub: Any) -> None:
     """Add ``crossval``, ``validate`` and ``convergence``."""
     p = sub.add_parser(
@@ -361,7 +396,7 @@ def register(sub: Any) -> None:
         help="reference vs direct transcription vs gradient descent on one problem",
         description=cmd_crossval.__doc__,
     )
-    p.defer(_crossval_arguments)  # --gd-integrator's choices are gd's: read on first use
+    p.defer(_crossval_arguments)  # --time-limit's parser is the methods': read on first use
     p.set_defaults(func=cmd_crossval)
 
     p = sub.add_parser(
@@ -396,17 +431,16 @@ def register(sub: Any) -> None:
         default=None,
         help="grid sizes, each at most 10**6 (default 60 ... 960)",
     )
-    p.add_argument("--no-gd", action="store_true", help="skip gradient descent (fast)")
+    p.add_argument(
+        "--methods", default=None, metavar="M,M",
+        help="registered methods to study (default: every built-in one but the reference: "
+        "dt,gd)",
+    )  # fmt: skip
+    add_set_arg(p)
+    add_deprecated_alias(p, "--no-gd", dest="no_gd", instead="--methods dt", switch=True)
+    p.set_defaults(no_gd=False)
     add_json_out(p, out_help="write the log-log figure and DIR/<problem>_convergence.json")
     p.set_defaults(func=cmd_convergence)
-
-
-def _method_option(method: str, name: str) -> Any:
-    """The :class:`~hybridoc.methods.OptionSpec` of one option of a registered method."""
-    from hybridoc.methods import METHODS
-
-    (spec,) = (s for s in METHODS[method].specs() if s.name == name)
-    return spec
 
 
 def _tolerance_item(text: str) -> tuple[str, float]:
@@ -426,33 +460,19 @@ def _tolerance_item(text: str) -> tuple[str, float]:
 
 
 def _crossval_arguments(p: argparse.ArgumentParser) -> None:
-    integrator = _method_option("gd", "integrator")
-    starts = _method_option("gd", "starts")
-    mesh = _method_option("dt", "mesh")
-    time_limit = _method_option("gd", "time_limit")
+    from hybridoc.methods import METHODS, positive_float
+
     problem_arg(p)
     p.add_argument(
-        "--methods", default="reference,dt,gd", metavar="M,M",
-        help="registered methods to compare with the reference (default reference,dt,gd)",
+        "--methods", default=",".join(BUILTIN), metavar="M,M",
+        help=f"registered methods to compare with the reference (default {','.join(BUILTIN)}; "
+        f"registered: {', '.join(METHODS)})",
     )  # fmt: skip
+    add_set_arg(p)
+    for flag, setting in SET_ALIASES["crossval"].items():  # the old flags, for one release
+        add_deprecated_set_alias(p, flag, setting)
     p.add_argument(
-        "--gd-integrator",
-        choices=integrator.choices,
-        default=None,
-        help="gradient descent's time stepping on disc scenes: exact (default) or the paper's "
-        "symplectic Euler",
-    )
-    p.add_argument(
-        "--starts", type=option_type(starts.parser, "starts"), default=None, metavar="K",
-        help="gradient descent's multi-start: K starts (default: crossval's, 32 on disc "
-        "scenes, 16 on others)",
-    )  # fmt: skip
-    p.add_argument(
-        "--mesh", type=option_type(mesh.parser, "mesh"), default=None, metavar="M",
-        help="the transcription's collocation elements per phase (default: dt's)",
-    )  # fmt: skip
-    p.add_argument(
-        "--time-limit", type=option_type(time_limit.parser, "time limit"), default=None,
+        "--time-limit", type=option_type(positive_float, "time limit"), default=None,
         metavar="SECONDS",
         help="each method's time limit (every method that has one: its best so far is "
         "then a not-converged row); default none",
@@ -461,7 +481,10 @@ def _crossval_arguments(p: argparse.ArgumentParser) -> None:
         "--tolerance", type=_tolerance_item, action="append", default=None,
         metavar="METHOD=VALUE",
         help="relative gap to the reference's projection on the method's control beyond which "
-        "it disagrees (repeatable; default: the method's own, gd 5e-3, dt 1e-6)",
+        "it disagrees (repeatable; default: the method's own, "
+        + ", ".join(f"{m.name} {m.tolerance:.0e}" for m in METHODS.values()
+                    if m.name != REFERENCE_METHOD)
+        + ")",
     )  # fmt: skip
     add_progress_arg(p)
     add_json_out(p, out_help="write DIR/<problem>_crossval.json and the figures "

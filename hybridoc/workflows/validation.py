@@ -33,14 +33,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridoc.errors import HybridocError, SceneError
+from hybridoc.errors import HybridocError, OptionError, SceneError
 from hybridoc.evaluator import evaluate
-from hybridoc.methods import METHODS, solve
+from hybridoc.methods import BUILTIN, METHODS, REFERENCE_METHOD, Method, solve
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.solution import Solution, Status
 
 if TYPE_CHECKING:  # pragma: no cover
+    from hybridoc.evaluation import Evaluation
     from hybridoc.ocp import HybridOCP
 
 __all__ = [
@@ -54,6 +55,7 @@ __all__ = [
     "crossval",
     "crossval_figures",
     "event_comparison",
+    "judged_evaluation",
     "local_gap",
     "method_entry",
     "observed_orders",
@@ -199,7 +201,7 @@ def validate_controls(
     fine = substep_problem(ocp, substeps)
     u = fine.check_controls(getattr(controls, "controls", controls))
     if reference is None:
-        reference = solve(ocp, "reference")
+        reference = solve(ocp, REFERENCE_METHOD)
     # a Solution is judged by its own control (so its cost comes back bit for bit)
     own = substeps == 1 and hasattr(controls, "control_kind")
     ev = evaluate(fine, controls if own else u)
@@ -238,17 +240,17 @@ def validation_figures(
     ev_user = evaluate(ocp, controls)
     fig_u = plot_controls(
         ocp.time_grid(),
-        {"reference": reference.controls, label: controls},
+        {REFERENCE_METHOD: reference.controls, label: controls},
         list(ocp.control_labels or []),
         title=f"{ocp.name}: {label} control vs reference",
         event_times={
-            "reference": [e["time"] for e in reference.events],
+            REFERENCE_METHOD: [e["time"] for e in reference.events],
             label: [e.time for e in ev_user.events],
         },
     )
     fig_x = plot_trajectories(
         ocp,
-        {"reference": evaluate(ocp, reference.controls), label: ev_user},
+        {REFERENCE_METHOD: evaluate(ocp, reference.controls), label: ev_user},
         title=f"{ocp.name}: {label} trajectory vs reference",
     )
     return {"controls": fig_u, "trajectories": fig_x}
@@ -258,7 +260,7 @@ def validation_figures(
 def crossval(
     problem: ProblemLike,
     *,
-    methods: Sequence[str] = ("reference", "dt", "gd"),
+    methods: Sequence[str] = tuple(BUILTIN),
     options: Mapping[str, Mapping[str, Any]] | None = None,
     tolerances: Mapping[str, float] | None = None,
     progress: ProgressLike = None,
@@ -342,20 +344,22 @@ def crossval(
         ``solutions``: the Solutions of the methods that returned one.
     """
     ocp = as_ocp(problem)
-    names = ["reference"] + [m for m in methods if m != "reference"]
+    names = [REFERENCE_METHOD] + [m for m in methods if m != REFERENCE_METHOD]
     unknown = [m for m in names if m not in METHODS]
     if unknown:
-        raise SceneError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+        raise OptionError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
     bad_tol = [k for k in (tolerances or {}) if k not in METHODS]
     if bad_tol:
-        raise SceneError(f"tolerance for unknown method(s) {bad_tol}")
+        raise OptionError(
+            f"tolerance for unknown method(s) {bad_tol}; choose from {', '.join(METHODS)}"
+        )
     tol = {name: METHODS[name].tolerance for name in names} | {
         k: _checked_tolerance(k, v) for k, v in (tolerances or {}).items()
     }
     opts = _run_options(ocp, names, options)
     with progress_scope(progress, "crossval") as p:
         sols, walls, errors = _run_methods(ocp, names, opts, p)
-        ref = sols.get("reference")
+        ref = sols.get(REFERENCE_METHOD)
         report: dict[str, Any] = {"problem": ocp.name}
         reasons: list[str] = []
         notes: list[str] = []
@@ -363,7 +367,7 @@ def crossval(
         for name in names:
             if name in errors:
                 report[name] = {**errors[name], "wall_time_s": walls[name], "converged": False}
-                if name == "reference" and errors[name]["refused"]:
+                if name == REFERENCE_METHOD and errors[name]["refused"]:
                     notes.append(f"the reference refused the problem: {errors[name]['error']}")
                 else:
                     reasons.append(f"{name} failed: {errors[name]['error']}")
@@ -371,12 +375,12 @@ def crossval(
             baseline = _compare_without_reference(report, sols, walls, tol, reasons, notes)
             proven = False
         else:
-            baseline, proven = "reference", ref.status is Status.SUCCESS
+            baseline, proven = REFERENCE_METHOD, ref.status is Status.SUCCESS
             _reference_status(ref, reasons, notes)
             for name in names:
                 if name in errors:
                     continue
-                if name != "reference":
+                if name != REFERENCE_METHOD:
                     p.stage(f"comparing {name} with the reference")
                 try:
                     report[name], why, explained = _judge_method(
@@ -449,7 +453,7 @@ def _compare_without_reference(
     within its tolerance and with the baseline's events unless their costs agree within it
     (check ``"costs agree"``). Returns the baseline's name (``None`` when no method
     answered)."""
-    answered = {n: s for n, s in sols.items() if n != "reference"}
+    answered = {n: s for n, s in sols.items() if n != REFERENCE_METHOD}
     feasible = {n: s for n, s in answered.items() if _feasible(s)} or answered
     if not feasible:
         return None
@@ -502,9 +506,9 @@ def _sequence_text(sol: Solution | Mapping[str, Any]) -> str:
 
 def _checked_tolerance(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise SceneError(f"tolerance of {name} must be a number, got {value!r}")
+        raise OptionError(f"tolerance of {name} must be a number, got {value!r}")
     if not (math.isfinite(float(value)) and float(value) > 0):
-        raise SceneError(f"tolerance of {name} must be a positive number, got {value!r}")
+        raise OptionError(f"tolerance of {name} must be a positive number, got {value!r}")
     return float(value)
 
 
@@ -631,15 +635,18 @@ def representable(
         constraints, so a method that meets them may cost more than it, or less.
     """
     ocp = as_ocp(problem)
-    if method == "dt":
-        what = "dt re-solved from the reference on its own mesh"
-        keep = {k: v for k, v in (options or {}).items() if k in ("mesh", "degree")}
+    m = METHODS[method]
+    if m.representation == "continuous":
+        opt = m.resolution_option
+        what = f"{method} re-solved from the reference on its own {opt or 'discretisation'}"
+        keep = {k: v for k, v in (options or {}).items() if k in m.projection_options}
         try:
-            best = solve(ocp, "dt", initial=ref, sequence=ref.sequence, progress=progress, **keep)
+            best = _resolved_from(ocp, m, ref, keep, progress)
         except HybridocError as exc:
             return _no_representable(what, str(exc))
         out = _projection_fields(what, best, ref)
-        out["representable_mesh"] = [int(m) for m in best.info.get("mesh") or []]
+        if opt is not None:
+            out[f"representable_{opt}"] = [int(x) for x in best.info.get(opt) or []]
         return out
     what = f"the reference's cell averages on the N = {ocp.steps} grid"
     if ocp.free_horizon:
@@ -653,6 +660,15 @@ def representable(
     if violation is not None:
         out["representable_terminal_violation"] = violation
     return out
+
+
+def _resolved_from(
+    ocp: HybridOCP, m: Method, ref: Solution, options: Mapping[str, Any], progress: ProgressLike
+) -> Solution:
+    """A ``"continuous"`` method re-solved from the reference: its control as the initial
+    guess and, when the method takes one, its event sequence."""
+    seq = {"sequence": ref.sequence} if m.takes("sequence") else {}
+    return solve(ocp, m.name, initial=ref, **seq, progress=progress, **options)
 
 
 def _projection_fields(what: str, proj: Solution, ref: Solution) -> dict[str, Any]:
@@ -696,20 +712,20 @@ def refined_projection(
 
     ocp = as_ocp(problem)
     opts = dict(options or {})
+    m = METHODS[method]
     try:
-        if method == "dt":
-            mesh = opts.get("mesh")
-            if mesh is None:  # the mesh dt used for the projection at the method's options
-                first = solve(ocp, "dt", initial=ref, sequence=ref.sequence, progress=progress,
-                              **{k: v for k, v in opts.items() if k == "degree"})  # fmt: skip
-                mesh = max(int(m) for m in first.info.get("mesh") or [first.settings["mesh"]])
-            mesh = 2 * (max(int(m) for m in mesh) if isinstance(mesh, Sequence) else int(mesh))
-            what = f"dt re-solved from the reference on mesh {mesh}"
-            keep = {k: v for k, v in opts.items() if k == "degree"}
-            fine = solve(
-                ocp, "dt", initial=ref, sequence=ref.sequence, progress=progress, mesh=mesh,
-                **keep,
-            )  # fmt: skip
+        if m.representation == "continuous":
+            opt = m.resolution_option
+            if opt is None:
+                raise SceneError(f"{method} declares no resolution option to refine")
+            keep = {k: v for k, v in opts.items() if k in m.projection_options and k != opt}
+            res = opts.get(opt)
+            if res is None:  # the resolution of the projection at the method's options
+                first = _resolved_from(ocp, m, ref, keep, progress)
+                res = max(int(x) for x in first.info.get(opt) or [first.settings[opt]])
+            res = 2 * (max(int(x) for x in res) if isinstance(res, Sequence) else int(res))
+            what = f"{method} re-solved from the reference on {opt} {res}"
+            fine = _resolved_from(ocp, m, ref, {**keep, opt: res}, progress)
         else:
             steps = 2 * ocp.steps
             what = f"the reference's cell averages on the N = {steps} grid"
@@ -774,7 +790,7 @@ def _judge_method(
     reasons: list[str] = []
     notes: list[str] = []
     entry.update(local_gap(ocp, sol, ref, progress=progress))
-    if name == "reference":
+    if name == REFERENCE_METHOD:
         return entry, reasons, notes
     entry.update(representable(ocp, name, ref, options=options, progress=progress))
     best = entry["representable_cost"]
@@ -889,9 +905,10 @@ def _projection_beyond_tolerance(
         return [
             f"{head} and loses the reference's events (it has {lost}): not a discretisation error"
         ], []
-    used = entry.get("representable_mesh")
-    if name == "dt" and options.get("mesh") is None and used:
-        options = {**options, "mesh": max(used)}  # the mesh the projection was solved on
+    opt = METHODS[name].resolution_option
+    used = None if opt is None else entry.get(f"representable_{opt}")
+    if used and options.get(opt) is None:
+        options = {**options, opt: max(used)}  # the resolution the projection was solved on
     fine = refined_projection(ocp, name, ref, options=options, progress=progress)
     entry["projection_checks"] = {"refinement": fine}
     fine_gap = fine.get("refined_gap_relative")
@@ -941,7 +958,9 @@ def local_gap(
         local = ref
     else:
         try:
-            local = solve(problem, "reference", sequence=sequence, initial=sol, progress=progress)
+            local = solve(
+                problem, REFERENCE_METHOD, sequence=sequence, initial=sol, progress=progress
+            )
         except HybridocError as exc:
             return {
                 "local_reference_cost": None,
@@ -954,6 +973,16 @@ def local_gap(
         "local_reference_sequence": sequence,
         "cost_gap_local_relative": float((sol.cost - local.cost) / abs(local.cost)),
     }
+
+
+def judged_evaluation(sol: Solution) -> Evaluation | None:
+    """The judge's evaluation ``sol``'s cost came from (:attr:`Solution.evaluation`), so
+    that a figure need not judge again; ``None`` where the Solution keeps none (a loaded
+    file, changed costs)."""
+    from hybridoc.evaluation import Evaluation
+
+    ev = getattr(sol, "evaluation", None)
+    return ev if isinstance(ev, Evaluation) else None
 
 
 def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict[str, Any]:
@@ -971,34 +1000,49 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
         title=f"{ocp.name}: controls",
         event_times={name: [e["time"] for e in s.events] for name, s in sols.items()},
     )
-    evals = {name: evaluate(ocp, s.controls) for name, s in sols.items()}
+    evals = {
+        name: ev if (ev := judged_evaluation(s)) is not None else evaluate(ocp, s.controls)
+        for name, s in sols.items()
+    }
     figs["trajectories"] = plot_trajectories(
         ocp, evals, title=f"{ocp.name}: trajectories (reference drawn, others dashed)"
     )
-    gd = sols.get("gd")
-    hist = None if gd is None else gd.arrays.get("loss_history")
-    if hist is not None and len(hist) and "reference" in sols:
+    curves = _loss_histories(sols)
+    if curves and REFERENCE_METHOD in sols:
         fig = Figure(figsize=(6.4, 6.4), layout="constrained")
         ax, ax2 = fig.subplots(2, 1, sharex=True)
-        hist = np.asarray(hist, dtype=float)
-        it = np.arange(hist.size)
-        ref_cost = sols["reference"].cost
-        ax.plot(it, hist, lw=1.4, label="gd discrete loss")
+        ref_cost = sols[REFERENCE_METHOD].cost
+        for k, (name, hist) in enumerate(curves.items()):
+            it = np.arange(hist.size)
+            ax.plot(it, hist, lw=1.4, label=f"{name} discrete loss")
+            gap = (hist - ref_cost) / abs(ref_cost)
+            ax2.semilogy(it[gap > 0], gap[gap > 0], lw=1.4, color=f"C{k + 1}", label=name)
         ax.axhline(ref_cost, color="k", ls="--", lw=1, label=f"reference optimum {ref_cost:.6f}")
         ax.set_yscale("log")
         ax.set_ylabel("loss")
-        ax.set_title(f"{ocp.name}: gradient descent learning curve")
+        ax.set_title(f"{ocp.name}: {', '.join(curves)} learning curve")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
-        gap = (hist - ref_cost) / abs(ref_cost)
-        ax2.semilogy(it[gap > 0], gap[gap > 0], lw=1.4, color="C1")
         ax2.set_xlabel("iteration")
         ax2.set_ylabel("(loss - J*) / J*")
         ax2.grid(alpha=0.3, which="both")
-        mark_stages(ax, gd.info.get("history_stages"))
-        mark_stages(ax2, gd.info.get("history_stages"))
+        if len(curves) == 1:  # the stages of one run (a multi-start's, a hop's)
+            stages = sols[next(iter(curves))].info.get("history_stages")
+            mark_stages(ax, stages)
+            mark_stages(ax2, stages)
         figs["learning_curve"] = fig
     return figs
+
+
+def _loss_histories(sols: Mapping[str, Solution]) -> dict[str, np.ndarray]:
+    """The learning curve of each registered method's Solution that has one
+    (:attr:`~hybridoc.methods.Method.loss_history`)."""
+    out = {}
+    for name, sol in sols.items():
+        hist = METHODS[name].loss_history(sol) if name in METHODS else None
+        if hist is not None and len(hist):
+            out[name] = np.asarray(hist, dtype=float)
+    return out
 
 
 # ---------------------------------------------------------------------------- convergence
@@ -1018,25 +1062,45 @@ def convergence(
     problem: ProblemLike,
     *,
     steps: Sequence[int] = DEFAULT_STEPS,
+    methods: Sequence[str] | None = None,
+    options: Mapping[str, Mapping[str, Any]] | None = None,
     gd_options: dict[str, Any] | None = None,
     include_gd: bool = True,
 ) -> dict[str, Any]:
-    """Costs of the transcription and of gradient descent on grids of N cells.
+    """Costs of methods on grids of N cells, against the reference.
 
-    The direct transcription's optimum is a continuous-time control (exact for disc
-    scenes, independent of N); its N-dependent cost is that of its cell averages on the
-    N-grid, judged piecewise constant by the evaluator: what a user of an N-step simulator
-    gets from it. Gradient descent is re-run at each N; its cost is the true continuous
-    cost of its piecewise-constant control.
+    What a method's cost at N is depends on what its control can express
+    (:attr:`~hybridoc.methods.Method.representation`). A ``"continuous"`` method (the
+    direct transcription) is solved once, from the reference; its optimum is a
+    continuous-time control (exact for disc scenes, independent of N), and its
+    N-dependent cost is that of its cell averages on the N-grid, judged piecewise constant
+    by the evaluator: what a user of an N-step simulator gets from it. A ``"grid"`` method
+    (gradient descent) is re-run at each N; its cost is the true continuous cost of its
+    piecewise-constant control.
+
+    Parameters
+    ----------
+    problem
+        Any problem.
+    steps
+        The grid sizes N.
+    methods
+        Registered method names; default: every built-in method but the reference.
+    options
+        ``{method: {option: value}}`` passed to :func:`hybridoc.solve`.
+    gd_options, include_gd
+        Deprecated: ``options={"gd": ...}`` and ``methods`` without ``"gd"``.
 
     Returns
     -------
     dict
-        ``problem``, ``steps``, ``reference_cost``, ``dt`` and ``gd`` with lists ``cost``,
-        ``error`` (``|J_N - J*| / J*``) and ``order`` (observed, against N).
+        ``problem``, ``steps``, ``methods``, ``reference_cost``,
+        ``<method>_continuous_cost`` for each continuous method, and for each method a block
+        with lists ``cost``, ``error`` (``|J_N - J*| / J*``) and ``order`` (observed,
+        against N); a grid method's block also has ``discrete_loss`` (its
+        ``info["loss"]``) and ``solve_time_s`` at each N.
     """
     from hybridoc.ocp import MAX_STEPS
-    from hybridoc.solvers.transcription import resample_controls
 
     ocp = as_ocp(problem)
     steps = tuple(steps)
@@ -1047,39 +1111,74 @@ def convergence(
         raise SceneError(
             f"steps must be a non-empty list of integers from 1 to {MAX_STEPS}, got {steps!r}"
         )
-    ref = solve(ocp, "reference")
-    dt_sol = solve(ocp, "dt", initial=ref)
-
+    names, opts = _convergence_methods(methods, options, gd_options, include_gd)
+    ref = solve(ocp, REFERENCE_METHOD)
     out: dict[str, Any] = {
         "problem": ocp.name,
         "steps": [int(n) for n in steps],
+        "methods": names,
         "reference_cost": float(ref.cost),
-        "dt_continuous_cost": float(dt_sol.cost),
     }
-    dt_costs, gd_costs, gd_losses, gd_times = [], [], [], []
+    continuous = {}
+    for name in names:
+        if METHODS[name].representation == "continuous":
+            continuous[name] = solve(ocp, name, initial=ref, **opts[name])
+            out[f"{name}_continuous_cost"] = float(continuous[name].cost)
+    costs: dict[str, list[float]] = {name: [] for name in names}
+    losses: dict[str, list[float]] = {name: [] for name in names if name not in continuous}
+    times: dict[str, list[float]] = {name: [] for name in losses}
     for n in steps:
         sc = ocp.replace(steps=int(n))
-        grid = sc.time_grid()
-        u_n = resample_controls(dt_sol, grid)
-        dt_costs.append(float(evaluate(sc, u_n).cost))
-        if include_gd:
+        for name in names:
+            if name in continuous:  # its control's cell averages on the N-grid, judged
+                costs[name].append(float(continuous[name].to_grid(problem=sc).cost))
+                continue
             t0 = time.perf_counter()
-            g = solve(sc, "gd", **(gd_options or {}))
-            gd_times.append(time.perf_counter() - t0)
-            gd_costs.append(float(g.cost))
-            gd_losses.append(float(g.info.get("loss", float("nan"))))
+            g = solve(sc, name, **opts[name])
+            times[name].append(time.perf_counter() - t0)
+            costs[name].append(float(g.cost))
+            losses[name].append(float(g.info.get("loss", float("nan"))))
     J = ref.cost
-
-    def block(costs: list[float]) -> dict[str, Any]:
-        err = [abs(c - J) / J for c in costs]
-        return {"cost": costs, "error": err, "order": observed_orders(steps, err)}
-
-    out["dt"] = block(dt_costs)
-    if include_gd:
-        out["gd"] = block(gd_costs)
-        out["gd"]["discrete_loss"] = gd_losses
-        out["gd"]["solve_time_s"] = gd_times
+    for name in names:
+        err = [abs(c - J) / J for c in costs[name]]
+        out[name] = {"cost": costs[name], "error": err, "order": observed_orders(steps, err)}
+        if name in losses:
+            out[name]["discrete_loss"] = losses[name]
+            out[name]["solve_time_s"] = times[name]
     return out
+
+
+def _convergence_methods(
+    methods: Sequence[str] | None,
+    options: Mapping[str, Mapping[str, Any]] | None,
+    gd_options: dict[str, Any] | None,
+    include_gd: bool,
+) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The methods of a convergence study and their options, with the deprecated
+    ``gd_options`` and ``include_gd`` (which named one method) mapped onto them."""
+    import warnings
+
+    given = [m for m in BUILTIN if m != REFERENCE_METHOD] if methods is None else list(methods)
+    opts = {k: dict(v) for k, v in (options or {}).items()}
+    if gd_options is not None or not include_gd:
+        warnings.warn(
+            "convergence(gd_options=, include_gd=) is deprecated: use options={'gd': ...} and "
+            "methods=[...]",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        if gd_options is not None:
+            opts["gd"] = {**gd_options, **opts.get("gd", {})}
+        if not include_gd:
+            given = [m for m in given if m != "gd"]
+    names = list(dict.fromkeys(m for m in given if m != REFERENCE_METHOD))
+    unknown = [m for m in [*names, *opts] if m not in METHODS]
+    if unknown or not names:
+        raise OptionError(
+            f"convergence needs registered methods other than the reference; got "
+            f"{unknown or names}, choose from {', '.join(METHODS)}"
+        )
+    return names, {name: opts.get(name, {}) for name in names}
 
 
 def convergence_figure(report: dict[str, Any]) -> Any:
@@ -1089,16 +1188,18 @@ def convergence_figure(report: dict[str, Any]) -> Any:
     fig = Figure(figsize=(6.4, 4.4), layout="constrained")
     ax = fig.subplots()
     steps = np.array(report["steps"], dtype=float)
-    for name, marker in (("dt", "o"), ("gd", "s")):
-        if name in report:
-            err = np.array(report[name]["error"], dtype=float)
-            ok = err > 0
-            label = {
-                "dt": "transcription, cell averages on the N-grid",
-                "gd": "gradient descent at N (true continuous cost)",
-            }[name]
-            ax.loglog(steps[ok], err[ok], marker=marker, label=label)
-    e0 = report["dt"]["error"][0] if report["dt"]["error"][0] > 0 else 1e-6
+    names = _report_methods(report)
+    for k, name in enumerate(names):
+        err = np.array(report[name]["error"], dtype=float)
+        ok = err > 0
+        label = (
+            f"{name}, cell averages on the N-grid"
+            if f"{name}_continuous_cost" in report
+            else f"{name} at N (true continuous cost)"
+        )
+        ax.loglog(steps[ok], err[ok], marker="osD^v<>"[k % 7], label=label)
+    first = report[names[0]]["error"][0] if names else 0.0
+    e0 = first if first > 0 else 1e-6
     ax.loglog(steps, e0 * steps[0] / steps, "k--", lw=0.8, label="slope -1")
     ax.loglog(steps, e0 * steps[0] ** 2 / steps**2, "k:", lw=1, label="slope -2")
     ax.set_xlabel("N (grid cells)")
@@ -1107,3 +1208,11 @@ def convergence_figure(report: dict[str, Any]) -> Any:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     return fig
+
+
+def _report_methods(report: Mapping[str, Any]) -> list[str]:
+    """The methods of a convergence report (its ``methods``; a report written before it
+    had them: its blocks)."""
+    if "methods" in report:
+        return list(report["methods"])
+    return [k for k, v in report.items() if isinstance(v, Mapping) and "error" in v]
