@@ -163,7 +163,8 @@ def test_iteration_limit_is_not_success(iters: int) -> None:
 
 
 def test_convergence_test_at_the_iteration_limit() -> None:
-    from hybridoc.solvers.gd import STALL_RTOL, _converged, stall_window
+    from hybridoc.solvers.gd import STALL_RTOL, stall_window
+    from hybridoc.solvers.gd import convergence_test as _converged
 
     assert stall_window(30) == 10 and stall_window(1000) == 100
     done = "finished the requested iterations"

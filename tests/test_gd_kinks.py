@@ -78,7 +78,7 @@ def test_free_final_time_snell_reaches_its_grid_optimum():
 def test_a_stall_at_a_kink_is_not_a_success(monkeypatch):
     """Without the iterations past the kink, the stalled descent is reported as such, with
     the event and the grid time (it was ``success`` at +0.96%)."""
-    monkeypatch.setattr(gd, "KINK_ITERS", 0)
+    monkeypatch.setattr(gd.kinks, "KINK_ITERS", 0)
     ocp = snell(10, horizon=SNELL_T_MIN, weight=100.0)
     sol = gd.solve_gd(ocp)
     assert sol.status.value == "not-converged"

@@ -88,7 +88,7 @@ def test_an_interrupt_returns_the_best_iterate(monkeypatch):
         raise KeyboardInterrupt
 
     calls["n"] = 0
-    monkeypatch.setattr(gd, "evaluate", second)
+    monkeypatch.setattr(gd.solve, "evaluate", second)
     with pytest.raises(KeyboardInterrupt):
         gd.solve_gd(ocp, callback=interrupt)
 
@@ -159,7 +159,9 @@ def test_counts_are_over_every_stage(monkeypatch):
             calls["n"] += 1
             return self.loss.value_and_grad(u, x0)
 
-    monkeypatch.setattr(gd, "make_loss", lambda *a, **k: (Counted(real(*a, **k)[0]), "compiled"))
+    monkeypatch.setattr(
+        gd.descent, "make_loss", lambda *a, **k: (Counted(real(*a, **k)[0]), "compiled")
+    )
     sol = gd.solve_gd(thermostat(40))
     stages = [*sol.info["stages"], sol.info["final_stage"]]
     assert len(stages) == 4
