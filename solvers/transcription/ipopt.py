@@ -15,7 +15,7 @@ from hybridoc.ocp import HybridOCP
 from hybridoc.solvers.transcription.guess import initial_point
 from hybridoc.solvers.transcription.monitor import MONITOR, short_sequence
 from hybridoc.solvers.transcription.nlp import PhaseNLP, nlp_for, terminal_count
-from hybridoc.solvers.transcription.options import checked_degree, checked_mesh
+from hybridoc.solvers.transcription.options import DTOptions, checked_degree, checked_mesh
 from hybridoc.solvers.transcription.result import DTResult
 
 __all__ = ["solve_dt_sequence", "solve_nlp"]
@@ -151,9 +151,9 @@ def solve_dt_sequence(
     *,
     guess: Evaluation,
     guess_controls: np.ndarray,
-    degree: int = 3,
-    mesh: int | Sequence[int] | None = None,
-    verbose: bool = False,
+    degree: int = DTOptions.degree,
+    mesh: int | Sequence[int] | None = DTOptions.mesh,
+    verbose: bool = DTOptions.verbose,
 ) -> DTResult:
     """Solve the transcribed NLP for one event sequence.
 

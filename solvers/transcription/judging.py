@@ -59,7 +59,7 @@ class Judged:
         )
 
 
-def judge(ocp: HybridOCP, r: DTResult, terminal_tol: float = TERMINAL_TOL) -> Judged:
+def judge(ocp: HybridOCP, r: DTResult, terminal_tol: float) -> Judged:
     """``r`` with the judge's re-simulation of its control (or the reason it failed); the
     run in progress keeps it (what a stopped run returns)."""
     try:

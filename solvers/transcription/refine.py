@@ -18,7 +18,6 @@ from hybridoc.solvers.transcription.ipopt import solve_nlp
 from hybridoc.solvers.transcription.judging import Judged, judge, try_nudges
 from hybridoc.solvers.transcription.monitor import MONITOR
 from hybridoc.solvers.transcription.nlp import MAX_NLP_SIZE, PhaseNLP, nlp_for, rounding_level
-from hybridoc.solvers.transcription.options import TERMINAL_TOL
 from hybridoc.solvers.transcription.result import DTResult, event_time_gap, sequence_matches
 
 __all__ = [
@@ -170,7 +169,7 @@ def judge_or_refine(
     mesh: Any,
     verbose: bool,
     progress: Progress,
-    terminal_tol: float = TERMINAL_TOL,
+    terminal_tol: float,
 ) -> tuple[Judged, bool, bool]:
     """The judged candidate, whether it reproduces its events, and whether it was refined:
     at the default mesh, a near miss (the same events at times off by a little) is solved

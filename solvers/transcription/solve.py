@@ -35,7 +35,6 @@ from hybridoc.solvers.transcription.monitor import MONITOR, Monitor, Stopped, sh
 from hybridoc.solvers.transcription.nlp import nlp_for, nlp_size
 from hybridoc.solvers.transcription.options import (
     DEFAULT_MESH,
-    TERMINAL_TOL,
     DTOptions,
     checked_mesh,
     options_signature,
@@ -343,7 +342,7 @@ def _solve_dt(
     verbose: bool,
     monitor: Monitor,
     t_start: float,
-    terminal_tol: float = TERMINAL_TOL,
+    terminal_tol: float,
 ) -> Solution:
     """:func:`solve_dt` after its arguments are checked: candidate sequences from the guess,
     their NLPs solved, the results judged, the best one assembled into a Solution."""
@@ -438,7 +437,7 @@ def _judge_candidates(
     mesh: Any,
     verbose: bool,
     progress: Progress,
-    terminal_tol: float = TERMINAL_TOL,
+    terminal_tol: float,
 ) -> tuple[list[Judged], list[Judged]]:
     """Re-simulate the converged candidates, in order of NLP cost, until one reproduces its
     events and is feasible. Returns those that reproduce their events and those that
