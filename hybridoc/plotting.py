@@ -17,8 +17,10 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
+from hybridoc.errors import SceneError
+
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.problems.scene import Scene
+    from hybridoc.capabilities import Geometry
 
 __all__ = [
     "mark_stages",
@@ -41,9 +43,10 @@ def _colors(n: int) -> list[Any]:
     return [cmap(k % 10) for k in range(n)]
 
 
-def _positions(states: np.ndarray, n_discs: int) -> np.ndarray:
-    """``(M, nx)`` disc-scene states -> ``(M, n_discs, 2)`` positions."""
-    return np.asarray(states)[:, : 2 * n_discs].reshape(-1, n_discs, 2)
+def _positions(states: np.ndarray, geometry: Geometry) -> np.ndarray:
+    """``(M, nx)`` states -> ``(M, n_bodies, 2)`` the bodies' positions."""
+    states = np.asarray(states)
+    return np.stack([geometry.position(states, i) for i in range(geometry.n_bodies)], axis=1)
 
 
 def _path_states(evaluation: Any) -> np.ndarray:
@@ -70,23 +73,28 @@ def _wall_geometry(
 
 
 def plot_scene(
-    scene: Scene,
+    scene: Any,
     evaluation: Any = None,
     *,
     ax: Axes | None = None,
     title: str | None = None,
 ) -> Figure:
-    """Draw a disc scene to scale, optionally with the trajectory of an evaluation.
+    """Draw a problem's bodies and walls to scale, optionally with the trajectory of an
+    evaluation.
 
-    Discs are drawn at their initial positions (filled) and, with an evaluation, at ``t = T``
-    (dashed outline) and faintly where they take part in an event; paths of the disc centres,
-    contact points of the events (crosses, numbered in time order), walls (thick line,
-    hatched on the solid side) and targets (stars).
+    What is drawn is the problem's geometry (:attr:`HybridOCP.capabilities.geometry
+    <hybridoc.capabilities.Capabilities.geometry>`: a disc scene's discs and walls), the
+    bodies at the positions of its initial state. Discs are drawn filled there and, with an
+    evaluation, at ``t = T`` (dashed outline) and faintly where they take part in an event;
+    paths of the disc centres, contact points of the events (crosses, numbered in time
+    order), walls (thick line, hatched on the solid side) and targets (stars).
 
     Parameters
     ----------
     scene
-        A :class:`~hybridoc.problems.Scene`, a built-in name or a TOML path.
+        A problem with a geometry: a :class:`~hybridoc.problems.Scene`, a built-in name, a
+        TOML path or a :class:`~hybridoc.HybridOCP` (anything
+        :func:`~hybridoc.problem.as_ocp` takes).
     evaluation
         Optional :class:`~hybridoc.Evaluation` of this scene.
     ax
@@ -97,22 +105,33 @@ def plot_scene(
     Returns
     -------
     matplotlib.figure.Figure
-    """
-    from hybridoc.problems import load_scene
 
-    scene = load_scene(scene)
-    n = scene.n_discs
-    radii = np.array([d.radius for d in scene.discs])
+    Raises
+    ------
+    hybridoc.errors.SceneError
+        The problem has no geometry (plot its states with :func:`plot_trajectories`).
+    """
+    from hybridoc.problem import as_ocp
+
+    ocp = as_ocp(scene)
+    geo = ocp.capabilities.geometry
+    if geo is None:
+        raise SceneError(
+            f"{ocp.name!r} has no geometry (bodies and walls) to draw: plot_trajectories "
+            "draws its states against time"
+        )
+    n = geo.n_bodies
+    radii = np.array([b.radius for b in geo.bodies])
     colors = _colors(n)
-    p0 = np.array([d.position for d in scene.discs], dtype=float)
+    p0 = _positions(np.asarray(ocp.x0, dtype=float)[None, :], geo)[0]
 
     path = None
     if evaluation is not None:
-        path = _positions(_path_states(evaluation), n)
-        p_final = _positions(np.asarray(evaluation.final_state)[None, :], n)[0]
+        path = _positions(_path_states(evaluation), geo)
+        p_final = _positions(np.asarray(evaluation.final_state)[None, :], geo)[0]
     events = list(getattr(evaluation, "events", []) or [])
 
-    box, span = _scene_box(scene, p0, radii, path)
+    box, span = _scene_box(geo, p0, radii, path)
     if ax is None:
         aspect = (box[3] - box[2]) / (box[1] - box[0])
         width = 7.5
@@ -123,8 +142,8 @@ def plot_scene(
         fig = ax.figure  # type: ignore[assignment]
     handles: list[Any] = []
 
-    _draw_walls(ax, scene, box, span, handles)
-    _draw_discs(ax, scene, p0, colors, handles)
+    _draw_walls(ax, geo, box, span, handles)
+    _draw_discs(ax, geo, p0, colors, handles)
     if path is not None:
         for i in range(n):
             ax.plot(path[:, i, 0], path[:, i, 1], color=colors[i], lw=1.4)
@@ -133,12 +152,12 @@ def plot_scene(
             )
         handles.append(Line2D([], [], color="0.3", lw=1.4, label="path of centre"))
         handles.append(Patch(facecolor="none", edgecolor="0.3", ls="--", label="position at t = T"))
-    _draw_events(ax, scene, events, colors, handles)
+    _draw_events(ax, geo, events, colors, handles)
 
-    for i, d in enumerate(scene.discs):
+    for i, d in enumerate(geo.bodies):
         if d.target is not None:
             ax.plot(*d.target, marker="*", ms=16, color=colors[i], mec="k", mew=0.8, zorder=6)
-    if any(d.target is not None for d in scene.discs):
+    if any(d.target is not None for d in geo.bodies):
         handles.append(
             Line2D([], [], color="0.5", marker="*", ls="none", ms=12, mec="k", label="target")
         )
@@ -149,7 +168,7 @@ def plot_scene(
     ax.set_xlabel("x")
     ax.set_ylabel("y")
     ax.grid(True, lw=0.4, alpha=0.5)
-    ax.set_title(title if title is not None else scene.name)
+    ax.set_title(title if title is not None else ocp.name)
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
     )
@@ -157,7 +176,7 @@ def plot_scene(
 
 
 def _scene_box(
-    scene: Scene, p0: np.ndarray, radii: np.ndarray, path: np.ndarray | None
+    geo: Geometry, p0: np.ndarray, radii: np.ndarray, path: np.ndarray | None
 ) -> tuple[tuple[float, float, float, float], float]:
     """The padded, square-ish view ``(x0, x1, y0, y1)`` of everything drawn, and its span."""
     # bounding box of everything drawn (discs with their radii, paths, targets)
@@ -165,10 +184,10 @@ def _scene_box(
     if path is not None:
         flat = path.reshape(-1, 2)
         pts += [flat - radii.max(), flat + radii.max()]
-    pts += [np.array([d.target]) for d in scene.discs if d.target is not None]
+    pts += [np.array([d.target]) for d in geo.bodies if d.target is not None]
     allp = np.vstack(pts)
     lo, hi = allp.min(axis=0), allp.max(axis=0)
-    for w in scene.walls:  # keep the nearest point of each wall in view
+    for w in geo.planes:  # keep the nearest point of each wall in view
         c = (lo + hi) / 2
         nrm = np.array(w.normal)
         q = c - ((c - np.array(w.point)) @ nrm) * nrm
@@ -188,10 +207,10 @@ def _scene_box(
 
 
 def _draw_walls(
-    ax: Axes, scene: Scene, box: tuple[float, float, float, float], span: float, handles: list[Any]
+    ax: Axes, geo: Geometry, box: tuple[float, float, float, float], span: float, handles: list[Any]
 ) -> None:
     """Each wall as a thick line across the view, hatched on its solid side."""
-    for w in scene.walls:
+    for w in geo.planes:
         line, strip = _wall_geometry(
             np.array(w.point), np.array(w.normal), box, depth=0.04 * span + 0.03
         )
@@ -199,15 +218,15 @@ def _draw_walls(
             Polygon(strip, closed=True, facecolor="0.85", edgecolor="0.35", hatch="///", lw=0)
         )
         ax.plot(line[:, 0], line[:, 1], color="0.15", lw=3, solid_capstyle="butt")
-    if scene.walls:
+    if geo.planes:
         handles.append(Patch(facecolor="0.85", edgecolor="0.35", hatch="///", label="wall"))
 
 
 def _draw_discs(
-    ax: Axes, scene: Scene, p0: np.ndarray, colors: list[Any], handles: list[Any]
+    ax: Axes, geo: Geometry, p0: np.ndarray, colors: list[Any], handles: list[Any]
 ) -> None:
     """The discs at their initial positions, filled and named."""
-    for i, d in enumerate(scene.discs):
+    for i, d in enumerate(geo.bodies):
         role = "actuated" if d.actuated else "passive"
         ax.add_patch(
             Circle(p0[i], d.radius, facecolor=colors[i], alpha=0.35, edgecolor=colors[i], lw=1.5)
@@ -219,16 +238,15 @@ def _draw_discs(
 
 
 def _draw_events(
-    ax: Axes, scene: Scene, events: list[Any], colors: list[Any], handles: list[Any]
+    ax: Axes, geo: Geometry, events: list[Any], colors: list[Any], handles: list[Any]
 ) -> None:
     """The discs faintly where they take part in an event and the numbered contact points."""
-    n = scene.n_discs
-    names = [d.name for d in scene.discs]
-    radii = np.array([d.radius for d in scene.discs])
-    wall_by_name = {w.name: w for w in scene.walls}
+    names = [d.name for d in geo.bodies]
+    radii = np.array([d.radius for d in geo.bodies])
+    wall_by_name = {w.name: w for w in geo.planes}
     for k, ev in enumerate(events, start=1):
         s = np.asarray(ev.state_before)
-        pos = _positions(s[None, :], n)[0]
+        pos = _positions(s[None, :], geo)[0]
         involved = [names.index(b) for b in ev.bodies if b in names]
         for i in involved:
             ax.add_patch(
@@ -460,19 +478,19 @@ def plot_costates(
     return fig
 
 
-def _scene_overlay(scene: Scene, evals: Mapping[str, Any], *, title: str) -> Figure:
-    """The scene drawn with the first evaluation, the others' disc paths overlaid."""
+def _scene_overlay(ocp: Any, evals: Mapping[str, Any], *, title: str) -> Figure:
+    """The problem's geometry drawn with the first evaluation, the others' paths overlaid."""
     names = list(evals)
-    fig = plot_scene(scene, evals[names[0]], title=title)
+    fig = plot_scene(ocp, evals[names[0]], title=title)
     ax = fig.axes[0]
     styles = ["--", ":", "-."]
-    n = scene.n_discs
+    geo = ocp.capabilities.geometry
     for k, name in enumerate(names[1:]):
-        states = _path_states(evals[name])
-        for i in range(n):
+        path = _positions(_path_states(evals[name]), geo)
+        for i in range(geo.n_bodies):
             ax.plot(
-                states[:, 2 * i],
-                states[:, 2 * i + 1],
+                path[:, i, 0],
+                path[:, i, 1],
                 ls=styles[k % len(styles)],
                 color="k",
                 lw=1.1,
@@ -574,13 +592,10 @@ def _dense_path(ev: Any) -> tuple[np.ndarray, np.ndarray]:
 def plot_trajectories(
     ocp: Any, evaluations: Mapping[str, Any], *, title: str | None = None
 ) -> Figure:
-    """The trajectories of one or more evaluations: a disc scene drawn to scale with the
-    paths overlaid, any other problem as states against time."""
-    from hybridoc.problems.disc_ocp import DiscOCP
-
-    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
-    if scene is not None:
-        return _scene_overlay(scene, evaluations, title=title or ocp.name)
+    """The trajectories of one or more evaluations: a problem with a geometry (a disc scene)
+    drawn to scale with the paths overlaid, any other problem as states against time."""
+    if ocp.capabilities.geometry is not None:
+        return _scene_overlay(ocp, evaluations, title=title or ocp.name)
     return plot_states(evaluations, list(ocp.state_labels), title=title)
 
 
