@@ -14,6 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.candidates import enumerate_sequences, lower_bound
@@ -26,8 +27,9 @@ __all__ = ["CONTINUATION", "SCREEN_RTOL", "warm_extremal"]
 CONTINUATION: tuple[int, ...] = (4, 16)
 """Steps of the continuation in the initial state, tried in turn when Newton fails."""
 
-SCREEN_RTOL = 1e-9
-"""A screen rules out a rival only when it is cheaper by more than this, relative."""
+SCREEN_RTOL = tolerances.CHEAPER
+"""A screen rules out a rival only when it is cheaper by more than this, relative: the
+table's ``"cheaper"`` tolerance (:mod:`hybridoc.tolerances`)."""
 
 
 def _newton_with_continuation(
@@ -116,6 +118,6 @@ def warm_extremal(
             return None, f"the sequence {seq} is not ruled out by its lower bound"
     if evaluate(ocp, ocp.u_guess).cost < bound:
         return None, "the initial guess is cheaper"
-    if ocp.has_bounds and ocp.bound_violation(res.cell_averages()) > 1e-9:
+    if ocp.has_bounds and ocp.bound_violation(res.cell_averages()) > tolerances.FEASIBILITY:
         return None, "the extremal violates the control bounds"
     return res, ""
