@@ -27,7 +27,7 @@ from hybridoc.cli._util import (
     say,
     to_jsonable,
 )
-from hybridoc.cli.vocabulary import add_deprecated_alias
+from hybridoc.cli.vocabulary import add_deprecated_alias, spelled
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.outputs import check_folder, check_targets, write_text
 
@@ -134,7 +134,10 @@ def _gradcheck_against(args: argparse.Namespace) -> int:
     from hybridoc.io import read_array
     from hybridoc.workflows.gradcompare import GradientError, compare_gradient, gradient_figure
 
-    flags = (("--contact", args.models), ("--iters", args.gd_iters))
+    flags = (
+        (spelled(args, "--contact", "--models"), args.models),
+        (spelled(args, "--iters", "--gd-iters"), args.gd_iters),
+    )
     wrong = [f for f, v in flags if v is not None]
     if wrong:
         raise HybridocError(f"{', '.join(wrong)} compare contact models: not with --against")

@@ -53,12 +53,10 @@ def save(fig: Any, path: str | Path) -> Path:
 def write_figures(ocp: Any, ev: Any, stem: Path, *, label: str) -> list[Path]:
     """The trajectory and control figures of one evaluation, ``stem_<figure>.png``."""
     from hybridoc.plotting import plot_controls, plot_scene, plot_trajectories
-    from hybridoc.problems import scene_of
 
-    scene = scene_of(ocp)
     title = f"{ocp.name}: {label}, cost {ev.cost:.6g}"
-    if scene is not None:
-        fig = plot_scene(scene, ev, title=title)
+    if ocp.capabilities.geometry is not None:  # bodies and walls to draw
+        fig = plot_scene(ocp, ev, title=title)
     else:
         fig = plot_trajectories(ocp, {label: ev}, title=title)
     paths = [save(fig, f"{stem}_trajectory.png")]

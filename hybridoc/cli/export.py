@@ -76,7 +76,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     part of MJCF: hybridoc.workflows.mujoco computes it, and MuJoCo's gradient, from a
     model. Without --out the model goes to standard output.
     """
-    from hybridoc.problem import disc_scene
     from hybridoc.workflows.mujoco import (
         DEFAULT_STIFFNESS,
         DEFAULT_SUBSTEPS,
@@ -90,28 +89,29 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.json and args.out is None:
         raise HybridocError("--json needs --out FILE (the model itself goes to standard output)")
     ocp = load_problem_arg(args.problem)
-    scene = disc_scene(ocp)
-    path = _target(args.out, scene.name)
+    # a problem that is not a disc scene is refused here (one line), before any file
     text = scene_to_mjcf(ocp, substeps=substeps, stiffness=stiffness)
+    geometry = ocp.capabilities.geometry  # bodies, walls, restitution: the scene's
+    path = _target(args.out, ocp.name)
     if path is None:
         sys.stdout.write(text)
         sys.stdout.flush()
         return 0
     checked = _compiles(text)
     write_text(path, text)  # atomically; never through a link or over a user's file
-    h = scene.dt / substeps
-    damping = contact_damping(scene.restitution, stiffness)
+    h = ocp.dt / substeps
+    damping = contact_damping(geometry.restitution, stiffness)
     report = {
-        "problem": scene.name,
+        "problem": ocp.name,
         "format": args.format,
         "path": str(path),
         "timestep": h,
         "substeps": substeps,
         "stiffness": stiffness,
         "damping": damping,
-        "restitution": scene.restitution,
+        "restitution": geometry.restitution,
         "steps_per_contact": math.pi / (math.sqrt(stiffness) * h),
-        "control_labels": scene.control_labels(),
+        "control_labels": list(ocp.control_labels),
         "check": checked,
     }
     if report["steps_per_contact"] < _FEW_STEPS:
@@ -124,18 +124,18 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
         return 0
-    say(args, f"wrote {path}: MuJoCo model of {scene.name}")
+    say(args, f"wrote {path}: MuJoCo model of {ocp.name}")
     rows = [
-        ("bodies", f"{_count(scene.n_discs, 'disc')}, {_count(len(scene.walls), 'wall')}"),
-        ("motors", ", ".join(scene.control_labels())),
+        ("bodies", f"{_count(geometry.n_bodies, 'disc')}, {_count(len(geometry.planes), 'wall')}"),
+        ("motors", ", ".join(ocp.control_labels)),
         (
             "timestep",
-            f"{fmt(h, 6)} s = T / (N K), N = {scene.steps}, K = {substeps} substeps",
+            f"{fmt(h, 6)} s = T / (N K), N = {ocp.steps}, K = {substeps} substeps",
         ),
         (
             "contact",
             f"stiffness {fmt(stiffness, 6)}, damping {fmt(damping, 6)} for restitution "
-            f"{fmt(scene.restitution)}; about {report['steps_per_contact']:.3g} steps per "
+            f"{fmt(geometry.restitution)}; about {report['steps_per_contact']:.3g} steps per "
             "contact",
         ),
         ("check", checked),

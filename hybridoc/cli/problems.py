@@ -172,7 +172,7 @@ def cmd_show(args: argparse.Namespace) -> int:
         figure_path(args.plot)  # a bad suffix fails before the description is printed
     from hybridoc.problems import scene_of
 
-    scene = scene_of(ocp)
+    scene = scene_of(ocp)  # a scene file's own words: its description, each disc's guess
     lines = _scene_lines(scene) if scene is not None else _ocp_lines(ocp)
     ev = None
     try:
@@ -192,8 +192,8 @@ def cmd_show(args: argparse.Namespace) -> int:
         from hybridoc.plotting import plot_scene, plot_trajectories
 
         title = f"{ocp.name}: initial guess" + (f", cost {ev.cost:.6g}" if ev else "")
-        if scene is not None:
-            fig = plot_scene(scene, ev, title=title)
+        if ocp.capabilities.geometry is not None:  # bodies and walls to draw
+            fig = plot_scene(ocp, ev, title=title)
         elif ev is not None:
             fig = plot_trajectories(ocp, {"initial guess": ev}, title=title)
         else:

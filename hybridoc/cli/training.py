@@ -24,7 +24,7 @@ from hybridoc.cli._util import (
     to_jsonable,
     warn,
 )
-from hybridoc.cli.vocabulary import add_deprecated_alias
+from hybridoc.cli.vocabulary import add_deprecated_alias, spelled
 from hybridoc.errors import HybridocError, SceneError
 from hybridoc.outputs import check_folder, check_targets, write_text
 
@@ -66,8 +66,7 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     source = _source(args.problem)
     disc = scene_of(source, compiled=False) is not None  # a scene's own [distribution]
     if not disc and args.toi != "both":
-        old = args.toi == "none" and _used("--no-toi", args)
-        given = "--no-toi" if old else f"--toi {args.toi}"
+        given = spelled(args, f"--toi {args.toi}", "--no-toi")
         raise HybridocError(
             f"{given} needs a disc scene (it changes the differentiable simulator's "
             f"time-of-impact corrections); {source.name!r} trains through the judge's "
@@ -143,13 +142,6 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
              "does not allow")  # fmt: skip
         return 1
     return 0
-
-
-def _used(flag: str, args: argparse.Namespace) -> bool:
-    """Whether the deprecated ``flag`` was given (its note was recorded)."""
-    from hybridoc.cli.vocabulary import NOTES
-
-    return any(note.startswith(f"{flag} ") for note in getattr(args, NOTES, None) or [])
 
 
 def _source(text: str) -> Any:

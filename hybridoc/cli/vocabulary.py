@@ -29,6 +29,7 @@ __all__ = [
     "add_set_arg",
     "deprecation_note",
     "print_notes",
+    "spelled",
 ]
 
 
@@ -155,6 +156,16 @@ def _record(namespace: argparse.Namespace, note: str) -> None:
     if note not in notes:
         notes.append(note)
     setattr(namespace, NOTES, notes)
+
+
+def spelled(args: argparse.Namespace, flag: str, *old: str) -> str:
+    """How the user spelled ``flag``: the old spelling in ``old`` that was given (its note
+    was recorded), else ``flag``; so that an error names the flag as it was typed."""
+    notes = getattr(args, NOTES, None) or []
+    for spelling in old:
+        if any(note.startswith(f"{spelling} ") for note in notes):
+            return spelling
+    return flag
 
 
 def print_notes(args: argparse.Namespace) -> None:
