@@ -383,6 +383,52 @@ def _direction(g: np.ndarray, S: list[np.ndarray], Yh: list[np.ndarray]) -> np.n
     return d
 
 
+class _Batch:
+    """The evaluations of :func:`batched_lbfgs`: at every start (:meth:`all`), or at some
+    (:meth:`at`, by ``some`` where that is cheaper), flat ``(B, n)``."""
+
+    def __init__(
+        self,
+        value_and_grad: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        shape: tuple[int, ...],
+        some: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None,
+    ) -> None:
+        self.value_and_grad, self.shape, self.some = value_and_grad, shape, some
+        self.B = shape[0]
+        # the latest seconds of a batched call and of ``some`` per start: where ``some`` runs
+        # in CasADi's virtual machine while the batch is compiled C (the first run of a
+        # problem), one start costs as much as the whole batch, and the batch is called
+        # instead (the choice moves no iterate: both give the same numbers)
+        self.took = {"batch": 0.0, "one": 0.0}
+
+    def all(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Values and gradients at every row of ``Y``."""
+        v, g = self.value_and_grad(Y.reshape(self.shape))
+        return np.asarray(v, dtype=float), np.asarray(g, dtype=float).reshape(self.B, -1)
+
+    def at(self, Y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Values and gradients at the ``rows`` of ``Y`` (elsewhere NaN and zero)."""
+        some, took, B, shape = self.some, self.took, self.B, self.shape
+        n = int(rows.sum())
+        if (
+            some is None
+            or not 0 < n <= B // 2
+            or n * took["one"] > took["batch"]
+            or not np.isfinite(Y[rows]).all()
+        ):
+            t0 = time.perf_counter()
+            out = self.all(Y)
+            took["batch"] = time.perf_counter() - t0
+            return out
+        t0 = time.perf_counter()
+        v, g = some(Y[rows].reshape(n, *shape[1:]))
+        took["one"] = (time.perf_counter() - t0) / n
+        v_all, g_all = np.full(B, np.nan), np.zeros_like(Y)
+        v_all[rows] = np.asarray(v, dtype=float)
+        g_all[rows] = np.asarray(g, dtype=float).reshape(n, -1)
+        return v_all, g_all
+
+
 def batched_lbfgs(
     value_and_grad: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     U0: np.ndarray,
@@ -429,37 +475,8 @@ def batched_lbfgs(
     shape = U0.shape
     B = shape[0]
     X = U0.reshape(B, -1).astype(float).copy()
-
-    def vg(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v, g = value_and_grad(Y.reshape(shape))
-        return np.asarray(v, dtype=float), np.asarray(g, dtype=float).reshape(B, -1)
-
-    # the latest seconds of a batched call and of ``some`` per start: where ``some`` runs in
-    # CasADi's virtual machine while the batch is compiled C (the first run of a problem),
-    # one start costs as much as the whole batch, and the batch is called instead (the
-    # choice moves no iterate: both give the same numbers)
-    took = {"batch": 0.0, "one": 0.0}
-
-    def vg_at(Y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Values and gradients at the ``rows`` of ``Y`` (elsewhere NaN and zero)."""
-        n = int(rows.sum())
-        if (
-            some is None
-            or not 0 < n <= B // 2
-            or n * took["one"] > took["batch"]
-            or not np.isfinite(Y[rows]).all()
-        ):
-            t0 = time.perf_counter()
-            out = vg(Y)
-            took["batch"] = time.perf_counter() - t0
-            return out
-        t0 = time.perf_counter()
-        v, g = some(Y[rows].reshape(n, *shape[1:]))
-        took["one"] = (time.perf_counter() - t0) / n
-        v_all, g_all = np.full(B, np.nan), np.zeros_like(Y)
-        v_all[rows] = np.asarray(v, dtype=float)
-        g_all[rows] = np.asarray(g, dtype=float).reshape(n, -1)
-        return v_all, g_all
+    batch = _Batch(value_and_grad, shape, some)
+    vg, vg_at = batch.all, batch.at
 
     def project(Y: np.ndarray) -> np.ndarray:
         if lower is None and upper is None:

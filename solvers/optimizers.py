@@ -98,6 +98,8 @@ def _cubic_interpolate(
     return (lo + hi) / 2.0
 
 
+# 84 code lines: a statement-for-statement port of torch.optim.lbfgs._strong_wolfe (bracket,
+# then zoom), kept whole so that it reads line by line against the original
 def strong_wolfe(
     fun: Objective,
     x: np.ndarray,
@@ -573,6 +575,54 @@ def _relative(norm: float, x: np.ndarray, f: float) -> float:
     return norm * (1.0 + float(np.abs(x).max())) / (1.0 + abs(f))
 
 
+class _Counted:
+    """The objective of :func:`nonsmooth_bfgs` on flat arrays, counting its calls."""
+
+    def __init__(self, fun: Objective) -> None:
+        self.fun = fun
+        self.count = 0
+
+    def __call__(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        self.count += 1
+        value, grad = self.fun(z)
+        return float(value), np.asarray(grad, dtype=float).ravel()
+
+
+def _sampled_bundle(
+    counted: _Counted,
+    x: np.ndarray,
+    trail: list[tuple[np.ndarray, np.ndarray]],
+    eps: float,
+    pairs: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, int]:
+    """Gradient sampling of :func:`nonsmooth_bfgs` at ``x``: the smallest convex combination
+    of the gradients at the iterates within ``eps`` (relative) and at ``pairs`` random pairs
+    ``x +- r``, and the size of that bundle."""
+    n = x.size
+    reach = eps * (1.0 + float(np.abs(x).max()))
+    G = [gi for xi, gi in trail if float(np.abs(xi - x).max()) <= reach]
+    for _ in range(pairs):
+        r = reach * rng.uniform(-1.0, 1.0, n)
+        G += [counted(x + r)[1], counted(x - r)[1]]
+    d, _ = min_norm_element(np.array(G))
+    return d, len(G)
+
+
+def _bfgs_update(H: np.ndarray | None, s: np.ndarray, y: np.ndarray, sy: float) -> np.ndarray:
+    """The inverse Hessian of :func:`nonsmooth_bfgs` after the pair ``s``, ``y`` with
+    ``sy = s.y > 0`` (scaled at the first pair; ``H`` is updated in place)."""
+    if H is None:
+        H = np.eye(s.size) * (sy / float(y @ y))
+    # the rank-two BFGS update of the inverse, O(n^2)
+    Hy = H @ y
+    rho = 1.0 / sy
+    H += (rho * rho * float(y @ Hy) + rho) * np.outer(s, s) - rho * (
+        np.outer(Hy, s) + np.outer(s, Hy)
+    )
+    return H
+
+
 def nonsmooth_bfgs(
     fun: Objective,
     x0: np.ndarray,
@@ -624,13 +674,7 @@ def nonsmooth_bfgs(
     rng = np.random.default_rng(seed)
     x = np.array(x0, dtype=float).ravel()
     n = x.size
-    counter = [0]
-
-    def counted(z: np.ndarray) -> tuple[float, np.ndarray]:
-        counter[0] += 1
-        value, grad = fun(z)
-        return float(value), np.asarray(grad, dtype=float).ravel()
-
+    counted = _Counted(fun)
     if start is None:
         f, g = counted(x)
     else:
@@ -648,13 +692,7 @@ def nonsmooth_bfgs(
             break
         k += 1
         if sampling:
-            reach = eps * (1.0 + float(np.abs(x).max()))
-            G = [gi for xi, gi in trail if float(np.abs(xi - x).max()) <= reach]
-            for _ in range(pairs):
-                r = reach * rng.uniform(-1.0, 1.0, n)
-                G += [counted(x + r)[1], counted(x - r)[1]]
-            d, _ = min_norm_element(np.array(G))
-            bundle = len(G)
+            d, bundle = _sampled_bundle(counted, x, trail, eps, pairs, rng)
             stationarity = _relative(float(np.linalg.norm(d)), x, f)
             if stationarity <= gtol:
                 message = f"stationary: gradients within {eps:.0e} cancel"
@@ -685,14 +723,7 @@ def nonsmooth_bfgs(
         s, y = xn - x, gn - g
         sy = float(s @ y)
         if sy > 0.0:
-            if H is None:
-                H = np.eye(n) * (sy / float(y @ y))
-            # the rank-two BFGS update of the inverse, O(n^2)
-            Hy = H @ y
-            rho = 1.0 / sy
-            H += (rho * rho * float(y @ Hy) + rho) * np.outer(s, s) - rho * (
-                np.outer(Hy, s) + np.outer(s, Hy)
-            )
+            H = _bfgs_update(H, s, y, sy)
         stale = 0 if fn < f - ftol * abs(f) else stale + 1
         x, f, g = xn, fn, gn
         trail.append((x.copy(), g.copy()))
@@ -701,6 +732,6 @@ def nonsmooth_bfgs(
         if stale >= patience:
             sampling = True
     return NonsmoothResult(
-        x=x, f=f, g=g, iterations=k, evaluations=counter[0], message=message,
+        x=x, f=f, g=g, iterations=k, evaluations=counted.count, message=message,
         stationarity=stationarity, bundle=bundle,
     )  # fmt: skip
