@@ -478,53 +478,8 @@ class ReferenceResult:
         from hybridoc.solution import Solution, Status
 
         times, states, costates = self.trajectory()
-        arrays = {
-            "event_times": np.asarray(self.event_times, dtype=float),
-            "multipliers": np.asarray(self.multipliers, dtype=float),
-            "phase_starts": self.phase_starts,
-            "phase_states": self.phase_states,
-            "phase_costates": self.phase_costates,
-            "residual_history": np.asarray(self.residual_history),
-        }
-        C = self.control_coefficients()
-        if C is not None:
-            arrays["control_coefficients"] = C
-        if self.levels is not None:
-            arrays["substeps"] = np.asarray(self.levels, dtype=np.int64)
-        if self.arc_nodes is not None:
-            assert self.arc_levels is not None
-            arrays["arc_starts"] = np.asarray(self.arc_starts, dtype=float)
-            arrays["arc_states"] = np.asarray(self.arc_states, dtype=float)
-            arrays["arc_costates"] = np.asarray(self.arc_costates, dtype=float)
-            arrays["arc_substeps"] = np.asarray(self.arc_levels, dtype=np.int64)
-            if self.arc_laws is not None:
-                arrays["arc_laws"] = np.asarray(self.arc_laws, dtype=float)
-        if self.event_controls is not None:
-            # the resets' own controls, which the judge applies at its events
-            arrays["event_controls"] = np.asarray(self.event_controls, dtype=float)
-        base_info = {
-            "residual": float(self.residual),
-            "sequence": list(self.sequence),
-            "newton_iterations": int(self.newton_iterations),
-            "grazing": bool(self.grazing),
-            "event_times": [float(t) for t in self.event_times],
-            "approach_speeds": [float(a) for a in self.approach_speeds],
-            "start": self.path,
-        }
-        if self.levels is not None:
-            base_info["substeps"] = [int(n) for n in self.levels]
-            base_info["integration_error"] = float(self.integration_error)
-        if self.ocp.has_terminal_constraints:
-            base_info["terminal_multipliers"] = self.terminal_multipliers()
-            if self.judged_terminal_violation is not None:
-                base_info["terminal_violation"] = float(self.judged_terminal_violation)
-        if self.ocp.free_horizon:
-            base_info["horizon"] = self.horizon
-            base_info["horizon_at_bound"] = self.horizon_at_bound
-            base_info["final_hamiltonian"] = float(self.final_hamiltonian)
-        if self.coverage is not None:
-            base_info["coverage"] = self.coverage
-        base_info.update(info or {})
+        arrays = self._solution_arrays()
+        base_info = self._solution_info(info)
         sol = Solution(
             method="reference",
             scene=self.ocp.name,
@@ -557,6 +512,64 @@ class ReferenceResult:
             sol.terminal_cost = float(ev.terminal_cost)
             sol.running_cost = float(ev.running_cost)
         return sol
+
+    def _solution_arrays(self) -> dict[str, np.ndarray]:
+        """The Solution's ``arrays``: what rebuilds ``u(t)`` and the costates after a load
+        (event times, phase and arc nodes, control coefficients, substeps, event controls)."""
+        arrays = {
+            "event_times": np.asarray(self.event_times, dtype=float),
+            "multipliers": np.asarray(self.multipliers, dtype=float),
+            "phase_starts": self.phase_starts,
+            "phase_states": self.phase_states,
+            "phase_costates": self.phase_costates,
+            "residual_history": np.asarray(self.residual_history),
+        }
+        C = self.control_coefficients()
+        if C is not None:
+            arrays["control_coefficients"] = C
+        if self.levels is not None:
+            arrays["substeps"] = np.asarray(self.levels, dtype=np.int64)
+        if self.arc_nodes is not None:
+            assert self.arc_levels is not None
+            arrays["arc_starts"] = np.asarray(self.arc_starts, dtype=float)
+            arrays["arc_states"] = np.asarray(self.arc_states, dtype=float)
+            arrays["arc_costates"] = np.asarray(self.arc_costates, dtype=float)
+            arrays["arc_substeps"] = np.asarray(self.arc_levels, dtype=np.int64)
+            if self.arc_laws is not None:
+                arrays["arc_laws"] = np.asarray(self.arc_laws, dtype=float)
+        if self.event_controls is not None:
+            # the resets' own controls, which the judge applies at its events
+            arrays["event_controls"] = np.asarray(self.event_controls, dtype=float)
+        return arrays
+
+    def _solution_info(self, info: dict[str, Any] | None) -> dict[str, Any]:
+        """The Solution's ``info``: the extremal's residual, sequence and event times, its
+        integration, terminal multipliers and final time where it has them, the coverage,
+        and ``info`` on top."""
+        base_info = {
+            "residual": float(self.residual),
+            "sequence": list(self.sequence),
+            "newton_iterations": int(self.newton_iterations),
+            "grazing": bool(self.grazing),
+            "event_times": [float(t) for t in self.event_times],
+            "approach_speeds": [float(a) for a in self.approach_speeds],
+            "start": self.path,
+        }
+        if self.levels is not None:
+            base_info["substeps"] = [int(n) for n in self.levels]
+            base_info["integration_error"] = float(self.integration_error)
+        if self.ocp.has_terminal_constraints:
+            base_info["terminal_multipliers"] = self.terminal_multipliers()
+            if self.judged_terminal_violation is not None:
+                base_info["terminal_violation"] = float(self.judged_terminal_violation)
+        if self.ocp.free_horizon:
+            base_info["horizon"] = self.horizon
+            base_info["horizon_at_bound"] = self.horizon_at_bound
+            base_info["final_hamiltonian"] = float(self.final_hamiltonian)
+        if self.coverage is not None:
+            base_info["coverage"] = self.coverage
+        base_info.update(info or {})
+        return base_info
 
     def _judged_as_saved(self, sol: Any) -> Any:
         """The verification's evaluation (:attr:`judged`) where it is, bit for bit, what the

@@ -159,9 +159,9 @@ def write_reference_outputs(ocp: Any, sol: Any, stem: Path) -> list[Path]:
     # steps are too coarse to show the arcs
     sim = dataclasses.replace(sim, times=sol.state_times, states=sol.states)
     title = f"{ocp.name}: reference, J = {sol.cost:.10g}"
-    from hybridoc.problems.disc_ocp import DiscOCP
+    from hybridoc.problems import scene_of
 
-    scene = ocp.scene if isinstance(ocp, DiscOCP) else None
+    scene = scene_of(ocp)
     fig = (
         plot_scene(scene, sim, title=title)
         if scene is not None
