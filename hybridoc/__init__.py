@@ -17,6 +17,8 @@ import importlib
 import os
 from typing import TYPE_CHECKING, Any
 
+from hybridoc import providers as _providers
+
 # The install maps the repository's top-level reference/, solvers/ and problems/ into
 # hybridoc.*. Python started in a source checkout's root finds this bare folder first, where
 # they are missing: searching the checkout's root as part of this package finds them there.
@@ -131,6 +133,24 @@ _SUBMODULES = frozenset(
         "solution",
     }
 )
+
+
+def _judging() -> Any:
+    from hybridoc import judging
+
+    return judging
+
+
+def _hmp_control_law() -> Any:
+    from hybridoc.reference.result import hmp_control
+
+    return hmp_control
+
+
+# What the model-layer Solution delegates to higher layers (hybridoc/providers.py): loaders,
+# run on first use, so that this import stays free of numpy.
+_providers.register("judging", _judging)
+_providers.register("control-law:hmp", _hmp_control_law)
 
 
 def _version() -> str:

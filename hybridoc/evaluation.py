@@ -9,15 +9,17 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import HybridocError
 from hybridoc.events import Event
 from hybridoc.ocp import HybridOCP
 
 __all__ = ["TERMINAL_TOL", "Evaluation", "Gradient", "Segment", "checked_times"]
 
-TERMINAL_TOL = 1e-8
+TERMINAL_TOL = tolerances.TERMINAL
 """The terminal-constraint violation up to which a result meets its terminal constraints
-(unless a method is given another tolerance)."""
+(unless a method is given another tolerance): the table's ``"terminal"``
+(:mod:`hybridoc.tolerances`)."""
 
 
 def checked_times(times: Any, horizon: float, name: str = "times") -> np.ndarray:
@@ -148,11 +150,12 @@ class Evaluation:
 
     @property
     def feasible(self) -> bool:
-        """Whether the control respects the bounds and the path constraints (to 1e-9) and
-        the terminal constraints (to :data:`TERMINAL_TOL`)."""
+        """Whether the control respects the bounds and the path constraints (to
+        :data:`hybridoc.tolerances.FEASIBILITY`, 1e-9) and the terminal constraints (to
+        :data:`TERMINAL_TOL`)."""
         return (
-            self.bound_violation <= 1e-9
-            and self.path_violation <= 1e-9
+            self.bound_violation <= tolerances.FEASIBILITY
+            and self.path_violation <= tolerances.FEASIBILITY
             and self.terminal_violation <= TERMINAL_TOL
         )
 
@@ -161,9 +164,9 @@ class Evaluation:
         the path constraints, the terminal constraints or the required final mode, each
         with its largest violation."""
         parts = []
-        if self.bound_violation > 1e-9:
+        if self.bound_violation > tolerances.FEASIBILITY:
             parts.append(f"the control bounds by {self.bound_violation:.3g}")
-        if self.path_violation > 1e-9:
+        if self.path_violation > tolerances.FEASIBILITY:
             parts.append(f"the path constraints by {self.path_violation:.3g}")
         if self.terminal_violation > TERMINAL_TOL:
             required = self.ocp.final_mode
