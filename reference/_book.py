@@ -34,7 +34,7 @@ from hybridoc.reference.sequence import (
     judged_violation,
     solve_sequence,
 )
-from hybridoc.reference.shooting import is_disc_scene
+from hybridoc.reference.shooting import has_closed_form_phases
 from hybridoc.reference.sources import PhaseCostates
 from hybridoc.reference.units import cost_shown as _J
 
@@ -198,7 +198,7 @@ class _Start:
 def _adjoint_used(ocp: HybridOCP) -> bool:
     """Whether a costate estimate reads the judge's adjoint (generic problems; a disc scene
     fits its phase controls instead, :func:`judge_adjoint` gives ``None``)."""
-    return not is_disc_scene(ocp)
+    return not has_closed_form_phases(ocp)
 
 
 @dataclass
@@ -592,7 +592,7 @@ def is_convex(ocp: HybridOCP, key: tuple[str, ...]) -> bool:
     """Whether the sequence's problem has one extremal, its minimum, whatever the start: a
     disc scene without events (double integrators, a quadratic cost, linear control bounds:
     a strictly convex problem)."""
-    return not key and is_disc_scene(ocp) and ocp.path is None
+    return not key and has_closed_form_phases(ocp) and ocp.path is None
 
 
 def exhaustive_length(book: Book) -> int | None:
@@ -612,7 +612,7 @@ def exhaustive_length(book: Book) -> int | None:
 
 def judge_adjoint(ocp: HybridOCP, controls: Any) -> Any:
     """The judge's adjoint of a control (generic problems' costate estimate), else None."""
-    if is_disc_scene(ocp):
+    if has_closed_form_phases(ocp):
         return None
     try:
         return gradient(ocp, np.asarray(controls, dtype=float))

@@ -38,7 +38,7 @@ from hybridoc.reference._enumeration import run_enumeration, start_screens
 from hybridoc.reference.candidates import guess_candidates, guess_times, lower_bound
 from hybridoc.reference.options import MAX_EVENTS
 from hybridoc.reference.result import ReferenceResult
-from hybridoc.reference.shooting import is_disc_scene
+from hybridoc.reference.shooting import has_closed_form_phases
 from hybridoc.reference.sources import Proposal, SourceContext
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -90,7 +90,7 @@ def _discovery_may_find(ocp: HybridOCP, seq: list[str], why: str | None) -> bool
     as well), not for a sequence no control has (an infinite lower bound), nor where Newton
     converged and the integration could not reach ``rtol`` (refine's reasons name it;
     every other start meets the same limit)."""
-    if is_disc_scene(ocp) or math.isinf(lower_bound(ocp, seq)):
+    if has_closed_form_phases(ocp) or math.isinf(lower_bound(ocp, seq)):
         return False
     return why is None or ("(rtol " not in why and "for rtol " not in why)
 
@@ -366,7 +366,7 @@ def second_start(
          judge_adjoint(ocp, k.controls), k.evaluation)
         for k in sorted(same, key=lambda k: k.cost)[:KNOWN_STARTS]
     ]  # fmt: skip
-    if is_disc_scene(ocp):
+    if has_closed_form_phases(ocp):
         tries.append(
             (guess_times(ocp, key, None), np.zeros_like(guess.controls),
              "second start (the NLP from evenly spread event times)", False, None, None)

@@ -38,7 +38,13 @@ from hybridoc.reference.candidates import (
 )
 from hybridoc.reference.result import make_result
 from hybridoc.reference.sequence import SCREEN_NLP_ITER, solve_sequence
-from hybridoc.reference.shooting import is_disc_scene, newton, prepare, refine, shooting_system
+from hybridoc.reference.shooting import (
+    has_closed_form_phases,
+    newton,
+    prepare,
+    refine,
+    shooting_system,
+)
 from hybridoc.reference.units import cost_shown as _J
 
 MAX_WORKERS = 8
@@ -134,7 +140,7 @@ class _EarlyScreens:
         workers = min(usable_cores(), MAX_WORKERS) - 1
         if (
             not run.search
-            or not is_disc_scene(ocp)
+            or not has_closed_form_phases(ocp)
             or workers < 1
             or "fork" not in mp.get_all_start_methods()
         ):
@@ -324,8 +330,8 @@ def _search_one(seq: list[str]) -> _Outcome:
     try:
         res, why = solve_sequence(
             ocp, seq, guess_times(ocp, seq, ev), u0, estimate=False,
-            guess_ev=None if is_disc_scene(ocp) else ev, starters=starters, tol=tol, screen=True,
-            rtol=rtol,
+            guess_ev=None if has_closed_form_phases(ocp) else ev, starters=starters, tol=tol,
+            screen=True, rtol=rtol,
         )  # fmt: skip
     except (ConvergenceError, EvaluationError, np.linalg.LinAlgError) as exc:
         res, why = None, str(exc)
@@ -468,7 +474,7 @@ def _retry_failed(
     the transcription with the sequence fixed). Multiple-collision's ``ball1|ball2`` has no
     screened extremal, and one from the full solve. Stops when the budget is spent (a
     length beyond ``search``) or at the time limit."""
-    if not is_disc_scene(ocp):
+    if not has_closed_form_phases(ocp):
         return  # a generic problem's screen already ran the warm starts from the guess
     best = book.best_verified()
     if best is None:

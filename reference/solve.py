@@ -135,7 +135,7 @@ from hybridoc.reference.options import (
 from hybridoc.reference.result import ReferenceResult
 from hybridoc.reference.shooting import (
     hamiltonian_check,
-    is_disc_scene,
+    has_closed_form_phases,
     path_check,
     reset_control_check,
     saturation_check,
@@ -414,7 +414,7 @@ def _solve(ocp: HybridOCP, run: Run, progress: Progress) -> Solution:
     """:func:`solve_reference` after its arguments are checked."""
     progress.stage("simulating the initial guess")
     u0, given = _initial_controls(ocp, run.initial)
-    ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not is_disc_scene(ocp))
+    ev, grad, u_used = _robust_guess(ocp, u0, want_adjoint=not has_closed_form_phases(ocp))
     guess = Guess(u_used, ev, grad, given or grad is not None)
     starters = tuple(s for s in run.starters if not source_lacks(ocp, s))
     hard = math.inf if run.time_limit is None else run.t_start + run.time_limit
