@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 
+import numpy as np
 import pytest
 
 import hybridoc
@@ -94,3 +95,35 @@ def test_the_wrapper_takes_exactly_the_options() -> None:
     assert list(params) == ["problem", "initial", "progress", *names]
     with pytest.raises(TypeError, match="unexpected keyword argument 'learning_rate'"):
         solve_gd("head-on", learning_rate=1.0)
+
+
+def _plain(ocp: hybridoc.HybridOCP) -> hybridoc.HybridOCP:
+    """The same functions and capabilities in a plain HybridOCP (no disc type)."""
+    plain = hybridoc.HybridOCP(
+        f=ocp.f, L=ocp.L, phi=ocp.phi, guards=list(ocp.guards), x0=ocp.x0,
+        horizon=ocp.horizon, steps=ocp.steps, u_guess=ocp.u_guess,
+        capabilities=ocp.capabilities,
+    )  # fmt: skip
+    assert type(plain) is hybridoc.HybridOCP
+    return plain
+
+
+def test_aimed_starts_follow_the_geometry_not_the_type() -> None:
+    """The multi-start's aimed starts, the reference's rich-scene test and crossval's start
+    count read capabilities.geometry: a plain HybridOCP with a disc scene's geometry gets
+    the same starts bit for bit, a disc scene without one gets none."""
+    from hybridoc.solvers.candidates import rich_scene
+    from hybridoc.solvers.gd.method import _crossval_defaults
+    from hybridoc.solvers.multistart import diverse_controls
+
+    ocp = hybridoc.as_ocp("damped-walls")
+    plain, bare = _plain(ocp), ocp.replace(capabilities=Capabilities())
+    want = diverse_controls(ocp)
+    got = diverse_controls(plain)
+    assert want and [k for k, _ in got] == [k for k, _ in want]
+    for (_, a), (_, b) in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert rich_scene(plain) == rich_scene(ocp) != ""
+    assert diverse_controls(bare) == [] and rich_scene(bare) == ""
+    assert _crossval_defaults(plain, {})["starts"] == _crossval_defaults(ocp, {})["starts"] == 32
+    assert _crossval_defaults(bare, {})["starts"] == 16

@@ -13,7 +13,7 @@ from hybridoc.methods import (
 )
 from hybridoc.ocp import HybridOCP
 from hybridoc.solution import Solution
-from hybridoc.solvers.gd.options import GDOptions
+from hybridoc.solvers.gd.options import GDOptions, checked_options
 from hybridoc.solvers.gd.solve import solve_gd
 
 GD_STARTS = {"disc": 32, "generic": 16}
@@ -111,6 +111,7 @@ METHOD = Method(
     crossval_defaults=_crossval_defaults,
     crossval_check=_crossval_check,
     features=frozenset({"terminal", "free_horizon"}),
+    check_options=checked_options,
 )
 """Gradient descent as a registered method (``method="gd"``, :data:`hybridoc.methods.BUILTIN`);
 it honours terminal constraints and a free final time (the augmented Lagrangian)."""
