@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from hybridoc.errors import HybridocError
-from hybridoc.solution import lagrange_pieces
+from hybridoc.judging import lagrange_pieces
 
 __all__ = [
     "Radau",
@@ -127,7 +127,7 @@ def pieces_at_one_time(
 
     The judge calls a continuous control at every stage of its integrator, one time at a
     time (6000 to 10000 calls per transcription on the hopper), where
-    :func:`~hybridoc.solution.lagrange_pieces`'s dozen array operations on one-element
+    :func:`~hybridoc.judging.lagrange_pieces`'s dozen array operations on one-element
     arrays cost about 40 us a call idle. Here the element and the Lagrange basis are plain
     floats, computed by the same operations in the same order (so the same roundings), and
     the weighted sum and the clip are the very ``einsum`` and ``clip`` of

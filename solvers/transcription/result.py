@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hybridoc.evaluation import Evaluation
+from hybridoc.judging import lagrange_pieces
 from hybridoc.ocp import HybridOCP
-from hybridoc.solution import lagrange_pieces
 from hybridoc.solvers.transcription.collocation import average_on_cells, pieces_at_one_time
 
 if TYPE_CHECKING:
