@@ -25,6 +25,18 @@ Speed
     flow, its cost and the detector samples of 64 grid intervals come from one ``mapaccum``
     call; only intervals that may hold an event are handled one by one.
 
+Many bodies: the broad phase
+    A scene of more than :data:`hybridoc.broadphase.THRESHOLD` guards whose guards are the
+    contacts of its :attr:`~hybridoc.capabilities.Capabilities.geometry` (round bodies and
+    walls, under a closed-form flow) is judged through :mod:`hybridoc.broadphase`: the flow
+    of 64 grid intervals in one call, then on each interval only the guards whose bodies'
+    swept boxes meet are sampled, located and resolved, through per-guard kernels whose
+    values are the all-pairs kernels' rows bit for bit. The other guards stay apart by
+    more than the broad phase's margin and cannot fire. The crossing search examines
+    fewer guards (it halves a window for all of them when one needs it), so an event time
+    can be polished from another bracket: the same events, times and costs equal to the
+    all-pairs judge's within a few ulps (8e-15 relative seen on random crowded scenes).
+
 Not modelled
     Sustained contact (e.g. restitution 0 with a force pushing into the contact) and Zeno
     accumulations of events raise :class:`~hybridoc.errors.EvaluationError` instead of
@@ -273,7 +285,10 @@ class Forward:
         self.graze_tol = graze_threshold(ocp, graze_tol)
         self.penetration_tol = penetration_tol * ocp.scales.length
         self.max_events = int(max_events)
-        self.resolver = EventResolver(ocp, self.num, self.graze_tol)
+        # many guards of round bodies: the broad phase picks the guards to sample
+        self.table = self.k.broad
+        contacts = None if self.table is None else self._contacts
+        self.resolver = EventResolver(ocp, self.num, self.graze_tol, contacts=contacts)
         self.grid = ocp.time_grid()
         self.hs = np.diff(self.grid)
         # blocks of recorded times (1-D) and states (2-D), concatenated at the end
@@ -306,6 +321,9 @@ class Forward:
             uu[:m] = self.u_all[n : n + m]
             hh = np.zeros(L)
             hh[:m] = hs[n : n + m]
+            if self.table is not None:
+                s, n = self._broad_batch(n, s, m, uu, hh)
+                continue
             s_end, cost, samples, noise, psi_end = self.num.batch(s, uu.ravel(), hh)
             s_end = s_end.reshape(L, nx)
             samples = samples.reshape(L, D + 1, G).transpose(0, 2, 1)
@@ -318,29 +336,102 @@ class Forward:
                 hits = np.flatnonzero(~free)
                 if hits.size:
                     kk = int(hits[0])
-            if kk > 0:
-                starts = [s, *s_end[: kk - 1]]
-                self.segments.extend(
-                    map(
-                        Segment,
-                        grid[n : n + kk].tolist(),
-                        starts,
-                        range(n, n + kk),
-                        hs[n : n + kk].tolist(),
-                        [None] * kk,
-                    )
-                )
-                # cumsum adds left to right: the same rounding as adding one by one
-                self.running = float(np.cumsum(np.r_[self.running, cost[:kk]])[-1])
-                self.times.append(grid[n + 1 : n + kk + 1])
-                self.states.append(s_end[:kk])
-                s = s_end[kk - 1]
+            s = self._accept(n, kk, s, s_end, cost)
             n += kk
             if kk < m:
-                first = (s_end[kk], float(cost[kk]), samples[kk], noise[kk])
+                first = (s_end[kk], float(cost[kk]), samples[kk], noise[kk], None)
                 s = self._interval(n, s, first)
                 n += 1
         return self._finish(s)
+
+    def _accept(
+        self, n: int, kk: int, s: np.ndarray, s_end: np.ndarray, cost: np.ndarray
+    ) -> np.ndarray:
+        """Records grid intervals ``n .. n + kk - 1``, free of events, from ``s`` (their end
+        states ``s_end`` and costs ``cost``); returns the state at their end."""
+        if kk <= 0:
+            return s
+        grid, hs = self.grid, self.hs
+        starts = [s, *s_end[: kk - 1]]
+        self.segments.extend(
+            map(
+                Segment,
+                grid[n : n + kk].tolist(),
+                starts,
+                range(n, n + kk),
+                hs[n : n + kk].tolist(),
+                [None] * kk,
+            )
+        )
+        # cumsum adds left to right: the same rounding as adding one by one
+        self.running = float(np.cumsum(np.r_[self.running, cost[:kk]])[-1])
+        self.times.append(grid[n + 1 : n + kk + 1])
+        self.states.append(s_end[:kk])
+        return s_end[kk - 1]
+
+    def _broad_batch(
+        self, n: int, s: np.ndarray, m: int, uu: np.ndarray, hh: np.ndarray
+    ) -> tuple[np.ndarray, int]:
+        """:meth:`run`'s batch of ``m`` grid intervals from ``n`` with the broad phase: the
+        flow of the batch in one call, then per interval the detectors of its candidate
+        guards only, up to the first interval that may hold an event (then handled by
+        :meth:`_interval`). Returns the state and the next interval."""
+        k = self.k
+        s_end, cost = self.num.flow_batch(s, uu.ravel(), hh)
+        s_end = s_end.reshape(k.chunk, k.nx)
+        kk, first = m, None
+        start = s
+        for i in range(m):
+            S, Nz, psi_end, cand = self._broad_samples(start, uu[i], float(hh[i]))
+            if cand.size:
+                free = k.cheb.free(S, Nz, k.exact[cand]).all()
+                tol = np.maximum(self.penetration_tol, 4 * Nz[:, -1])
+                if not (free and (psi_end >= -tol).all()):
+                    kk, first = i, (s_end[i], float(cost[i]), S, Nz, cand)
+                    break
+            start = s_end[i]
+        s = self._accept(n, kk, s, s_end, cost)
+        n += kk
+        if first is not None:
+            s = self._interval(n, s, first)
+            n += 1
+        return s, n
+
+    def _broad_samples(
+        self, s: np.ndarray, u: np.ndarray, h: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The broad phase's candidates over ``[0, h]`` from ``s`` and their detector
+        samples, rounding levels (``(c, D + 1)`` each) and values at the end ``(c,)``."""
+        assert self.table is not None
+        cand = self.table.candidates(s, u, h)
+        D = self.k.D
+        S, Nz, psi_end = (
+            np.empty((cand.size, D + 1)),
+            np.empty((cand.size, D + 1)),
+            np.empty(cand.size),
+        )
+        for r, j in enumerate(cand):
+            S[r], Nz[r], psi = self.num.guard(int(j)).interval(s, u, h)
+            psi_end[r] = psi[0]
+        return S, Nz, psi_end, cand
+
+    def _contacts(
+        self, s: np.ndarray, u: np.ndarray, extra: Any = ()
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every guard's ``(psi, rate, accel, rounding level)`` at ``s`` as the ``contact``
+        kernel gives them; with the broad phase, those of the candidates at ``s`` and of
+        ``extra``, and for the others (apart by more than the broad phase's margin) ``psi =
+        inf``, the rest 0 (not due, not penetrated)."""
+        if self.table is None:
+            psi, rate, accel, noise = self.num.contact(s, u)
+            return psi, rate, accel, noise
+        G = self.k.G
+        psi, rate, accel, noise = np.full(G, np.inf), np.zeros(G), np.zeros(G), np.zeros(G)
+        cand = np.union1d(self.table.candidates(s, u, 0.0), np.asarray(list(extra), dtype=int))
+        for j in cand:
+            out = self.num.guard(int(j)).contact(s, u)
+            psi[j], rate[j], accel[j], noise[j] = (float(o[0]) for o in out)
+        return psi, rate, accel, noise
 
     def _finish(self, s: np.ndarray) -> Evaluation:
         terminal = float(self.num.phi_grad(s)[0][0])
@@ -407,9 +498,45 @@ class Forward:
             k.cheb, k.exact, window, value, appr, penetrated, time_scale=self.ocp.scales.time
         )
 
+    def _broad_search(self, s: np.ndarray, u: np.ndarray, cand: np.ndarray) -> CrossingSearch:
+        """:meth:`_search` over the broad phase's candidates ``cand`` only (its guard ``r``
+        is ``cand[r]``), through their own kernels."""
+        num = self.num
+        guards = [num.guard(int(j)) for j in cand]
+        D = self.k.D
+
+        def window(a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+            S, Nz = np.empty((len(guards), D + 1)), np.empty((len(guards), D + 1))
+            for r, g in enumerate(guards):
+                S[r], Nz[r] = g.window(s, u, a, b)
+            return S, Nz
+
+        def value(r: int, tau: float) -> tuple[float, float, float]:
+            det, rate, nz = guards[r].point(s, u, tau)
+            return float(det[0]), float(rate[0]), float(nz[0])
+
+        def appr(r: int, tau: float) -> bool:
+            s_tau = num.flow(s, u, tau)[0]
+            _, rate, accel, nz = guards[r].contact(s_tau, u)
+            return bool(approaching(rate, accel, nz, self.graze_tol)[0])
+
+        def penetrated(r: int, tau: float) -> None:
+            s_tau = num.flow(s, u, tau)[0]
+            self._check_penetration(s_tau, u, float(self._t_origin + tau))
+
+        return CrossingSearch(
+            self.k.cheb,
+            self.k.exact[cand],
+            window,
+            value,
+            appr,
+            penetrated,
+            time_scale=self.ocp.scales.time,
+        )
+
     def _check_penetration(self, s: np.ndarray, u: np.ndarray, t: float) -> None:
         """Sustained contact: a guard violated beyond tolerance without an impact."""
-        psi, _, _, noise_psi = self.num.contact(s, u)
+        psi, _, _, noise_psi = self._contacts(s, u)
         tol = np.maximum(self.penetration_tol, 4 * noise_psi)
         bad = np.flatnonzero(psi < -tol)
         if bad.size:
@@ -436,16 +563,27 @@ class Forward:
         pre = first
         while True:
             h = t_end - t
+            cand: np.ndarray | None
             if pre is not None:
-                s_end, cost, samples, noise = pre
+                s_end, cost, samples, noise, cand = pre
                 pre = None
+            elif self.table is not None:
+                s_end, cost_a = num.flow(s, u, h)
+                cost = float(cost_a[0])
+                samples, noise, _, cand = self._broad_samples(s, u, h)
             else:
                 s_end, cost_a, samples, noise, _ = num.interval(s, u, h)
                 cost = float(cost_a[0])
                 samples = samples.reshape(D + 1, G).T
                 noise = noise.reshape(D + 1, G).T
+                cand = None
             self._t_origin = t
-            hit = self._search(s, u).run(h, (samples, noise)) if G else None
+            if cand is not None:
+                hit = self._broad_search(s, u, cand).run(h, (samples, noise)) if cand.size else None
+                if hit is not None:
+                    hit = (hit[0], int(cand[hit[1]]))
+            else:
+                hit = self._search(s, u).run(h, (samples, noise)) if G else None
             if hit is None:
                 self.segments.append(Segment(t, s, n, h, None))
                 self.running += cost

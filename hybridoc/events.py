@@ -29,6 +29,7 @@ Several guards at one instant
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -221,13 +222,25 @@ class EventResolver:
         ``k``-th event instead of the control in force (a continuous-time solution's own
         choice at its switches, :attr:`hybridoc.Solution.event_controls`). Events past the
         last row read the control in force.
+    contacts
+        Optional ``contacts(s, u, pending) -> (psi, rate, accel, noise)``, every guard's
+        values as the ``contact`` kernel gives them, in place of that kernel: the broad
+        phase's (:meth:`hybridoc.evaluator.Forward._contacts`), which evaluates the guards
+        near contact and those in ``pending`` only and gives the others ``psi = inf`` and
+        a zero rate (never due).
     """
 
     def __init__(
-        self, ocp: Any, num: Any, graze_tol: float, event_controls: np.ndarray | None = None
+        self,
+        ocp: Any,
+        num: Any,
+        graze_tol: float,
+        event_controls: np.ndarray | None = None,
+        contacts: Callable[..., tuple[np.ndarray, ...]] | None = None,
     ) -> None:
         self.ocp = ocp
         self.num = num
+        self.contacts = contacts
         self.graze_tol = graze_tol
         self.G = len(ocp.guards)
         self.floor = ocp.scales.state_array
@@ -245,10 +258,13 @@ class EventResolver:
 
     def due(self, s: np.ndarray, u: np.ndarray, pending: set[int]) -> tuple[list[int], np.ndarray]:
         """Guards due at ``s``: approaching, and pending or at zero; and their rates."""
-        psi, rate, accel, noise = self.num.contact(s, u)
+        if self.contacts is None:
+            psi, rate, accel, noise = self.num.contact(s, u)
+        else:
+            psi, rate, accel, noise = self.contacts(s, u, pending)
         appr = approaching(rate, accel, noise, self.graze_tol)
         tol = 4.0 * noise + 1e-300
-        due = [j for j in range(self.G) if appr[j] and (j in pending or abs(psi[j]) <= tol[j])]
+        due = [j for j in np.flatnonzero(appr).tolist() if j in pending or abs(psi[j]) <= tol[j]]
         return due, rate
 
     def resolve(

@@ -21,20 +21,30 @@ Rounding levels
     ``1e15`` (or receding at ``1e13``) raised every guard's rounding level to order one, and
     the judge found phantom collisions between the other discs or placed their events
     wrongly.
+
+Many guards
+    For a problem the broad phase judges (:mod:`hybridoc.broadphase`; :attr:`Kernels.broad`
+    is its contact table), the kernels over every guard are not built up front (they grow
+    with the guards times the state: about 3 GB and 80 s of CPU for 202 discs);
+    :class:`GuardKernels` builds each guard's own on first use, and the kernels over every
+    guard are built if something asks for them (the callable path, plots of every guard).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import weakref
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
 
-from hybridoc import compiled
+from hybridoc import broadphase, compiled
+from hybridoc.broadphase import ContactTable
 from hybridoc.errors import EvaluationError
 from hybridoc.ocp import HybridOCP, Structure, integrator_flow_samples
 from hybridoc.rootfind import Chebyshev
@@ -208,7 +218,7 @@ def _sample_degree(ocp: HybridOCP) -> tuple[list[bool], int]:
 class _Detectors:
     """The guards' detectors at a symbolic state and their rounding levels (``fn``)."""
 
-    def __init__(self, ocp: HybridOCP, sym: Any, sp: Any, sc: Any) -> None:
+    def __init__(self, ocp: HybridOCP | _Parts, sym: Any, sp: Any, sc: Any) -> None:
         G = len(ocp.guards)
         self.G, self.sym = G, sym
         dets = [g.detector if g.detector is not None else g.psi for g in ocp.guards]
@@ -357,7 +367,7 @@ def _sx_but_the_flow(ocp: HybridOCP) -> bool:
 
 
 def _flow_map_nodes(
-    ocp: HybridOCP, sym: Any, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
+    ocp: HybridOCP | _Parts, sym: Any, s: Any, u: Any, h: Any, a: Any, b: Any, x_nodes: np.ndarray
 ) -> _FlowNodes:
     """The nodes of a closed-form flow map, each with the flow map's rounding scales."""
     fm = ocp.flow_map
@@ -485,6 +495,100 @@ class GuardFunctions:
         self._lock = threading.Lock()
 
 
+_ALL_GUARD_FNS = frozenset(
+    {
+        "interval_fn",
+        "window_fn",
+        "batch_fn",
+        "point_fn",
+        "det_fn",
+        "det_rate_fn",
+        "det_nodes_fn",
+        "contact_fn",
+        "psi_fn",
+    }
+)
+"""The kernels over every guard, which a problem judged by the broad phase builds on use."""
+
+
+@dataclass(frozen=True, eq=False)
+class _Parts:
+    """What the kernels over guards read of a problem (not the problem itself: the kernels
+    are kept per structure, which a reference to the problem would keep alive)."""
+
+    guards: list[Any]
+    flow_map: ca.Function
+    f: ca.Function
+    scales: Any
+    nx: int
+    nu: int
+
+
+class GuardKernels:
+    """The kernels of single guards, for the broad phase (:mod:`hybridoc.broadphase`):
+    ``guard j -> (interval, window, point, contact)``, each over guard ``j`` alone, built on
+    first use (thread-safe) and kept.
+
+    The same expressions as the rows of :class:`Kernels`' functions over every guard: the
+    guard's detector at the flow's nodes with its rounding level, its value at the end;
+    at a sub-window's nodes; at one time with its rate; its value, rate, acceleration and
+    rounding level at a lone state. Pickled without its symbols, which are made again on
+    use.
+    """
+
+    def __init__(self, parts: _Parts, x_nodes: np.ndarray) -> None:
+        self.parts, self.x_nodes = parts, np.asarray(x_nodes, dtype=float)
+        self._fns: dict[int, tuple[ca.Function, ...]] = {}
+        self._syms: tuple[Any, ...] | None = None
+        self._lock = threading.Lock()
+
+    def __getitem__(self, j: int) -> tuple[ca.Function, ...]:
+        with self._lock:
+            fns = self._fns.get(j)
+            if fns is None:
+                fns = self._fns[j] = self._build(j)
+            return fns
+
+    def _symbols(self) -> tuple[Any, ...]:
+        if self._syms is None:
+            p, sym = self.parts, ca.SX
+            s, u, h = sym.sym("s", p.nx), sym.sym("u", p.nu), sym.sym("h")
+            sp, sc = sym.sym("sp", p.nx), sym.sym("sc", p.nx)
+            a, b = sym.sym("a"), sym.sym("b")
+            flow = _flow_map_nodes(p, sym, s, u, h, a, b, self.x_nodes)
+            own_scale = state_scale(sp, ca.DM(p.scales.state_array))
+            self._syms = (s, u, h, a, b, sp, sc, flow, p.f(sp, u), own_scale)
+        return self._syms
+
+    def _build(self, j: int) -> tuple[ca.Function, ...]:
+        s, u, h, a, b, sp, sc, flow, fs, own_scale = self._symbols()
+        g = self.parts.guards[j]
+        one = _Parts([g], *dataclasses.astuple(self.parts)[1:])
+        dets = _Detectors(one, ca.SX, sp, sc)
+        samples, noise = dets.columns(flow.nodes)
+        interval = dense_fn(f"interval{j}", [s, u, h], [samples, noise, g.psi(flow.s_end)])
+        w_samples, w_noise = dets.columns(flow.window)
+        window = dense_fn(f"window{j}", [s, u, a, b], [w_samples, w_noise])
+        det_v, det_n = dets.at(flow.s_end, flow.sc_end)
+        point = dense_fn(f"point{j}", [s, u, h], [det_v, ca.jacobian(det_v, h), det_n])
+        psi = g.psi(sp)
+        rate = ca.mtimes(ca.jacobian(psi, sp), fs)
+        accel = ca.jtimes(rate, sp, fs)
+        noise_psi = rounding_level(psi, sp, own_scale)
+        contact = dense_fn(f"contact{j}", [sp, u], [psi, rate, accel, noise_psi])
+        return interval, window, point, contact
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        del state["_lock"]
+        state["_syms"] = None
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+
 class Kernels:
     """CasADi functions of one problem structure.
 
@@ -508,15 +612,38 @@ class Kernels:
         self.names = [g.name for g in ocp.guards]
         assert ocp.flow_map is not None
         sp, sc = sym.sym("sp", nx), sym.sym("sc", nx)
-        dets = _Detectors(ocp, sym, sp, sc)
         a_, b_ = sym.sym("a"), sym.sym("b")
         if ocp.structure.integrator_flow:
             flow = _integrator_flow_nodes(ocp, s, u, h, a_, b_, self.cheb.x)
         else:
             flow = _flow_map_nodes(ocp, sym, s, u, h, a_, b_, self.cheb.x)
-        self._build_interval_fns(ocp, dets, flow, [s, u, h], [a_, b_])
         fs = ocp.f(sp, u)
-        self._build_state_fns(ocp, dets, sp, u, fs)
+        # a scene of many bodies: the broad phase (hybridoc.broadphase) picks the guards to
+        # sample, through per-guard kernels; the kernels over every guard are built only if
+        # something asks for them (the callable path, plots of every guard's value)
+        self.broad: ContactTable | None = None
+        if G > broadphase.THRESHOLD and self.sx and not ocp.structure.integrator_flow:
+            self.broad = broadphase.contact_table(ocp)
+        self._parts: _Parts | None = None
+        if self.broad is None:
+            dets = _Detectors(ocp, sym, sp, sc)
+            self._build_interval_fns(ocp, dets, flow, [s, u, h], [a_, b_])
+            self._build_state_fns(ocp, dets, sp, u, fs)
+            self.guard_kernels: GuardKernels | None = None
+        else:
+            self.chunk = BATCH
+            self.flow_fn = dense_fn("flow", [s, u, h], [flow.s_end, flow.cost])
+            self._parts = _Parts(ocp.guards, ocp.flow_map, ocp.f, ocp.scales, nx, nu)
+            self.guard_kernels = GuardKernels(self._parts, self.cheb.x)
+            # the flow alone of many grid intervals per call; the broad phase then samples
+            # the candidates' detectors
+            self.flow_batch_fn = self.flow_fn.mapaccum("flow_acc", self.chunk)
+        # every reset as (s, u) -> s (one that does not use the control ignores u)
+        # built on first use, as the adjoint's per-guard functions (only guards that fire
+        # need them): each is a dense function of the whole state (20503 of 808 outputs for
+        # 202 discs)
+        self.reset_fns = GuardFunctions(ocp.guards, self.sx, ocp.nx, ocp.nu, "reset")
+        self.reset_uses_u = [g.uses_control for g in ocp.guards]
         self._build_adjoint_fns(ocp, sym, flow, [s, u, h], sp, fs)
         # an integrator's flow: compiled DOP853 twins, CVODES where their error is too large
         self.rk_fns: dict[str, ca.Function] = {}
@@ -524,6 +651,34 @@ class Kernels:
             self.rk_fns = _dop853_twins(ocp, self.cheb.x)
         self._local = threading.local()
         self._acc: dict[str, compiled.Accelerated | None] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "seg_jac_fn" and "_seg_jac_one" in self.__dict__:
+            with _LOCK:
+                if name not in self.__dict__:
+                    one = self._seg_jac_one
+                    self.seg_jac_fn = one.map(self.chunk) if self.chunk > 1 else one
+            return self.__dict__[name]
+        # the kernels over every guard of a problem judged by the broad phase, on first use
+        parts = self.__dict__.get("_parts")
+        if name not in _ALL_GUARD_FNS or parts is None:
+            raise AttributeError(name)
+        with _LOCK:
+            if name not in self.__dict__:
+                self._build_all_guards(parts)
+        return self.__dict__[name]
+
+    def _build_all_guards(self, parts: _Parts) -> None:
+        """The kernels over every guard (:meth:`_build_interval_fns`, :meth:`_build_state_fns`)
+        for a problem the broad phase judges, as they would have been built at once."""
+        nx, nu, sym = self.nx, self.nu, ca.SX
+        s, u, h = sym.sym("s", nx), sym.sym("u", nu), sym.sym("h")
+        sp, sc = sym.sym("sp", nx), sym.sym("sc", nx)
+        a_, b_ = sym.sym("a"), sym.sym("b")
+        flow = _flow_map_nodes(parts, sym, s, u, h, a_, b_, self.cheb.x)
+        dets = _Detectors(parts, sym, sp, sc)
+        self._build_interval_fns(parts, dets, flow, [s, u, h], [a_, b_])
+        self._build_state_fns(parts, dets, sp, u, parts.f(sp, u))
 
     def accelerated(self, fn: ca.Function) -> compiled.Accelerated | None:
         """``fn`` (one of these kernels) as an :class:`~hybridoc.compiled.Accelerated`
@@ -538,7 +693,12 @@ class Kernels:
             return self._acc[name]
 
     def _build_interval_fns(
-        self, ocp: HybridOCP, dets: _Detectors, flow: _FlowNodes, suh: list[Any], ab: list[Any]
+        self,
+        ocp: HybridOCP | _Parts,
+        dets: _Detectors,
+        flow: _FlowNodes,
+        suh: list[Any],
+        ab: list[Any],
     ) -> None:
         """Builds ``interval`` (and its batched form), ``window``, ``flow`` and ``point``."""
         s, u, h = suh
@@ -564,7 +724,9 @@ class Kernels:
         det_r = ca.jacobian(det_v, h) if dets.G else sym(0, 1)
         self.point_fn = dense_fn("point", [s, u, h], [flow.s_end, det_v, det_r, det_n])
 
-    def _build_state_fns(self, ocp: HybridOCP, dets: _Detectors, sp: Any, u: Any, fs: Any) -> None:
+    def _build_state_fns(
+        self, ocp: HybridOCP | _Parts, dets: _Detectors, sp: Any, u: Any, fs: Any
+    ) -> None:
         """Builds the functions at a lone state: detectors, guards and rates, resets."""
         G, sym = dets.G, dets.sym
         # at a state without its flow (the callable path's dense output, an event state):
@@ -583,12 +745,6 @@ class Kernels:
         psi_noise = rounding_level(psi, sp, own_scale) if G else sym(0, 1)
         self.contact_fn = dense_fn("contact", [sp, u], [psi, rate, accel, psi_noise])
         self.psi_fn = dense_fn("guards_psi", [sp], [psi])
-        # every reset as (s, u) -> s (one that does not use the control ignores u)
-        # built on first use, as the adjoint's per-guard functions (only guards that fire
-        # need them): each is a dense function of the whole state (20503 of 808 outputs for
-        # 202 discs)
-        self.reset_fns = GuardFunctions(ocp.guards, self.sx, ocp.nx, ocp.nu, "reset")
-        self.reset_uses_u = [g.uses_control for g in ocp.guards]
 
     def _build_adjoint_fns(
         self, ocp: HybridOCP, sym: Any, flow: _FlowNodes, suh: list[Any], sp: Any, fs: Any
@@ -602,7 +758,10 @@ class Kernels:
         seg_jac = dense_fn(
             "seg_jac", [s, u, h], [jac[:nx, :nx], jac[:nx, nx:], jac[nx, :nx].T, jac[nx, nx:].T]
         )
-        self.seg_jac_fn = seg_jac.map(self.chunk) if self.chunk > 1 else seg_jac
+        # mapped on first use (the adjoint's): the map of dense nx x nx outputs takes about
+        # 40 bytes per entry and interval of a chunk (1.6 GB for 202 discs), which an
+        # evaluation does not need
+        self._seg_jac_one = seg_jac
         # per guard, built on first use (only guards that fire need them): built eagerly,
         # their dense nx x nx Jacobians took 90% of the kernels' memory (4.6 of 4.8 GiB for
         # 70 discs) and 85% of their time
@@ -655,6 +814,7 @@ class Numeric:
         self._resets: dict[int, Reset] = {}
         self._event_jac: dict[int, Num] = {}
         self._reset_du: dict[int, Num] = {}
+        self._guards: dict[int, GuardNum] = {}
 
     def _checked(self, twin: str, fn: ca.Function) -> Num | CheckedNum:
         """``fn``'s evaluator; through its DOP853 twin (the ``twin`` of
@@ -682,6 +842,19 @@ class Numeric:
     @cached_property
     def flow(self) -> Num | CheckedNum:
         return self._checked("flow", self.k.flow_fn)
+
+    @cached_property
+    def flow_batch(self) -> Num:
+        """``flow`` of :attr:`Kernels.chunk` grid intervals, each from the last's end."""
+        return Num(self.k.flow_batch_fn, self.k.accelerated(self.k.flow_batch_fn))
+
+    def guard(self, j: int) -> GuardNum:
+        """Guard ``j``'s own kernels (:class:`GuardKernels`; the broad phase's)."""
+        g = self._guards.get(j)
+        if g is None:
+            assert self.k.guard_kernels is not None
+            g = self._guards[j] = GuardNum(*map(Num, self.k.guard_kernels[j]))
+        return g
 
     @cached_property
     def point(self) -> Num | CheckedNum:
@@ -750,6 +923,19 @@ class Numeric:
                 raise ValueError(f"the reset of guard {j} does not depend on the control")
             self._reset_du[j] = Num(fn)
         return self._reset_du[j]
+
+
+class GuardNum(NamedTuple):
+    """One guard's buffer-bound kernels (:class:`GuardKernels`)."""
+
+    interval: Num
+    """``(s, u, h) -> (samples (D + 1,), noise (D + 1,), psi(s(h)))``."""
+    window: Num
+    """``(s, u, a, b) -> (samples, noise)`` at the nodes of ``[a, b]``."""
+    point: Num
+    """``(s, u, tau) -> (det, d det / d tau, noise)``."""
+    contact: Num
+    """``(s, u) -> (psi, d psi / dt, d2 psi / dt2, rounding level of psi)``."""
 
 
 class Reset:

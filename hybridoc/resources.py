@@ -17,8 +17,9 @@ The override
     :func:`allowing_large` in Python: the estimates are still made, and not enforced.
 
 What is estimated
-    :func:`judge_bytes` (a disc scene's guards compiled into the judge's kernels, and the
-    trajectory of its steps), :func:`samples_bytes` (a dataset's draws),
+    :func:`judge_bytes` (a disc scene's guards compiled, which the judge's broad phase
+    samples near contact only, and the trajectory of its steps), :func:`samples_bytes` (a
+    dataset's draws),
     :func:`check_array_file` (a ``.npy`` file's declared shape, or a ``.csv`` file's size),
     :func:`check_npz_file` (the declared shapes of an ``.npz``'s members). Gradient
     descent's starts, iterations and hops: :mod:`hybridoc.solvers.gd`'s own estimate,
@@ -186,22 +187,22 @@ def check(what: str, need: float, detail: str, hint: str, error: type = Resource
 # ---------------------------------------------------------------------------------------
 # the judge
 
-JUDGE_GUARD_BYTES = (180224, 40)
-"""``(a, b)``: a disc scene's judge takes ``a + b nx`` bytes per guard (176 KiB and 40 B per
-state component): the scene's guards compiled (about 30 KiB each) and the kernels' functions
-over every guard (the detectors at the sample nodes with their rounding levels, the guard
-values, rates and accelerations); the per-guard resets and adjoint Jacobians are built only
-for the guards that fire (:class:`hybridoc.kernels.GuardFunctions`). Measured (peak RSS of a
-fresh process, less its 65 MiB at start, over the scene's compile, the kernels and one
-evaluation of a grid of discs 3 apart and a wall): 180 kB per guard at 20 discs, 189 at 50
-(230 MiB), 177 at 70, 185 at 100 (892 MiB), 210 at 202 (20503 guards, 808 states: the
-``evaluate`` command's peak 4.26 GB, 143 s of CPU); the model gives 183, 188, 191, 196 and
-213. Before the per-guard functions were built lazily: 5.3 KiB per guard and state at 50
-discs (1.30 GiB), 7.2 at 70 (4.81 GiB), ``std::bad_alloc`` after 10.8 GB at 202."""
-JUDGE_SECONDS_PER_GUARD = (1.2e-3, 3.5e-6)
-"""``(a, b)``: CPU seconds to compile the judge's kernels, ``a + b nx`` per guard (measured
-2.2 s for 1275 guards over 200 states, 12.2 s for 5050 over 400, 81 s for 20503 over
-808)."""
+JUDGE_GUARD_BYTES = (18432, 62)
+"""``(a, b)``: a disc scene's judge takes ``a + b nx`` bytes per guard (18 KiB and 62 B per
+state component), nearly all of it the scene's guards compiled (each guard's gap, detector
+and reset, a function of the whole state). The judge's own kernels no longer grow with the
+guards: above :data:`hybridoc.broadphase.THRESHOLD` guards its broad phase samples only the
+guards whose bodies' swept boxes meet, through per-guard kernels built for those guards
+alone. Measured (the peak of a fresh process less its peak at start, over the scene's
+compile and one evaluation of a grid of discs 3 apart and a wall, 200 steps): 32 kB per
+guard at 40 discs (26 MB), 36 at 70, 42 at 100 (214 MB), 52 at 140, 67 at 202 (20503
+guards, 808 states: 1.38 GB, 49 s of CPU); the model gives 28, 36, 43, 53 and 69. With the
+all-pairs kernels (before the broad phase) 202 discs took 4.26 GB and 143 s of CPU, and
+before the per-guard functions were built lazily ``std::bad_alloc`` after 10.8 GB."""
+JUDGE_SECONDS_PER_GUARD = (7e-4, 2.1e-6)
+"""``(a, b)``: CPU seconds to compile a disc scene's guards and judge it once, ``a + b nx``
+per guard (measured 1.3 s for 820 guards over 160 states, 7.8 s for 5050 over 400, 19 s
+for 9870 over 560, 49 s for 20503 over 808)."""
 JUDGE_STEP_BYTES = (384, 32)
 """``(a, b)``: the judge's trajectory takes ``a + b nx`` bytes per grid step (the recorded
 states, the segments, the batched samples; measured peak growth 580 B per step at 8 states,
@@ -245,7 +246,7 @@ def check_judge(n_discs: int, n_walls: int, steps: int) -> None:
     check(
         f"a scene of {n_discs} discs and {walls} with {steps} steps",
         need,
-        f"the judge compiles {G} contact guards over {nx} states, about "
+        f"the scene compiles {G} contact guards over {nx} states, about "
         f"{fmt_bytes(judge_guard_bytes(nx))} per guard, in about {secs:.3g} s "
         f"of CPU; its trajectory takes {fmt_bytes(a + b * nx)} per step",
         "use fewer discs or steps",
