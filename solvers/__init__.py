@@ -6,8 +6,9 @@ registry is :mod:`hybridoc.methods`):
 
 - :mod:`hybridoc.solvers.transcription`, :mod:`hybridoc.solvers.discrete_transcription`:
   direct transcription of the continuous problem and of the simulator's discrete one.
-- :mod:`hybridoc.solvers.gd`, :mod:`hybridoc.solvers.multistart`:
-  :func:`~hybridoc.solvers.gd.solve_gd` and its batched multi-start; ``gd`` is a package
+- :mod:`hybridoc.solvers.gd`, :mod:`hybridoc.solvers.multistart`,
+  :mod:`hybridoc.solvers.starting`: :func:`~hybridoc.solvers.gd.solve_gd`, its batched
+  multi-start and the multi-start's starting controls; ``gd`` is a package
   split by concern (options, loss, descent, kinks, hops, multi-start, terminal constraints,
   the entry points and the Method), whose ``__init__`` re-exports its public names.
 - :mod:`hybridoc.solvers.simulator`: :class:`~hybridoc.solvers.simulator.Simulator`, the
