@@ -21,6 +21,7 @@ from hybridoc.cli import main
 from hybridoc.methods import Method, register_method, unregister_method
 from hybridoc.solution import Solution, Status
 from hybridoc.workflows import validation
+from hybridoc.workflows.validation import comparison  # where crossval's code runs
 
 sys.path.insert(0, str(Path(__file__).parent))
 import user_problems  # noqa: E402
@@ -71,13 +72,13 @@ def test_a_method_that_loses_the_event_disagrees(
     lost events are disagreements, and no check explains them."""
     ocp, ref = clock
     if proven:
-        solve = validation.solve
+        solve = comparison.solve
 
         def proven_reference(ocp: Any, name: str, **kw: Any) -> Solution:
             sol = solve(ocp, name, **kw)
             return dataclasses.replace(sol, status=Status.SUCCESS) if name == "reference" else sol
 
-        monkeypatch.setattr(validation, "solve", proven_reference)
+        monkeypatch.setattr(comparison, "solve", proven_reference)
     registered(Method("lossy", "J*'s cell averages", run=_returns(ref.controls, "lossy")))
     report, _ = validation.crossval(
         ocp, methods=("lossy",), options={"reference": {"sequence": ["switch"]}}
@@ -136,7 +137,7 @@ def test_the_grid_gap_is_explained_by_refinement_only(
                 "refined_gap_relative": held["discretisation_gap_relative"],
                 "refined_sequence_matches": True}  # fmt: skip
 
-    monkeypatch.setattr(validation, "refined_projection", stuck)
+    monkeypatch.setattr(comparison, "refined_projection", stuck)
     report, _ = validation.crossval(ocp, methods=("held",), tolerances={"held": 1e-6})
     assert not report["agree"]
     assert any("unexplained" in r and "does not shrink" in r for r in report["reasons"])
@@ -148,7 +149,7 @@ def test_best_found_and_extremal_are_results_not_failures(
     """A best-found reference is still the baseline, but the verdict says it is not proven
     (status best-found, exit 1); methods answering best-found or extremal are compared like
     any answer, not reported as failures."""
-    solve = validation.solve
+    solve = comparison.solve
 
     def best_found_reference(ocp: Any, name: str, **kw: Any) -> Solution:
         sol = solve(ocp, name, **kw)
@@ -156,7 +157,7 @@ def test_best_found_and_extremal_are_results_not_failures(
             return dataclasses.replace(sol, status=Status.BEST_FOUND, message="budget hit")
         return sol
 
-    monkeypatch.setattr(validation, "solve", best_found_reference)
+    monkeypatch.setattr(comparison, "solve", best_found_reference)
     ocp = hybridoc.as_ocp("bouncing-ball")
     ref = solve(ocp, "reference")
     registered(Method("bf", "best found", run=_returns(ref.controls, "bf", Status.BEST_FOUND)))

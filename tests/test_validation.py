@@ -175,13 +175,13 @@ def test_crossval_reports_through_one_progress(monkeypatch):
         def close(self):
             raise AssertionError("a caller's Progress is not closed by crossval")
 
-    solve = v.solve
+    solve = v.comparison.solve  # where crossval's code runs
 
     def spy(ocp, name, **kw):
         passed.append((name, kw.get("progress")))
         return solve(ocp, name, **kw)
 
-    monkeypatch.setattr(v, "solve", spy)
+    monkeypatch.setattr(v.comparison, "solve", spy)
     rec = Recorder()
     report, _ = v.crossval("head-on", methods=("dt",), tolerances={"dt": 1e-3}, progress=rec)
     assert stages[:1] == ["reference"] and "dt" in stages
@@ -245,7 +245,7 @@ def test_convergence_figure_with_gd(tmp_path):
 def test_convergence_deprecated_keywords_map_onto_methods_and_options():
     """gd_options= and include_gd= (which named one method) still work, with a warning."""
     from hybridoc.errors import OptionError
-    from hybridoc.workflows.validation import _convergence_methods
+    from hybridoc.workflows.validation.convergence_study import _convergence_methods
 
     with pytest.warns(DeprecationWarning, match="deprecated"):
         names, opts = _convergence_methods(None, None, {"iters": 5}, True)
