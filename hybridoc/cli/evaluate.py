@@ -180,29 +180,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(payload)
     else:
-        free = " (free final time: judged at this T)" if ocp.free_horizon else ""
-        say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)}){free}")
-        say(args, f"controls  {source}")
-        say(args, f"cost      {ev.cost!r}")
-        say(args, f"terminal  {ev.terminal_cost!r}")
-        say(args, f"running   {ev.running_cost!r}")
-        if ocp.final_mode is not None:
-            verdict = "as required" if ev.final_mode == ocp.final_mode else "required"
-            say(args, f"final mode {ev.final_mode} ({ocp.final_mode} {verdict})")
-        if ocp.has_terminal_constraints:
-            say(args, f"terminal constraints violated by {ev.terminal_violation:.3g}")
-            rows = [[f"h_eq[{i}] = 0", fmt(x)] for i, x in enumerate(ev.terminal_eq_values)]
-            rows += [[f"h_ineq[{i}] >= 0", fmt(x)] for i, x in enumerate(ev.terminal_ineq_values)]
-            say(args, indent(format_table(["constraint", "value at T"], rows, right=[False, True])))
-        if not ev.feasible:
-            say(
-                args,
-                f"feasible  no (bounds {ev.bound_violation:.3g}, path {ev.path_violation:.3g}, "
-                f"terminal {ev.terminal_violation:.3g})",
-            )
-        say(args, f"events    {len(events)}")
-        if events:
-            say(args, indent(events_table(events)))
+        _print_evaluation(args, ocp, ev, source, events)
     if out is not None:
         sol = Solution.from_evaluation(
             ev, method="evaluate", scene=ocp.name, settings={"controls": source},
@@ -223,6 +201,35 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         for p in written:
             say(args, f"wrote {p}")
     return 0
+
+
+def _print_evaluation(
+    args: argparse.Namespace, ocp: Any, ev: Any, source: str, events: list[dict[str, Any]]
+) -> None:
+    """The human block of ``evaluate``: costs, final mode, constraints, events."""
+    free = " (free final time: judged at this T)" if ocp.free_horizon else ""
+    say(args, f"problem   {ocp.name} (N = {ocp.steps}, T = {fmt(ocp.horizon)}){free}")
+    say(args, f"controls  {source}")
+    say(args, f"cost      {ev.cost!r}")
+    say(args, f"terminal  {ev.terminal_cost!r}")
+    say(args, f"running   {ev.running_cost!r}")
+    if ocp.final_mode is not None:
+        verdict = "as required" if ev.final_mode == ocp.final_mode else "required"
+        say(args, f"final mode {ev.final_mode} ({ocp.final_mode} {verdict})")
+    if ocp.has_terminal_constraints:
+        say(args, f"terminal constraints violated by {ev.terminal_violation:.3g}")
+        rows = [[f"h_eq[{i}] = 0", fmt(x)] for i, x in enumerate(ev.terminal_eq_values)]
+        rows += [[f"h_ineq[{i}] >= 0", fmt(x)] for i, x in enumerate(ev.terminal_ineq_values)]
+        say(args, indent(format_table(["constraint", "value at T"], rows, right=[False, True])))
+    if not ev.feasible:
+        say(
+            args,
+            f"feasible  no (bounds {ev.bound_violation:.3g}, path {ev.path_violation:.3g}, "
+            f"terminal {ev.terminal_violation:.3g})",
+        )
+    say(args, f"events    {len(events)}")
+    if events:
+        say(args, indent(events_table(events)))
 
 
 def cmd_gradient(args: argparse.Namespace) -> int:

@@ -113,17 +113,7 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(payload)
     else:
-        say(args, f"problem     {source.name} ({args.samples} draws, seed {seed})")
-        say(args, f"training    {args.iters} iterations of Adam, lr {args.lr}, through the "
-                  f"{res.engine} (toi {res.toi})")  # fmt: skip
-        say(args, f"loss        {fmt(payload['initial_loss'], 8)} -> {fmt(res.final_loss, 8)} "
-                  f"({what})")  # fmt: skip
-        say(args, f"time        {res.seconds:.3g} s")
-        if payload["saturated"]:
-            say(args, "output      clipped to the control bounds")
-        if res.infeasible:
-            say(args, f"INFEASIBLE  on {res.infeasible} of {args.samples} training draws: "
-                      + "; ".join(violation_lines(payload["violations"])))  # fmt: skip
+        _print_training(args, source, seed, res, payload, what)
     # after the answer is out: a write that fails at the end loses nothing shown (exit 2)
     save_mlp_policy(res.policy, path)
     write_text(report, json.dumps(to_jsonable(payload), indent=2) + "\n")
@@ -142,6 +132,25 @@ def cmd_train_policy(args: argparse.Namespace) -> int:
              "does not allow")  # fmt: skip
         return 1
     return 0
+
+
+def _print_training(
+    args: argparse.Namespace, source: Any, seed: int, res: Any, payload: dict[str, Any], what: str
+) -> None:
+    """The human block of ``train-policy``: draws, training, loss, time, feasibility."""
+    from hybridoc.workflows.policies import violation_lines
+
+    say(args, f"problem     {source.name} ({args.samples} draws, seed {seed})")
+    say(args, f"training    {args.iters} iterations of Adam, lr {args.lr}, through the "
+              f"{res.engine} (toi {res.toi})")  # fmt: skip
+    say(args, f"loss        {fmt(payload['initial_loss'], 8)} -> {fmt(res.final_loss, 8)} "
+              f"({what})")  # fmt: skip
+    say(args, f"time        {res.seconds:.3g} s")
+    if payload["saturated"]:
+        say(args, "output      clipped to the control bounds")
+    if res.infeasible:
+        say(args, f"INFEASIBLE  on {res.infeasible} of {args.samples} training draws: "
+                  + "; ".join(violation_lines(payload["violations"])))  # fmt: skip
 
 
 def _source(text: str) -> Any:
