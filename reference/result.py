@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import bisect
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -11,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from hybridoc.ocp import HybridOCP
+from hybridoc.reference._nodes import control_from_nodes, dense_from_nodes, same_arrays
 from hybridoc.reference.shooting import NewtonResult, ShootingSystem, state_rows
 from hybridoc.reference.sources import PhaseCostates
 
@@ -20,120 +19,6 @@ __all__ = ["GRAZE_FLAG", "ReferenceResult", "hmp_control", "make_result", "refer
 GRAZE_FLAG = 1e-6
 #: steps per phase that rebuild ``u(t)`` of a saved generic solution without ``substeps``
 LEGACY_SUBSTEPS = 64
-
-
-def _locate(
-    levels: Sequence[int], starts: np.ndarray, horizon: float, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Phase, step and time into that step of each time (generic problems' dense output)."""
-    k = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, None)
-    lengths = np.diff(np.append(starts, horizon))
-    n = np.asarray(levels, dtype=float)[k]
-    dh = lengths[k] / n
-    tau = t - starts[k]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        i = np.where(dh > 0, np.floor(tau / np.where(dh > 0, dh, 1.0)), 0.0)
-    i = np.clip(i, 0, n - 1).astype(int)
-    return k, i, tau - i * dh
-
-
-def _dense_from_nodes(
-    dense: Any,
-    nodes: Sequence[np.ndarray],
-    levels: Sequence[int],
-    starts: np.ndarray,
-    horizon: float,
-    t: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(s, lambda, u)`` at times ``t``: one DOP853 step from the node of the step that
-    holds each time. The nodes are the shooting's own, so ``u(t)`` is continuous across
-    them, and each time costs one step, not a whole phase."""
-    k, i, dt = _locate(levels, starts, horizon, t)
-    X = np.stack([nodes[a][b] for a, b in zip(k, i, strict=True)])
-    if not isinstance(dense, (list, tuple)):
-        s, lam, u = dense.map(t.size)(X.T, dt)
-        return np.asarray(s).T.copy(), np.asarray(lam).T.copy(), np.asarray(u).T.copy()
-    # one law per piece (pure state rows: each arc's own)
-    out = [np.zeros((t.size, 0))] * 3
-    for piece in np.unique(k):
-        rows = np.flatnonzero(k == piece)
-        parts = dense[int(piece)].map(rows.size)(X[rows].T, dt[rows])
-        if out[0].shape[1] == 0:
-            out = [np.empty((t.size, int(p.shape[0]))) for p in parts]
-        for o, p in zip(out, parts, strict=True):
-            o[rows] = np.asarray(p).T
-    return out[0], out[1], out[2]
-
-
-def _control_from_nodes(
-    u_at: Any, nodes: Sequence[np.ndarray], levels: Sequence[int], starts: np.ndarray,
-    horizon: float,
-) -> Callable[[float], np.ndarray]:  # fmt: skip
-    """A scalar ``u(t)`` (see :func:`_dense_from_nodes`; ``u_at(node, tau) -> u``, or one
-    such function per piece) for the judge, which calls it at every stage of its
-    integrator: plain floats and one compiled call per time."""
-    first = [float(a) for a in np.asarray(starts, dtype=float)]
-    given = list(u_at) if isinstance(u_at, (list, tuple)) else [u_at] * len(first)
-    calls: dict[int, Callable[[np.ndarray, float], np.ndarray]] = {}
-    for fn in given:
-        if id(fn) not in calls:
-            calls[id(fn)] = _buffer_call(fn)
-    laws = [calls[id(fn)] for fn in given]
-    ends = [*first[1:], float(horizon)]
-    steps = [(b - a) / int(n) for a, b, n in zip(first, ends, levels, strict=True)]
-    last = [int(n) - 1 for n in levels]
-
-    def u_generic(t: float) -> np.ndarray:
-        k = max(bisect.bisect_right(first, t) - 1, 0)
-        tau = t - first[k]
-        dh = steps[k]
-        i = min(max(int(tau // dh), 0), last[k]) if dh > 0 else 0
-        return laws[k](nodes[k][i], tau - i * dh)
-
-    # what this u(t) is a function of (ReferenceResult._judged_as_saved compares them)
-    u_generic.pieces = (  # type: ignore[attr-defined]
-        given, [np.asarray(n) for n in nodes], tuple(int(n) for n in levels),
-        np.asarray(starts, dtype=float), float(horizon),
-    )  # fmt: skip
-    return u_generic
-
-
-def _same_arrays(a: Sequence[Any], b: Sequence[Any]) -> bool:
-    """Whether two lists of float arrays hold the same shapes and the same bits."""
-    if len(a) != len(b):
-        return False
-    for x, y in zip(a, b, strict=True):
-        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-        if x.shape != y.shape or not np.array_equal(
-            np.ascontiguousarray(x).view(np.int64), np.ascontiguousarray(y).view(np.int64)
-        ):
-            return False
-    return True
-
-
-def _buffer_call(fn: Any) -> Callable[[np.ndarray, float], np.ndarray]:
-    """``(node, tau) -> u`` (flat) of a dense law ``fn`` through CasADi's buffer API
-    (:class:`hybridoc.kernels.Num`, one per thread: its buffers are its own): the same
-    evaluation as ``fn(node, tau)``, bit for bit, without the ``DM`` conversions of that
-    call (30 to 40 us of it, 4 us left; the judge calls ``u(t)`` at every stage of its
-    integrator, 2400 to 4000 times per re-simulation on pendulum-wall and the hopper).
-    A function the buffer API does not take (not dense) is called as before."""
-    from hybridoc.kernels import Num
-
-    try:
-        first = Num(fn)
-    except (ValueError, RuntimeError, AttributeError):
-        return lambda node, tau: np.asarray(fn(node, tau), dtype=float).ravel()
-    local = threading.local()
-    local.num = first
-
-    def call(node: np.ndarray, tau: float) -> np.ndarray:
-        num = getattr(local, "num", None)
-        if num is None:
-            num = local.num = Num(fn)
-        return num(node, tau)[0]
-
-    return call
 
 
 @dataclass
@@ -334,7 +219,7 @@ class ReferenceResult:
         if t.size == 0:
             return np.zeros((0, nx)), np.zeros((0, nx)), np.zeros((0, S.nu))
         nodes, levels, starts = self._pieces()
-        s_out, l_out, u_out = _dense_from_nodes(
+        s_out, l_out, u_out = dense_from_nodes(
             self._piece_laws("dense"), nodes, levels, starts, self.ocp.horizon, t
         )
         return s_out, l_out, u_out
@@ -358,7 +243,7 @@ class ReferenceResult:
         starts = self.phase_starts
         if C is None:
             nodes, levels, piece_starts = self._pieces()
-            return _control_from_nodes(
+            return control_from_nodes(
                 self._piece_laws("dense_u"), nodes, levels, piece_starts, self.ocp.horizon
             )
 
@@ -590,11 +475,11 @@ class ReferenceResult:
         mine, bps = reference_control(self)
         if (
             float(cf.horizon) != float(self.ocp.horizon)
-            or not _same_arrays([cf.breakpoints], [np.asarray(bps, dtype=float)])
+            or not same_arrays([cf.breakpoints], [np.asarray(bps, dtype=float)])
             or (cf.event_controls is None) != (self.event_controls is None)
             or (
                 self.event_controls is not None
-                and not _same_arrays([cf.event_controls], [self.event_controls])
+                and not same_arrays([cf.event_controls], [self.event_controls])
             )
         ):
             return None
@@ -603,7 +488,7 @@ class ReferenceResult:
             # disc scenes: the Solution's phase-linear law of its stored coefficients
             # (Solution.control_function) is this result's u(t) formula
             a = sol.arrays
-            same = cf.kind == "phase-linear" and _same_arrays(
+            same = cf.kind == "phase-linear" and same_arrays(
                 [a["control_coefficients"], a["phase_starts"]], [C, self.phase_starts]
             )
             return ev if same else None
@@ -617,7 +502,7 @@ class ReferenceResult:
             and all(a is b for a, b in zip(f1, f2, strict=True))
             and tuple(l1) == tuple(l2)
             and h1 == h2
-            and _same_arrays([*n1, s1], [*n2, s2])
+            and same_arrays([*n1, s1], [*n2, s2])
         )
         return ev if same else None
 
@@ -721,10 +606,10 @@ def hmp_control(solution: Any, problem: Any) -> tuple[Callable[[float], np.ndarr
             np.asarray(arrays["arc_costates"]), steps, ocp.horizon,
         )  # fmt: skip
         dense_u = [law.dense_u for law in laws] if isinstance(laws, list) else laws.dense_u
-        u = _control_from_nodes(dense_u, nodes, steps, starts_a, ocp.horizon)
+        u = control_from_nodes(dense_u, nodes, steps, starts_a, ocp.horizon)
         return u, [float(t) for t in starts_a[1:]]
     nodes = S.nodes(starts_g, P, L0)
-    u = _control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
+    u = control_from_nodes(S.core.flow.dense_u, nodes, levels, starts_g, ocp.horizon)
     return u, [float(t) for t in starts_g[1:]]
 
 

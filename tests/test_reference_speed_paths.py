@@ -16,7 +16,7 @@ import pytest
 
 from hybridoc.problems import load_problem
 from hybridoc.reference import solve_reference
-from hybridoc.reference.result import _buffer_call
+from hybridoc.reference._nodes import buffer_call as _buffer_call
 from hybridoc.solution import lagrange_pieces
 from hybridoc.solvers.transcription import control_function, solve_dt
 from hybridoc.solvers.transcription.collocation import pieces_at_one_time
