@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridoc.errors import OptionError, SceneError
+from hybridoc.errors import OptionError
 from hybridoc.methods import BUILTIN, METHODS, REFERENCE_METHOD, solve
 from hybridoc.problem import ProblemLike, as_ocp
 
@@ -94,7 +94,7 @@ def convergence(
         isinstance(n, numbers.Integral) and not isinstance(n, bool) and 1 <= n <= MAX_STEPS
         for n in steps
     ):
-        raise SceneError(
+        raise OptionError(
             f"steps must be a non-empty list of integers from 1 to {MAX_STEPS}, got {steps!r}"
         )
     names, opts = _convergence_methods(methods, options, gd_options, include_gd)
