@@ -28,7 +28,7 @@ from hybridoc.cli._util import (
     to_jsonable,
 )
 from hybridoc.cli.vocabulary import add_deprecated_alias, spelled
-from hybridoc.errors import HybridocError, SceneError
+from hybridoc.errors import HybridocError, OptionError
 from hybridoc.outputs import check_folder, check_targets, write_text
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -44,11 +44,11 @@ def _int_list(text: str) -> list[int]:
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise SceneError(
-            f"--gd-iters: expected a comma-separated list of integers, got {text!r}"
+        raise OptionError(
+            f"--iters: expected a comma-separated list of integers, got {text!r}"
         ) from None
     if any(v < 0 for v in values):
-        raise SceneError(f"--iters: iteration counts must be >= 0, got {text!r}")
+        raise OptionError(f"--iters: iteration counts must be >= 0, got {text!r}")
     return values
 
 
