@@ -227,3 +227,85 @@ def test_a_new_option_is_checked(
 def test_a_wrong_option_is_one_line(zero: Method) -> None:
     with pytest.raises(SceneError, match="takes no option.s. stat; it takes start"):
         hybridoc.solve(PROBLEM, "zero", stat="zero")
+
+
+# ----------------------------------------------- what the workflows ask of a method (#30)
+def test_the_builtin_records_say_what_they_represent() -> None:
+    """The workflows ask the record, not the name: dt's control is continuous in time with
+    its mesh as resolution, gd's is on the grid with its own early check; the registry
+    keeps the modules' own records (the same objects)."""
+    import hybridoc.solvers.gd as gd
+    from hybridoc.methods import BUILTIN_TRAITS, METHODS, REPRESENTATIONS
+
+    dt = METHODS["dt"]
+    assert (dt.representation, dt.resolution_option) == ("continuous", "mesh")
+    assert set(dt.projection_options) == {"mesh", "degree"}
+    assert METHODS["gd"] is gd.METHOD and METHODS["gd"].representation == "grid"
+    assert METHODS["gd"].check_options is gd.checked_options
+    assert set(BUILTIN_TRAITS) <= set(METHODS)
+    assert all(m.representation in REPRESENTATIONS for m in METHODS.values())
+
+
+def test_a_method_record_is_checked() -> None:
+    from hybridoc.methods import Method, NoOptions
+
+    def run(ocp, *, initial=None, progress=None):  # noqa: ANN001, ANN202
+        return None
+
+    with pytest.raises(TypeError, match="representation"):
+        Method("x", "x", run, representation="exact")
+    with pytest.raises(TypeError, match="'mesh' is not one of its options"):
+        Method("x", "x", run, options=NoOptions, resolution_option="mesh")
+
+
+def test_loss_history_default_reads_the_array() -> None:
+    import numpy as np
+
+    from hybridoc.methods import loss_history
+
+    class Sol:
+        arrays: dict = {}
+
+    sol = Sol()
+    assert loss_history(sol) is None
+    sol.arrays = {"loss_history": np.array([])}
+    assert loss_history(sol) is None
+    sol.arrays = {"loss_history": np.array([3.0, 2.0])}
+    assert list(loss_history(sol)) == [3.0, 2.0]
+
+
+def test_a_continuous_method_is_projected_by_its_record(registered: object) -> None:
+    """crossval's yardstick for a method continuous in time: the method re-solved from the
+    reference on its own resolution, refined by doubling that option; nothing names it."""
+    import dataclasses as dc
+
+    from hybridoc.methods import Method, option
+    from hybridoc.workflows.validation import refined_projection, representable
+
+    @dc.dataclass(frozen=True)
+    class CellOptions:
+        cells: int = option(4, "pieces of the control")
+
+    seen: list[int] = []
+
+    def run(ocp, *, initial=None, progress=None, cells=4):  # noqa: ANN001, ANN202
+        seen.append(cells)
+        sol = hybridoc.Solution.from_evaluation(
+            hybridoc.evaluate(ocp, initial.controls), method="pieces", scene=ocp
+        )
+        sol.info["cells"] = [cells]
+        return sol
+
+    registered(
+        Method("pieces", "the reference's controls", run, options=CellOptions,
+               representation="continuous", resolution_option="cells",
+               projection_options=("cells",))
+    )  # fmt: skip
+    ocp = hybridoc.as_ocp("bouncing-ball")
+    ref = hybridoc.solve(ocp, "reference")
+    got = representable(ocp, "pieces", ref)
+    assert got["representable"] == "pieces re-solved from the reference on its own cells"
+    assert got["representable_cells"] == [4] and got["representable_sequence_matches"]
+    fine = refined_projection(ocp, "pieces", ref)
+    assert fine["refined"] == "pieces re-solved from the reference on cells 8"
+    assert seen == [4, 4, 8]
