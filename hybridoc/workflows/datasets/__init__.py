@@ -2,7 +2,7 @@
 
 :func:`make_dataset` draws ``M`` initial states and solves each with the HMP reference;
 :func:`load_dataset` reads the result back. The draws come from a disc scene's
-``[distribution]`` table (:class:`~hybridoc.problems.scene.Distribution`: concrete scenes,
+``[distribution]`` table (:class:`~hybridoc.problems.distribution.Distribution`: concrete scenes,
 targets included), or, for any :class:`~hybridoc.HybridOCP`, from a distribution declared
 in Python: :attr:`HybridOCP.distribution <hybridoc.HybridOCP>` or ``make_dataset``'s
 ``distribution`` argument, a callable ``(rng, M) -> (M, nx)`` initial states, called for
