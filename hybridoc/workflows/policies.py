@@ -36,9 +36,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc._pyfile import exit_message, import_file
 from hybridoc.errors import ControlsError, EvaluationError, HybridocError
-from hybridoc.evaluation import TERMINAL_TOL
 from hybridoc.progress import Progress, ProgressLike, progress_scope
 from hybridoc.workflows.datasets import (
     BASELINE_STATUSES,
@@ -87,7 +87,11 @@ __all__ = [
 
 _TORCH_SUFFIXES = (".pt", ".pth", ".ts")
 # Evaluation.feasible's tolerances, per kind of violation (to say which ones a draw breaks)
-_TOLERANCES = {"bound": 1e-9, "path": 1e-9, "terminal": TERMINAL_TOL}
+_TOLERANCES = {
+    "bound": tolerances.FEASIBILITY,
+    "path": tolerances.FEASIBILITY,
+    "terminal": tolerances.TERMINAL,
+}
 WORST = 5
 """Worst cases listed in a report."""
 ROLLOUTS = ("auto", "compiled", "judge")
@@ -631,19 +635,9 @@ def _report(
         "fallback_reason": roll["fallback_reason"],
     }
 
-    def stats(x: np.ndarray, prefix: str) -> dict[str, float | None]:
-        x = x[np.isfinite(x)]
-        if not x.size:
-            return {f"{prefix}_{k}": None for k in ("mean", "median", "p95", "max")}
-        return {
-            f"{prefix}_mean": float(np.mean(x)),
-            f"{prefix}_median": float(np.median(x)),
-            f"{prefix}_p95": float(np.percentile(x, 95)),
-            f"{prefix}_max": float(np.max(x)),
-        }
-
     n_both = int(both.sum())
-    negative = gap < -1e-9 * np.abs(np.nan_to_num(ref["cost"]))
+    # a policy cheaper than the reference beyond rounding (tolerances.CHEAPER, relative)
+    negative = gap < -tolerances.CHEAPER * np.abs(np.nan_to_num(ref["cost"]))
     summary: dict[str, Any] = {
         "samples": int(ref_ok.size),
         "judged": int(roll_ok.sum()),
@@ -654,15 +648,34 @@ def _report(
         "rollout_failed": int((~roll_ok).sum()),
         "infeasible": int(infeasible.sum()),
         "violations": violation_summary(roll),
-        **stats(gap, "gap"),
-        **stats(rel, "rel_gap"),
+        **_stats(gap, "gap"),
+        **_stats(rel, "rel_gap"),
         "sequence_mismatch_rate": (float(mismatch.sum()) / n_both) if n_both else None,
         "negative_gaps": int(negative.sum()),
         "negative_gaps_proven": int((negative & proven).sum()),
         "rollout_time_s": seconds,
     }
+    return PolicyReport(summary, cols, _worst(cols, n_both))
+
+
+def _stats(x: np.ndarray, prefix: str) -> dict[str, float | None]:
+    """Mean, median, 95th percentile and maximum of the finite values of ``x``."""
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return {f"{prefix}_{k}": None for k in ("mean", "median", "p95", "max")}
+    return {
+        f"{prefix}_mean": float(np.mean(x)),
+        f"{prefix}_median": float(np.median(x)),
+        f"{prefix}_p95": float(np.percentile(x, 95)),
+        f"{prefix}_max": float(np.max(x)),
+    }
+
+
+def _worst(cols: dict[str, np.ndarray], n_both: int) -> list[dict[str, Any]]:
+    """The report's :data:`WORST` compared draws of the largest gap, largest first."""
+    gap, rel = cols["gap"], cols["rel_gap"]
     order = np.argsort(-np.nan_to_num(gap, nan=-np.inf), kind="stable")[: min(WORST, n_both)]
-    worst = [
+    return [
         {
             "index": int(cols["index"][i]),
             "x0": [float(x) for x in cols["x0"][i]],
@@ -676,7 +689,6 @@ def _report(
         }
         for i in order
     ]
-    return PolicyReport(summary, cols, worst)
 
 
 _VIOLATIONS = (
