@@ -53,6 +53,8 @@ def free_flight_on_slope(
     return out
 
 
+# over 80 lines: one problem stated whole; most lines are its keyword parameters, listed
+# in the signature, checked, and recorded in meta["params"]
 @library_problem("ball-on-slope")
 def ball_on_slope(
     bounces: int = 1,

@@ -33,6 +33,8 @@ def free_drop_times(height: float, gravity: float, restitution: float, count: in
     return out
 
 
+# over 80 lines: one problem stated whole; most lines are its keyword parameters, listed
+# in the signature, checked, and recorded in meta["params"]
 @library_problem("bouncing-ball-2", bounces=2, note="two bounces")
 @library_problem("bouncing-ball")
 def bouncing_ball(

@@ -37,6 +37,8 @@ def _stance_flow(
     return ca.Function("stance_flow", [s, u, h], [end, eps * u**2 * h])
 
 
+# over 80 lines: one problem stated whole; most lines are its keyword parameters, listed
+# in the signature, checked, and recorded in meta["params"]
 @library_problem("hopper")
 def hopper(
     *,

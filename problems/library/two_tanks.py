@@ -65,6 +65,8 @@ def _affine_flow(name: str, s: ca.SX, u: ca.SX, f: ca.SX, L: ca.SX) -> ca.Functi
     return ca.Function(f"flow_{name}", [s, u, h], [end, L * h])
 
 
+# over 80 lines: one problem stated whole; most lines are its keyword parameters, listed
+# in the signature, checked, and recorded in meta["params"]
 @library_problem("two-tanks")
 def two_tanks(
     *,
