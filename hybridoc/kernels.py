@@ -32,7 +32,6 @@ Many guards
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import weakref
 from collections.abc import Callable
@@ -563,7 +562,8 @@ class GuardKernels:
     def _build(self, j: int) -> tuple[ca.Function, ...]:
         s, u, h, a, b, sp, sc, flow, fs, own_scale = self._symbols()
         g = self.parts.guards[j]
-        one = _Parts([g], *dataclasses.astuple(self.parts)[1:])
+        p = self.parts
+        one = _Parts([g], p.flow_map, p.f, p.scales, p.nx, p.nu)
         dets = _Detectors(one, ca.SX, sp, sc)
         samples, noise = dets.columns(flow.nodes)
         interval = dense_fn(f"interval{j}", [s, u, h], [samples, noise, g.psi(flow.s_end)])
