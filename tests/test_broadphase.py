@@ -21,6 +21,7 @@ import pytest
 from conftest import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scaling import transform
 
 import hybridoc
 from hybridoc import Disc, Scene, Wall, broadphase
@@ -274,3 +275,27 @@ def test_problems_without_geometry_are_judged_all_pairs(monkeypatch: pytest.Monk
     assert broadphase.contact_table(bare) is None
     assert kmod.kernels(bare).broad is None
     assert "interval_fn" in kmod.kernels(bare).__dict__
+
+
+def test_broad_phase_far_from_the_origin_and_in_other_units() -> None:
+    """The judge moves a far scene to its local frame (compiled again, with its own
+    geometry): the broad phase there finds what all pairs find, and so in micrometres."""
+    base = _scene(6, 5, walls=2, speed=3.0)
+    for scene in (transform(base, shift=(1e6, -3e5)), transform(base, length=1e-6)):
+        _same(judge(scene, True, _evaluate), judge(scene, False, _evaluate))
+
+
+def test_the_callable_path_builds_the_kernels_over_every_guard_on_use() -> None:
+    """evaluate_callable samples every guard (its own path): on a problem the broad phase
+    judges, the kernels over every guard are built when it asks, with the same numbers."""
+    scene = _scene(5, 2, walls=2, speed=2.0)
+
+    def run(ocp: Any) -> Any:
+        u = ocp.u_guess
+        return hybridoc.evaluate_callable(
+            ocp, lambda t: u[min(int(t / ocp.dt), ocp.steps - 1)], breakpoints=ocp.time_grid()
+        )
+
+    a, b = judge(scene, True, run), judge(scene, False, run)
+    assert a.events and [e.guard for e in a.events] == [e.guard for e in b.events]
+    assert a.cost == b.cost
