@@ -50,7 +50,6 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "BUILTIN",
     "BUILTIN_SOURCES",
-    "BUILTIN_TRAITS",
     "CLI_METHOD",
     "DEFAULT_METHOD",
     "DEFAULT_TOLERANCE",
@@ -68,6 +67,7 @@ __all__ = [
     "nonnegative_int",
     "option",
     "option_specs",
+    "options_signature",
     "parse_bool",
     "parse_setting",
     "parse_settings",
@@ -251,6 +251,25 @@ class OptionSpec:
         if isinstance(self.default, float):
             return _finite_float
         return str
+
+
+def options_signature(run: Callable[..., Any], options: type) -> inspect.Signature:
+    """``run``'s signature with its ``**options`` spelled out as the keyword-only fields of
+    the dataclass ``options``, with their defaults.
+
+    A method's public function is a thin wrapper ``run(problem, *, initial=None,
+    progress=None, **options)`` that builds its options dataclass; setting
+    ``run.__signature__ = options_signature(run, Options)`` shows :func:`inspect.signature`,
+    the documentation and :meth:`Method.check_signature` every option with its default,
+    while the defaults stay written once, in the dataclass."""
+    sig = inspect.signature(run)
+    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    params += [
+        inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default,
+                          annotation=f.type)
+        for f in dataclasses.fields(options)
+    ]  # fmt: skip
+    return sig.replace(parameters=params)
 
 
 def option_specs(options: type) -> list[OptionSpec]:
@@ -463,42 +482,6 @@ def load_builtin_sources() -> None:
         getattr(importlib.import_module(module), attr)()
 
 
-BUILTIN_TRAITS: dict[str, dict[str, Any]] = {
-    "dt": {
-        "representation": "continuous",
-        "resolution_option": "mesh",
-        "projection_options": ("mesh", "degree"),
-    },
-    "gd": {"check_options": "hybridoc.solvers.gd:checked_options"},
-    "reference": {"representation": "continuous"},
-}
-"""What the workflows ask of the built-in methods beyond the defaults of their
-:class:`Method` fields (``"module:function"`` for a function), set on a built-in record
-when the registry first loads it and only where the record itself keeps the default: a
-record that declares the field wins, and the entry can then go."""
-
-
-_FUNCTION_FIELDS = frozenset(
-    {"supports", "summary_lines", "crossval_defaults", "crossval_check", "loss_history",
-     "check_options"}
-)  # fmt: skip
-
-
-def _with_builtin_traits(method: Method) -> Method:
-    """The built-in ``method`` with its :data:`BUILTIN_TRAITS` (the same object: tests and
-    callers compare it with the module's ``METHOD``)."""
-    defaults = {f.name: f.default for f in dataclasses.fields(Method)}
-    for key, value in BUILTIN_TRAITS.get(method.name, {}).items():
-        if getattr(method, key) != defaults[key]:
-            continue  # the record declares it
-        if key in _FUNCTION_FIELDS and isinstance(value, str):
-            module, _, attr = value.partition(":")
-            value = getattr(importlib.import_module(module), attr)
-        object.__setattr__(method, key, value)  # a frozen record: once, when it is loaded
-    method.__post_init__()
-    return method
-
-
 class _Registry(Mapping[str, Method]):
     """The registered methods by name; built-in ones are imported when first looked up."""
 
@@ -514,7 +497,7 @@ class _Registry(Mapping[str, Method]):
         method = getattr(importlib.import_module(module), attr)
         if not isinstance(method, Method) or method.name != name:
             raise TypeError(f"{where} is not the Method {name!r}")
-        self._loaded[name] = _with_builtin_traits(method)
+        self._loaded[name] = method
         return method
 
     def __contains__(self, name: object) -> bool:

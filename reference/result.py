@@ -393,9 +393,7 @@ class ReferenceResult:
         if ev is None:
             sol.judge()
         else:
-            sol.cost = float(ev.cost)
-            sol.terminal_cost = float(ev.terminal_cost)
-            sol.running_cost = float(ev.running_cost)
+            sol.with_evaluation(ev)
         return sol
 
     def _solution_arrays(self) -> dict[str, np.ndarray]:

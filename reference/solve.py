@@ -647,5 +647,6 @@ METHOD = Method(
     supports=reference_supports,
     summary_lines=summary_lines,
     features=frozenset({"terminal", "free_horizon"}),
+    representation="continuous",
 )
 """The method ``"reference"`` (:mod:`hybridoc.methods`)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -37,6 +38,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "hybridoc.children",
             "hybridoc.resources",
             "hybridoc.kernels",
+            "hybridoc.broadphase",
             "hybridoc.rootfind",
             "hybridoc.events",
             "hybridoc.evaluation",
@@ -214,7 +216,7 @@ def test_the_analysis_sees_the_package():
     # an import inside a function counts: gd imports the judge inside solve_gd or at the top
     assert (
         "hybridoc.evaluator"
-        in _graph()["hybridoc.solvers.gd"] | _graph()["hybridoc.solvers.compiled"]
+        in _graph()["hybridoc.solvers.gd.solve"] | _graph()["hybridoc.solvers.compiled"]
     )
 
 
@@ -286,3 +288,59 @@ def test_layers_import_only_downwards():
 def test_cycle_finder(edges, cycle):
     """The finder itself sees cycles (a check that cannot fail is none)."""
     assert bool(_cycles(edges, list(edges))) is cycle
+
+
+# The disc classes, which code above problems/ must not import (it asks
+# HybridOCP.capabilities instead), and the modules built on the scene itself.
+DISC_TYPES = frozenset({"DiscOCP", "Scene"})
+DISC_SIMULATOR = (
+    "hybridoc.solvers.simulator",
+    "hybridoc.solvers.toi_sim",
+    "hybridoc.solvers.casadi_step",
+    "hybridoc.solvers.discrete_transcription",
+    "hybridoc.solvers.compiled",
+    "hybridoc.solvers.contacts",
+)
+_TYPE_TEST = re.compile(r"isinstance\([^)]*\b(DiscOCP|Scene)\b")
+
+
+def _disc_type_uses(module: str) -> list[str]:
+    """Where ``module`` imports a disc class or tests for one (source lines)."""
+    path = MODULES[module]
+    where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+    out = [
+        f"{where}:{line} imports {name}" for _, name, line in _imports(module) if name in DISC_TYPES
+    ]
+    for i, text in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if _TYPE_TEST.search(text.split("#")[0]):
+            out.append(f"{where}:{i}: {text.strip()}")
+    return out
+
+
+def _above_problems(module: str) -> bool:
+    problems = [name for name, _ in LAYERS].index("problems")
+    api = [name for name, _ in LAYERS].index("api")
+    return problems < _layer(module) < api and not module.startswith(DISC_SIMULATOR)
+
+
+def test_upper_layers_ask_capabilities_not_disc_types():
+    """Above problems/, a disc scene is known by what it offers (HybridOCP.capabilities),
+    not by its type (docs/architecture.rst, "Capabilities")."""
+    bad = [use for m in MODULES if _above_problems(m) for use in _disc_type_uses(m)]
+    assert not bad, "disc types above problems/:\n" + "\n".join(bad)
+
+
+def test_the_disc_type_check_sees_a_type_test(tmp_path, monkeypatch):
+    """The check above finds an import and an isinstance test (one that cannot fail is none)."""
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "from hybridoc.problems.disc_ocp import DiscOCP\n"
+        "def f(ocp):\n    return isinstance(ocp, DiscOCP)\n"
+    )
+    monkeypatch.setitem(MODULES, "hybridoc.workflows._probe", probe)
+    try:
+        uses = _disc_type_uses("hybridoc.workflows._probe")
+    finally:
+        _imports.cache_clear()
+    assert _above_problems("hybridoc.workflows._probe")
+    assert len(uses) == 2, uses

@@ -234,15 +234,18 @@ def test_the_builtin_records_say_what_they_represent() -> None:
     """The workflows ask the record, not the name: dt's control is continuous in time with
     its mesh as resolution, gd's is on the grid with its own early check; the registry
     keeps the modules' own records (the same objects)."""
+    import hybridoc.reference.solve as reference
     import hybridoc.solvers.gd as gd
-    from hybridoc.methods import BUILTIN_TRAITS, METHODS, REPRESENTATIONS
+    import hybridoc.solvers.transcription as transcription
+    from hybridoc.methods import METHODS, REPRESENTATIONS
 
     dt = METHODS["dt"]
     assert (dt.representation, dt.resolution_option) == ("continuous", "mesh")
     assert set(dt.projection_options) == {"mesh", "degree"}
     assert METHODS["gd"] is gd.METHOD and METHODS["gd"].representation == "grid"
     assert METHODS["gd"].check_options is gd.checked_options
-    assert set(BUILTIN_TRAITS) <= set(METHODS)
+    assert METHODS["dt"] is transcription.METHOD and METHODS["reference"] is reference.METHOD
+    assert METHODS["reference"].representation == "continuous"
     assert all(m.representation in REPRESENTATIONS for m in METHODS.values())
 
 

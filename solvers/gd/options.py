@@ -6,7 +6,6 @@ sizes' memory estimates)."""
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import numbers
 from collections.abc import Callable, Iterable, Sequence
@@ -233,22 +232,6 @@ def _check_options(o: GDOptions) -> None:
     if o.time_limit is not None and not _positive(o.time_limit):
         raise OptionError(f"time_limit must be a positive number of seconds, got {o.time_limit!r}")
     _checked_smoothing(o.smoothing)
-
-
-def options_signature(run: Callable[..., Any], options: type) -> inspect.Signature:
-    """``run``'s signature with its ``**options`` spelled out as the keyword-only fields of
-    the dataclass ``options``, with their defaults: what :func:`inspect.signature`, the
-    documentation and :meth:`~hybridoc.methods.Method.check_signature` see of a thin
-    wrapper ``run(problem, *, initial=None, progress=None, **options)``, while the defaults
-    are written once, in the dataclass."""
-    sig = inspect.signature(run)
-    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
-    params += [
-        inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default,
-                          annotation=f.type)
-        for f in dataclasses.fields(options)
-    ]  # fmt: skip
-    return sig.replace(parameters=params)
 
 
 def default_settings(problem: HybridOCP, optimizer: str) -> tuple[float, int]:

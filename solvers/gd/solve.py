@@ -13,6 +13,7 @@ import numpy as np
 
 from hybridoc.errors import OptionError
 from hybridoc.evaluator import evaluate
+from hybridoc.methods import options_signature
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
@@ -24,7 +25,6 @@ from hybridoc.solvers.gd.loss import make_loss
 from hybridoc.solvers.gd.options import (
     GDOptions,
     checked_options,
-    options_signature,
 )
 from hybridoc.solvers.gd.starts import run_multistart
 from hybridoc.solvers.gd.terminal import solve_terminal

@@ -4,10 +4,8 @@ limits they are checked against.
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +24,6 @@ __all__ = [
     "TERMINAL_TOL",
     "checked_degree",
     "checked_mesh",
-    "options_signature",
 ]
 
 
@@ -167,19 +164,3 @@ class DTOptions:
         checked_mesh(self.mesh, None)
         _checked_time_limit(self.time_limit)
         _checked_terminal_tol(self.terminal_tol)
-
-
-def options_signature(run: Callable[..., Any], options: type) -> inspect.Signature:
-    """``run``'s signature with its ``**options`` replaced by one keyword per field of the
-    dataclass ``options``, with the field's default: what ``run`` accepts, and the defaults
-    it applies, written once in the dataclass (:meth:`hybridoc.methods.Method.check_signature`
-    and the documentation read it)."""
-    sig = inspect.signature(run)
-    params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
-    params += [
-        inspect.Parameter(
-            f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default, annotation=f.type
-        )
-        for f in dataclasses.fields(options)
-    ]
-    return sig.replace(parameters=params)

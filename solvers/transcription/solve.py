@@ -15,7 +15,7 @@ import numpy as np
 
 from hybridoc.errors import ConvergenceError
 from hybridoc.evaluation import Evaluation
-from hybridoc.methods import Method, settings_lines
+from hybridoc.methods import Method, options_signature, settings_lines
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
@@ -37,7 +37,6 @@ from hybridoc.solvers.transcription.options import (
     DEFAULT_MESH,
     DTOptions,
     checked_mesh,
-    options_signature,
 )
 from hybridoc.solvers.transcription.refine import jsonable_estimate, judge_or_refine
 from hybridoc.solvers.transcription.result import (
@@ -328,6 +327,9 @@ METHOD = Method(
     tolerance=1e-6,
     summary_lines=_summary_lines,
     features=frozenset({"terminal", "free_horizon"}),
+    representation="continuous",
+    resolution_option="mesh",
+    projection_options=("mesh", "degree"),
 )
 """The ``"dt"`` method (:data:`hybridoc.methods.METHODS`): the transcription is exact for
 polynomial optima, so crossval expects it within ``1e-6`` of the reference."""
@@ -557,7 +559,7 @@ def _assemble(
         info=info,
         arrays=arrays,
     )
-    return sol.bind(ocp)
+    return sol.bind(ocp).with_evaluation(best_ev)
 
 
 def _phase_durations(r: DTResult) -> list[float]:
