@@ -154,8 +154,11 @@ class Capabilities:
         The bodies and planes, or ``None``.
     spec
         A JSON-serialisable mapping with a ``"kind"`` key from which
-        :func:`hybridoc.problems.from_spec` rebuilds the problem (with its initial data), or
-        ``None`` where the problem cannot be rebuilt from data (a Python problem file).
+        :func:`hybridoc.problems.from_spec` rebuilds the problem as it was compiled, or
+        ``None`` where the problem cannot be rebuilt from data (a Python problem file). A
+        data-only ``replace`` keeps it: the data it was compiled with (``x0``, ``steps``,
+        ``horizon``) may then differ from the problem's, which
+        :func:`hybridoc.problems.spec_of` takes into account for disc scenes.
     hints
         Per method name, option defaults the problem's author tuned (for example the paper's
         learning rates for gd). A method reads only its own entry; a user's option wins.

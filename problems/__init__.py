@@ -203,12 +203,15 @@ def from_spec(spec: Mapping[str, Any]) -> HybridOCP:
 
 
 def spec_of(problem: Scene | HybridOCP) -> Mapping[str, Any] | None:
-    """The spec of a problem (:func:`load_spec` gives it back): a Scene's
-    ``{"kind": "scene", "toml": ...}`` without compiling it, else the problem's
-    :attr:`Capabilities.spec <hybridoc.capabilities.Capabilities.spec>` (``None`` where it
+    """The spec of a problem as it is now (:func:`load_spec` gives it back): a Scene's
+    ``{"kind": "scene", "toml": ...}`` without compiling it; a compiled disc problem's, of
+    its scene with its current data (a data-only :meth:`~hybridoc.HybridOCP.replace` keeps
+    :attr:`Capabilities.spec <hybridoc.capabilities.Capabilities.spec>`, which describes the
+    problem as compiled); else the problem's :attr:`Capabilities.spec` (``None`` where it
     has none)."""
-    if isinstance(problem, Scene):
-        return {"kind": "scene", "toml": problem.to_toml()}
+    scene = scene_of(problem)
+    if scene is not None:
+        return {"kind": "scene", "toml": scene.to_toml()}
     return problem.capabilities.spec
 
 

@@ -90,3 +90,19 @@ def test_bad_specs_are_one_scene_error(spec: object, message: str) -> None:
 def test_library_ocp_refuses_other_names() -> None:
     with pytest.raises(SceneError, match="unknown library problem"):
         library_ocp("single-collision")
+
+
+def test_spec_of_a_replaced_disc_problem_has_its_current_data():
+    """A data-only replace keeps capabilities.spec (the problem as compiled); spec_of gives
+    the problem as it is now, so from_spec rebuilds the moved initial state."""
+    import numpy as np
+
+    import hybridoc
+    from hybridoc.problems import from_spec, load_problem, spec_of
+
+    ocp = hybridoc.as_ocp(load_problem("single-collision"))
+    moved = ocp.replace(x0=ocp.x0 + 0.125, steps=240)
+    assert moved.capabilities.spec == ocp.capabilities.spec
+    again = from_spec(spec_of(moved))
+    assert np.array_equal(again.x0, moved.x0) and again.steps == 240
+    assert not np.array_equal(from_spec(moved.capabilities.spec).x0, moved.x0)
