@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation
 from hybridoc.events import (
@@ -66,7 +67,7 @@ def evaluate_callable(
     graze_tol: float = 1e-10,
     rtol: float = 1e-12,
     atol: float = 1e-12,
-    penetration_tol: float = 1e-9,
+    penetration_tol: float = tolerances.value("penetration"),
     max_events: int = 10**6,
     event_controls: np.ndarray | None = None,
 ) -> Evaluation:

@@ -73,7 +73,7 @@ COSTATE_RTOL = tolerances.value("costate")
 """Relative tolerance of the costates that :func:`sample` rebuilds (the table's
 ``"costate"``, :mod:`hybridoc.tolerances`)."""
 
-_ACTIVE_ROW = 1e-9
+_ACTIVE_ROW = tolerances.value("active")
 """A path row whose value is within this of 0 under the reference's control is on an arc
 where it is active (the reference holds such rows at 0 to its own tolerance)."""
 

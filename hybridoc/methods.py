@@ -37,6 +37,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from hybridoc import tolerances
 from hybridoc.errors import OptionError, SceneError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -80,7 +81,7 @@ __all__ = [
     "unregister_method",
 ]
 
-DEFAULT_TOLERANCE = 5e-3
+DEFAULT_TOLERANCE = tolerances.CROSSVAL
 """Relative cost gap to the reference within which a method agrees with it in crossval,
 unless the method declares its own (:attr:`Method.tolerance`)."""
 

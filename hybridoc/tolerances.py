@@ -91,6 +91,56 @@ _TABLE = (
         False,
         "a transcription phase's defect above which its events are not those judged",
     ),
+    Tolerance(
+        "penetration",
+        1e-9,
+        False,
+        "a guard below minus this at a step's end was crossed unseen: the judge refuses "
+        "(and a compiled rollout's cell was not resolved)",
+    ),
+    Tolerance(
+        "active",
+        1e-9,
+        False,
+        "a path row within this of 0 under the reference's control is on an active arc",
+    ),
+    Tolerance(
+        "rollout",
+        1e-9,
+        True,
+        "a compiled closed-loop rollout's cost within this of the judge's is certified",
+    ),
+    Tolerance(
+        "bound_sign",
+        1e-9,
+        True,
+        "a final time at its bound is a minimum in T when H(T) has the right sign to this",
+    ),
+    Tolerance(
+        "saturation",
+        1e-7,
+        True,
+        "how far (relative to 1 + max |bound|) argmin H may lie past a bound on an arc",
+    ),
+    Tolerance(
+        "touch",
+        1e-6,
+        True,
+        "a boundary arc shorter than this fraction of the horizon is a touch point",
+    ),
+    Tolerance(
+        "discrete",
+        1e-6,
+        True,
+        "gd's discrete loss within this of its own discrete optimum agrees in crossval",
+    ),
+    Tolerance(
+        "kink",
+        1e-6,
+        True,
+        "a point at a kink is stationary when the least convex combination of the "
+        "gradients around it is below this",
+    ),
 )
 
 TOLERANCES: Mapping[str, Tolerance] = MappingProxyType({t.name: t for t in _TABLE})

@@ -61,7 +61,7 @@ shooting cost to ``rtol`` relative, or to ``rtol * COST_FLOOR`` absolutely below
 SCREEN_INFEASIBILITY = 1e-3
 #: IPOPT iterations of a disc scene's NLP when the search screens many sequences.
 SCREEN_NLP_ITER = 40
-BOUND_SIGN_TOL = 1e-9
+BOUND_SIGN_TOL = tolerances.value("bound_sign")
 """A final time at a bound is a minimum in ``T`` when ``H(T)`` has the right sign, to this
 much relative (its residual is rounding there)."""
 TERMINAL_TOL = tolerances.TERMINAL

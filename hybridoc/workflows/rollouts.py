@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation
 from hybridoc.evaluator import evaluate
@@ -76,9 +77,11 @@ BATCH = 25
 :func:`hybridoc.workflows.policies.validate_policy`."""
 MAX_EVENTS = 3
 """Events per cell that the compiled step resolves."""
-RTOL = 1e-9
+RTOL = tolerances.value("rollout")
 """Relative agreement with the judge that certifies a compiled rollout."""
-_PENETRATION = 1e-9  # a guard below -this at a cell's end: the cell was not resolved
+_PENETRATION = tolerances.value(
+    "penetration"
+)  # a guard below -this at a cell's end: the cell was not resolved
 
 
 def compilable(policy: Any) -> bool:

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.ocp import HybridOCP
 from hybridoc.reference.shooting.common import (
     ArcLaw,
@@ -35,7 +36,7 @@ the bounds (an arc shorter than their spacing is found by a later round, when th
 of the arcs found shows it)."""
 SATURATION_ROUNDS = 6
 """The most active-set rounds of :func:`saturate` (arcs found, extremal solved, checked)."""
-SATURATION_TOL = 1e-7
+SATURATION_TOL = tolerances.value("saturation")
 """How far, relative to ``1 + max |bound|``, ``argmin H`` may lie on the wrong side of a
 bound on an arc before the arcs are wrong (rounding at the switches is far below it)."""
 
@@ -415,7 +416,7 @@ def saturate(
     return S, nr, f"no consistent arcs after {SATURATION_ROUNDS} rounds"
 
 
-TOUCH_TOL = 1e-6
+TOUCH_TOL = tolerances.value("touch")
 """A boundary arc of a pure state row shorter than this fraction of the horizon is a touch
 point (the constraint met at one instant), which the reference does not model."""
 

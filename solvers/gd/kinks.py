@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.evaluator import evaluate
 from hybridoc.ocp import HybridOCP
 from hybridoc.progress import Progress
@@ -27,7 +28,7 @@ KINK_ITERS = 1000
 """The most iterations of the nonsmooth BFGS that takes a descent past a kink."""
 
 
-KINK_GTOL = 1e-6
+KINK_GTOL = tolerances.value("kink")
 """A point at a kink is stationary when the smallest convex combination of the gradients
 around it (:attr:`~hybridoc.solvers.optimizers.NonsmoothResult.stationarity`, of the loss
 per step ``J / dt``) times ``1 + max |u|`` is at most this times ``1 + |J / dt|``: no

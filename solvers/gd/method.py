@@ -28,7 +28,7 @@ paper's symplectic Euler objective, whose kinks (a contact moving to another ste
 plain descent and are not taken past by :func:`past_kinks` (exact integrator only)."""
 
 
-DISCRETE_TOLERANCE = 1e-6
+DISCRETE_TOLERANCE = tolerances.value("discrete")
 """Relative gap of gd's discrete loss to the optimum of its own discrete objective within
 which the two agree in cross-validation
 (:func:`~hybridoc.solvers.discrete_transcription.discrete_gap`)."""
