@@ -112,7 +112,7 @@ def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments)
         (("solve", "head-on", "--out", "a_file"), ("a_file",)),
         (("ablation", "--out", "a_file"), ("a_file",)),
         (("crossval", "head-on", "--out", "a_file"), ("a_file",)),
-        (("convergence", "head-on", "--no-gd", "--out", "a_file"), ("a_file",)),
+        (("convergence", "head-on", "--methods", "dt", "--out", "a_file"), ("a_file",)),
         (("compare-contacts", "head-on", "--out", "a_file"), ("a_file",)),
         (("reference", "head-on", "--out", "a_file"), ("a_file",)),
         # the transcription has no gd options: say so instead of ignoring them
@@ -130,7 +130,7 @@ def test_usage_errors_are_one_line(work: Path, args: tuple[str, ...], fragments)
         (("reference", "head-on", "--sequence", "striker|target,,"), ("empty event name",)),
         # a file that is not .npy, behind a .npy name: no talk about pickles
         (("evaluate", "head-on", "--controls", "garbage.npy"), ("no NumPy header",)),
-        (("gradcheck", "head-on", "--gd-iters", "x"), ("--gd-iters",)),
+        (("gradcheck", "head-on", "--iters", "x"), ("--iters", "'x'")),
         (("show", "overlap.toml"), ("overlap",)),
         (("evaluate", "bad.toml"), ("not valid TOML",)),
         (("validate", "nosuch", "short.npy"), ("unknown problem",)),
@@ -279,7 +279,7 @@ def hostile(tmp_path_factory: pytest.TempPathFactory) -> Path:
                 ("show",),
                 ("gradient",),
                 ("crossval",),
-                ("convergence", "--no-gd"),
+                ("convergence", "--methods", "dt"),
             )
         ],
         # unbounded sizes: tracebacks (OverflowError, ValueError, CasADi) or a silent hang

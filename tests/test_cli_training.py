@@ -24,7 +24,7 @@ def test_train_policy_then_validate_policy(
     scene_file = tmp_path / "sc.toml"
     scene_file.write_text(SCENE)
     out = tmp_path / "out"
-    code = main(["train-policy", str(scene_file), "--samples", "1", "--epochs", "2",
+    code = main(["train-policy", str(scene_file), "--samples", "1", "--iters", "2",
                  "--hidden", "4", "--layers", "1", "--out", str(out), "--json",
                  "--no-progress"])  # fmt: skip
     trained = json.loads(capsys.readouterr().out)

@@ -168,22 +168,24 @@ def test_every_word_is_used() -> None:
     assert CANONICAL - used == set()
 
 
-@pytest.mark.parametrize(
-    ("argv", "dest", "value", "note"),
-    [
-        (["gradcheck", "head-on", "--gd-iters", "5"], "gd_iters", "5", "--iters K,K"),
-        (["compare-contacts", "head-on", "--models", "lcp"], "models", "lcp", "--contact M,M"),
-        (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--epochs", "7"], "iters",
-         7, "--iters K"),
-        (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--no-toi"], "toi", "none",
-         "--toi none"),
-        (["convergence", "head-on", "--no-gd"], "no_gd", True, "--methods dt"),
-        (["solve", "head-on", "--initial", "u.npy"], "initial", Path("u.npy"), "--controls"),
-        (["crossval", "head-on", "--starts", "3", "--mesh", "8", "--gd-integrator",
-          "symplectic-euler"], "set",
-         ["gd.starts=3", "dt.mesh=8", "gd.integrator=symplectic-euler"], "--set gd.starts=3"),
-    ],
-)  # fmt: skip
+OLD_SPELLINGS = [
+    (["gradcheck", "head-on", "--gd-iters", "5"], "gd_iters", "5", "--iters K,K"),
+    (["compare-contacts", "head-on", "--models", "lcp"], "models", "lcp", "--contact M,M"),
+    (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--epochs", "7"], "iters",
+     7, "--iters K"),
+    (["train-policy", "x.toml", "--samples", "2", "--out", "d", "--no-toi"], "toi", "none",
+     "--toi none"),
+    (["convergence", "head-on", "--no-gd"], "no_gd", True, "--methods dt"),
+    (["solve", "head-on", "--initial", "u.npy"], "initial", Path("u.npy"), "--controls"),
+    (["crossval", "head-on", "--starts", "3", "--mesh", "8", "--gd-integrator",
+      "symplectic-euler"], "set",
+     ["gd.starts=3", "dt.mesh=8", "gd.integrator=symplectic-euler"], "--set gd.starts=3"),
+]  # fmt: skip
+"""Each old spelling once: the command line, the canonical ``dest`` and the value it gets
+there, and what the (first) note says to use instead."""
+
+
+@pytest.mark.parametrize(("argv", "dest", "value", "note"), OLD_SPELLINGS)
 def test_old_spellings_map_onto_the_new_ones_with_a_note(
     argv: list[str], dest: str, value: object, note: str
 ) -> None:
@@ -191,6 +193,31 @@ def test_old_spellings_map_onto_the_new_ones_with_a_note(
     assert getattr(args, dest) == value
     notes = args._deprecated
     assert notes and "deprecated" in notes[0] and note in notes[0], notes
+    # one note per old spelling given, naming it
+    old = [a for a in argv if a in DEPRECATED or a in SET_ALIASES.get(argv[0], {})]
+    assert [n.split()[0] for n in notes] == old, notes
+
+
+def test_every_old_spelling_is_tested() -> None:
+    """Each deprecated alias of the table (and each old flag of --set) is in
+    :data:`OLD_SPELLINGS`, so that it is known to still work while it is kept."""
+    given = {a for argv, *_ in OLD_SPELLINGS for a in argv}
+    set_flags = {flag for flags in SET_ALIASES.values() for flag in flags}
+    assert (DEPRECATED | set_flags) - given == set()
+
+
+def test_an_error_names_the_old_spelling_as_typed(capsys: pytest.CaptureFixture[str]) -> None:
+    """A user error about a flag given by its old spelling names the flag as it was typed,
+    and the error stays the one line (no deprecation note after it)."""
+    for flag, new in (("--models", "--contact"), ("--gd-iters", "--iters")):
+        argv = ["gradcheck", "head-on", "--against", "g.npy", flag, "5"]
+        assert main(argv) == 2
+        (line,) = capsys.readouterr().err.splitlines()
+        assert f"{flag} compare contact models: not with --against" in line, line
+        argv[4] = new
+        assert main(argv) == 2
+        (line,) = capsys.readouterr().err.splitlines()
+        assert f"{new} compare contact models: not with --against" in line, line
 
 
 def test_the_new_spellings_parse_without_a_note() -> None:

@@ -296,7 +296,7 @@ def test_train_policy_never_writes_through_a_link(
     out.mkdir()
     link = out / "sc-out_train-policy.npz"
     link.symlink_to(outside)
-    done = run_here(*["train-policy", str(scene), "--samples", "2", "--epochs", "1",
+    done = run_here(*["train-policy", str(scene), "--samples", "2", "--iters", "1",
                     "--no-progress", "--out", str(out)])  # fmt: skip
     assert done.returncode == 2
     (line,) = done.stderr.strip().splitlines()

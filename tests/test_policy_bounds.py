@@ -284,7 +284,7 @@ def test_train_policy_clips_and_reports_a_terminal_violation(
     stays in the bounds (its file clips) but misses x(T) = 0, v(T) = -1.5, which the
     command reports, with exit code 1."""
     spec = f"{files / 'problems.py'}:shuttle"
-    code = main(["train-policy", spec, "--samples", "2", "--epochs", "2", "--hidden", "4",
+    code = main(["train-policy", spec, "--samples", "2", "--iters", "2", "--hidden", "4",
                  "--layers", "1", "--out", str(tmp_path), "--json", "--no-progress"])  # fmt: skip
     cap = capsys.readouterr()
     payload = json.loads(cap.out)

@@ -146,7 +146,7 @@ def test_cli_train_policy_then_validate_policy_on_a_python_problem(
 ) -> None:
     spec = f"{prob_file}:ball"
     out = tmp_path / "out"
-    code = main(["train-policy", spec, "--samples", "3", "--epochs", "3", "--hidden", "4",
+    code = main(["train-policy", spec, "--samples", "3", "--iters", "3", "--hidden", "4",
                  "--layers", "1", "--lr", "0.03", "--out", str(out), "--json",
                  "--no-progress"])  # fmt: skip
     trained = json.loads(capsys.readouterr().out)
@@ -182,8 +182,8 @@ def test_cli_train_policy_needs_a_distribution(
         err = capsys.readouterr().err
         assert code == 2 and "has none" in err and "distribution=" in err, err
         assert err.count("\n") == 1  # one line
-    code = main(["train-policy", f"{prob_file}:ball", "--samples", "2", "--no-toi",
+    code = main(["train-policy", f"{prob_file}:ball", "--samples", "2", "--toi", "none",
                  "--out", str(tmp_path)])  # fmt: skip
     err = capsys.readouterr().err
-    assert code == 2 and "--no-toi needs a disc scene" in err
+    assert code == 2 and "--toi none needs a disc scene" in err
     assert not list(tmp_path.iterdir())  # refused before anything is written
