@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.hybridoc-installed
 # Directories whose file lists decide the editable install's link tree (strict mode).
-PKG_DIRS := hybridoc hybridoc/cli hybridoc/workflows hybridoc/workflows/validation hybridoc/workflows/datasets hybridoc/workflows/training hybridoc/workflows/policy_format reference reference/shooting solvers solvers/contacts solvers/transcription solvers/gd problems problems/library problems/scenes
+PKG_DIRS := hybridoc hybridoc/cli hybridoc/workflows hybridoc/workflows/validation hybridoc/workflows/datasets hybridoc/workflows/training hybridoc/workflows/policy_format reference reference/shooting reference/search solvers solvers/contacts solvers/transcription solvers/gd problems problems/library problems/scenes
 
 # Python writes the bytecode of what it imports (__pycache__) even where the environment
 # says not to: with the install's --no-compile (below), a process that cannot write it would

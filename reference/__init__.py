@@ -1,14 +1,15 @@
 """The reference: optimal control by shooting on the hybrid minimum principle.
 
 See :func:`solve_reference` and its options, :class:`ReferenceOptions`
-(:mod:`hybridoc.reference.options`); the search behind it is split by concern into private
-modules: its bookkeeping (``_book``), the discovery of sequences (``_discovery``), the
-enumeration and its worker screens (``_enumeration``) and what it claims (``_claims``). The
-HMP system of one event sequence is in :mod:`hybridoc.reference.shooting`, the solve of one
-sequence and its verification in :mod:`hybridoc.reference.sequence`, the reference's own
-candidate sequences in :mod:`hybridoc.reference.candidates`, the protocol of the candidate
-sources it is given (or that are registered: the solvers') in
-:mod:`hybridoc.reference.sources`, and the result type in :mod:`hybridoc.reference.result`.
+(:mod:`hybridoc.reference.options`); the search behind it is split by concern in
+:mod:`hybridoc.reference.search`: its bookkeeping (``book``), the discovery of sequences
+(``discovery``), the enumeration and its worker screens (``enumeration``) and what it
+claims (``claims``). The HMP system of one event sequence is in
+:mod:`hybridoc.reference.shooting`, the solve of one sequence and its verification in
+:mod:`hybridoc.reference.sequence`, the reference's own candidate sequences in
+:mod:`hybridoc.reference.candidates`, the protocol of the candidate sources it is given (or
+that are registered: the solvers') in :mod:`hybridoc.reference.sources`, and the result type
+in :mod:`hybridoc.reference.result`.
 A disc scene far from its own units is solved in them (:mod:`hybridoc.reference.units`); the
 DOP853 tableau is :mod:`hybridoc.reference.dop853`. The reference imports no solver.
 

@@ -23,7 +23,7 @@ What it tries
 
 What it claims
     ``success`` means the global optimum, and only where the coverage proves it
-    (:func:`~hybridoc.reference._claims.proof`): every feasible sequence of up to one event
+    (:func:`~hybridoc.reference.search.claims.proof`): every feasible sequence of up to one event
     more than the answer's own was solved or excluded by a valid lower bound (the
     enumeration extends to that length while the shorter ones are covered, at most
     :data:`MAX_PROOF_DEPTH`, within the budget), no cheaper extremal of those lengths fails
@@ -84,7 +84,18 @@ from hybridoc.methods import Method
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
-from hybridoc.reference._book import (
+from hybridoc.reference.options import (
+    DEFAULT_BUDGET,
+    MAX_EVENTS,
+    MAX_SEARCH,
+    MULTISTART,
+    ReferenceOptions,
+    option_keywords,
+    parse_budget,
+    parse_search,
+)
+from hybridoc.reference.result import ReferenceResult
+from hybridoc.reference.search.book import (
     MAX_PROOF_DEPTH,
     OPT_RTOL,
     PATH_SAMPLES,
@@ -101,7 +112,7 @@ from hybridoc.reference._book import (
     source_lacks,
     too_long,
 )
-from hybridoc.reference._claims import (
+from hybridoc.reference.search.claims import (
     EVENT_CONTROL_PROBE,
     PROOF_STARTS,
     check_coalescing,
@@ -115,24 +126,13 @@ from hybridoc.reference._claims import (
     summary_lines,
     touch_note,
 )
-from hybridoc.reference._discovery import (
+from hybridoc.reference.search.discovery import (
     best_of,
     discover,
     revisit_cheaper,
     second_start,
     solve_given,
 )
-from hybridoc.reference.options import (
-    DEFAULT_BUDGET,
-    MAX_EVENTS,
-    MAX_SEARCH,
-    MULTISTART,
-    ReferenceOptions,
-    option_keywords,
-    parse_budget,
-    parse_search,
-)
-from hybridoc.reference.result import ReferenceResult
 from hybridoc.reference.shooting import (
     hamiltonian_check,
     has_closed_form_phases,

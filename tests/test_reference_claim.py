@@ -191,10 +191,10 @@ def test_a_longer_sequence_a_control_met_without_an_extremal_is_not_proven() -> 
     # with three bounces whose sequence has no extremal (a break's cascade, in small) is
     # territory the search shows reachable and did not solve: not proven
     from hybridoc import as_ocp, evaluate
-    from hybridoc.reference._book import Book as _Book
-    from hybridoc.reference._book import Known as _Known
-    from hybridoc.reference._book import Run as _Run
-    from hybridoc.reference._claims import proof as _proof
+    from hybridoc.reference.search.book import Book as _Book
+    from hybridoc.reference.search.book import Known as _Known
+    from hybridoc.reference.search.book import Run as _Run
+    from hybridoc.reference.search.claims import proof as _proof
 
     ocp = as_ocp("bouncing-ball")
     book = _Book(ocp, 1e-10, False)

@@ -15,7 +15,7 @@ import os
 import pytest
 
 import hybridoc
-import hybridoc.reference._enumeration as rsolve
+import hybridoc.reference.search.enumeration as rsolve
 from hybridoc.reference import solve_reference
 
 KWARGS = dict(search=2, multistart=0, transcription=False)

@@ -224,7 +224,7 @@ def test_early_screens_leave_the_search_as_it_was(monkeypatch):
     # processes); the enumeration takes their outcomes as its own: the same
     # landscape, verdicts, origins and coverage as with every screen started in order
     import hybridoc
-    import hybridoc.reference._enumeration as rsolve
+    import hybridoc.reference.search.enumeration as rsolve
 
     scene = hybridoc.load_scene("multiple-collision")
     started = []
@@ -256,7 +256,7 @@ def test_early_screens_leave_the_search_as_it_was(monkeypatch):
 def test_no_sequence_is_solved_twice_from_the_same_start(monkeypatch):
     # friction-patch-free-time: the guess's own sequence fails from the guess, and the
     # known control of the guess (the guess itself) used to start the very same solve again
-    import hybridoc.reference._book as rsolve
+    import hybridoc.reference.search.book as rsolve
 
     calls = []
     real = rsolve.solve_sequence

@@ -626,8 +626,8 @@ def test_reference_sees_non_commuting_near_impacts_past_a_far_body(far: float | 
     tolerance 1e-9 * 1e15 and hid the pair."""
     import dataclasses
 
-    from hybridoc.reference._book import Known as _Known
-    from hybridoc.reference._claims import _coalescing
+    from hybridoc.reference.search.book import Known as _Known
+    from hybridoc.reference.search.claims import _coalescing
 
     sc = _scene("symmetric-striker")
     if far is not None:

@@ -1,4 +1,4 @@
-"""The reference's search bookkeeping (private to :mod:`hybridoc.reference`).
+"""The reference's search bookkeeping (part of :mod:`hybridoc.reference.search`).
 
 What one :func:`~hybridoc.reference.solve_reference` call tried and knows (:class:`Book`),
 its checked arguments (:class:`Run`), the initial guess as it uses it (:class:`Guess`), the

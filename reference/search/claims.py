@@ -1,5 +1,5 @@
-"""What the reference claims, and the words it says it in (private to
-:mod:`hybridoc.reference`).
+"""What the reference claims, and the words it says it in (part of
+:mod:`hybridoc.reference.search`).
 
 The proof of the global optimum from the search's coverage (:func:`proof`), the checks of an
 answer (a reset's control that is not a minimum, the path constraints along the judge's
@@ -20,7 +20,9 @@ from hybridoc.errors import ConvergenceError, HybridocError
 from hybridoc.evaluation import Evaluation
 from hybridoc.methods import problem_features
 from hybridoc.ocp import HybridOCP
-from hybridoc.reference._book import (
+from hybridoc.reference.options import MAX_EVENTS
+from hybridoc.reference.result import ReferenceResult, reference_control
+from hybridoc.reference.search.book import (
     LACKS,
     MAX_PROOF_DEPTH,
     OPT_RTOL,
@@ -36,8 +38,6 @@ from hybridoc.reference._book import (
     source_lacks,
     too_long,
 )
-from hybridoc.reference.options import MAX_EVENTS
-from hybridoc.reference.result import ReferenceResult, reference_control
 from hybridoc.reference.units import cost_shown as _J
 from hybridoc.solution import Solution, Status
 

@@ -1,4 +1,4 @@
-"""The reference's discovery of event sequences (private to :mod:`hybridoc.reference`).
+"""The reference's discovery of event sequences (part of :mod:`hybridoc.reference.search`).
 
 The initial guess's candidates, the candidate sources' proposals, the enumeration and the
 sequences of re-simulations (:func:`discover`); the known controls that are cheaper
@@ -16,7 +16,10 @@ import numpy as np
 
 from hybridoc.errors import ConvergenceError, HybridocError, SceneError
 from hybridoc.ocp import HybridOCP
-from hybridoc.reference._book import (
+from hybridoc.reference.candidates import guess_candidates, guess_times, lower_bound
+from hybridoc.reference.options import MAX_EVENTS
+from hybridoc.reference.result import ReferenceResult
+from hybridoc.reference.search.book import (
     KNOWN_STARTS,
     MAX_PROOF_DEPTH,
     OPT_RTOL,
@@ -33,16 +36,13 @@ from hybridoc.reference._book import (
     note_source,
     source_lacks,
 )
-from hybridoc.reference._claims import PROOF_STARTS, check_simultaneous, touch_reason
-from hybridoc.reference._enumeration import run_enumeration, start_screens
-from hybridoc.reference.candidates import guess_candidates, guess_times, lower_bound
-from hybridoc.reference.options import MAX_EVENTS
-from hybridoc.reference.result import ReferenceResult
+from hybridoc.reference.search.claims import PROOF_STARTS, check_simultaneous, touch_reason
+from hybridoc.reference.search.enumeration import run_enumeration, start_screens
 from hybridoc.reference.shooting import has_closed_form_phases
 from hybridoc.reference.sources import Proposal, SourceContext
 
 if TYPE_CHECKING:  # pragma: no cover
-    from hybridoc.reference._enumeration import _EarlyScreens
+    from hybridoc.reference.search.enumeration import _EarlyScreens
 
 
 def solve_given(ocp: HybridOCP, run: Run, book: Book, guess: Guess) -> ReferenceResult:

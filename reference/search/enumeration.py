@@ -1,4 +1,4 @@
-"""The reference's enumeration of event sequences (private to :mod:`hybridoc.reference`).
+"""The reference's enumeration of event sequences (part of :mod:`hybridoc.reference.search`).
 
 Every feasible sequence, length by length and by lower bound within a length
 (:func:`run_enumeration`), each screened by Newton from the disc NLP or the warm starts
@@ -19,7 +19,14 @@ from hybridoc.cores import usable_cores
 from hybridoc.errors import ConvergenceError, EvaluationError
 from hybridoc.evaluation import Evaluation
 from hybridoc.ocp import HybridOCP
-from hybridoc.reference._book import (
+from hybridoc.reference.candidates import (
+    default_depth,
+    enumerate_sequences,
+    guess_times,
+    lower_bound,
+)
+from hybridoc.reference.result import make_result
+from hybridoc.reference.search.book import (
     IMPOSSIBLE,
     MAX_PROOF_DEPTH,
     Book,
@@ -30,13 +37,6 @@ from hybridoc.reference._book import (
     note_source,
     too_long,
 )
-from hybridoc.reference.candidates import (
-    default_depth,
-    enumerate_sequences,
-    guess_times,
-    lower_bound,
-)
-from hybridoc.reference.result import make_result
 from hybridoc.reference.sequence import SCREEN_NLP_ITER, solve_sequence
 from hybridoc.reference.shooting import (
     has_closed_form_phases,
