@@ -217,7 +217,7 @@ def test_compare_contacts_names_the_models(capsys, tmp_path, monkeypatch) -> Non
     monkeypatch.setattr(hybridoc.progress, "QUIET_LOG_S", 0.0)  # progress lines from the start
     monkeypatch.setattr(hybridoc.progress, "QUIET_S", 0.0)
     code = main(
-        ["compare-contacts", "single-collision", "--iters", "2", "--models", "lcp/both,pbd"]
+        ["compare-contacts", "single-collision", "--iters", "2", "--contact", "lcp/both,pbd"]
     )
     assert code == 0
     captured = capsys.readouterr()
@@ -238,11 +238,11 @@ def test_compare_contacts_names_the_models(capsys, tmp_path, monkeypatch) -> Non
     )  # fmt: skip
     path = tmp_path / "far.toml"
     path.write_text(far.to_toml())
-    code = main(["compare-contacts", str(path), "--iters", "1", "--models", "convex/none,pbd"])
+    code = main(["compare-contacts", str(path), "--iters", "1", "--contact", "convex/none,pbd"])
     assert code == 0
     out = capsys.readouterr().out
     assert "convex/none: no contact in the final trajectory" in out
     assert "pbd: no contact in the final trajectory" in out
-    code = main(["compare-contacts", str(path), "--iters", "1", "--models", "compliant", "--json"])
+    code = main(["compare-contacts", str(path), "--iters", "1", "--contact", "compliant", "--json"])
     result = json.loads(capsys.readouterr().out)
     assert result["models"][0]["note"] == "compliant: no contact in the final trajectory"

@@ -38,7 +38,7 @@ def test_toi_both_gradient_beats_plain_direct(single):
 
 def test_cli_gradcheck_json(capsys):
     models = "direct/none,direct/both,convex/both,pbd"
-    code = main(["gradcheck", "single-collision", "--json", "--gd-iters", "5", "--models", models])
+    code = main(["gradcheck", "single-collision", "--json", "--iters", "5", "--contact", models])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["points"] == ["initial", "gd-5"]
@@ -61,7 +61,7 @@ def test_cli_compare_contacts_json_and_figures(capsys, tmp_path):
             "--json",
             "--iters",
             "3",
-            "--models",
+            "--contact",
             "direct/both,compliant",
             "--out",
             str(tmp_path),
@@ -87,7 +87,7 @@ def test_cli_compare_contacts_json_and_figures(capsys, tmp_path):
 
 
 def test_cli_unknown_model_is_a_user_error(capsys):
-    assert main(["gradcheck", "single-collision", "--models", "magic"]) == 2
+    assert main(["gradcheck", "single-collision", "--contact", "magic"]) == 2
     assert "unknown contact model" in capsys.readouterr().err
 
 

@@ -159,7 +159,7 @@ def test_gradcheck_against_errors(tmp_path, capsys, single):
     one_error(capsys, "gradcheck", "single-collision", "--against", tmp_path / "nope.npy",
               fragments=("does not exist",))  # fmt: skip
     one_error(capsys, "gradcheck", "single-collision", "--against", tmp_path / "gk.npy",
-              "--models", "pbd", fragments=("--models",))  # fmt: skip
+              "--contact", "pbd", fragments=("--contact",))  # fmt: skip
     one_error(capsys, "gradcheck", "single-collision", "--controls", tmp_path / "gk.npy",
               fragments=("--controls applies to --against only",))  # fmt: skip
 

@@ -78,7 +78,7 @@ def _commands(d: Path) -> dict[str, tuple[list[str], list[str]]]:
         "solve-reference": solve("reference"),
         "reference": (["reference", b], [f"{b}_reference.{x}" for x in ("json", "npz")]
                       + [f"{b}_reference_{f}.png" for f in ("controls", "costates", "trajectory")]),
-        "train-policy": (["train-policy", scene, "--samples", "2", "--epochs", "1",
+        "train-policy": (["train-policy", scene, "--samples", "2", "--iters", "1",
                           "--no-progress"],
                          [f"{SLUG}_train-policy.{x}" for x in ("json", "npz")]
                          + [f"{SLUG}_train-policy_report.json"]),
@@ -88,7 +88,7 @@ def _commands(d: Path) -> dict[str, tuple[list[str], list[str]]]:
                                                    "_trajectories.png", "_learning_curve.png")]),
         "validate": (["validate", b, "--controls", str(d / "u.npy")],
                      [f"{b}_validate{e}" for e in (".json", "_controls.png", "_trajectories.png")]),
-        "convergence": (["convergence", b, "--steps", "20", "40", "--no-gd"],
+        "convergence": (["convergence", b, "--steps", "20", "40", "--methods", "dt"],
                         [f"{b}_convergence{e}" for e in (".json", ".png")]),
         "dataset": (["dataset", scene, *few], ["dataset.npz", "manifest.json"]),
         "validate-policy": (["validate-policy", scene, "--policy", pol, *few],
