@@ -67,7 +67,7 @@ def test_every_command_takes_a_saved_solution_as_controls(work: Path) -> None:
     assert report["reference_status"] in ("success", "best-found"), val.stderr
     assert val.returncode == (0 if report["reference_status"] == "success" else 1), val.stderr
     assert report["sequence_matches"] is True
-    ref = _here(work, "reference", "head-on", "--initial", "dt.json", "--json")
+    ref = _here(work, "reference", "head-on", "--controls", "dt.json", "--json")
     status = hybridoc.Status(json.loads(ref.stdout)["status"])
     assert status in (hybridoc.Status.SUCCESS, hybridoc.Status.BEST_FOUND), ref.stderr
     assert ref.returncode == status.exit_code, ref.stderr
@@ -75,7 +75,7 @@ def test_every_command_takes_a_saved_solution_as_controls(work: Path) -> None:
 
 def test_a_missing_file_is_named_as_given(work: Path) -> None:
     for args in (
-        ("reference", "head-on", "--initial", "nope.npz"),
+        ("reference", "head-on", "--controls", "nope.npz"),
         ("evaluate", "head-on", "--controls", "nope.npz"),
         ("validate", "head-on", "nope.npz"),
     ):

@@ -98,7 +98,7 @@ def test_a_method_that_raises_is_a_row_and_files_are_written(
 def test_crossval_flags_reach_the_methods(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """--mesh, --starts and --tolerance METHOD=VALUE map onto crossval's options and
+    """--set METHOD.OPTION=VALUE and --tolerance METHOD=VALUE map onto crossval's options and
     tolerances (crossval itself is replaced: this is about the parsing)."""
     import hybridoc.workflows.validation as val
 
@@ -109,7 +109,8 @@ def test_crossval_flags_reach_the_methods(
         return {"problem": ocp.name, "agree": True, "reasons": []}, {}
 
     monkeypatch.setattr(val, "crossval", fake)
-    code = main(["crossval", "bouncing-ball", "--mesh", "16", "--starts", "3", "--tolerance",
+    code = main(["crossval", "bouncing-ball", "--set", "dt.mesh=16", "--set", "gd.starts=3",
+                 "--tolerance",
                  "gd=0.02", "--tolerance", "dt=1e-5", "--no-progress", "--json"])  # fmt: skip
     assert code == 0
     assert seen["options"]["dt"] == {"mesh": 16}

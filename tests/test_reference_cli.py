@@ -74,12 +74,12 @@ def test_reference_initial_verbose_shows_newton(tmp_path, capsys):
     # the known optimal sequence: this test is about the Newton log, not the discovery
     ref = solve_reference(hybridoc.load_scene("single-collision"), sequence=["ball1|ball2"])
     np.save(tmp_path / "u.npy", ref.controls)
-    rc = main(["reference", "single-collision", "--initial", str(tmp_path / "u.npy"), "--verbose"])
+    rc = main(["reference", "single-collision", "--controls", str(tmp_path / "u.npy"), "--verbose"])
     err = capsys.readouterr().err
     assert rc == 0
     res = [float(line.split("=")[1].split()[0]) for line in err.splitlines() if "|R|_inf" in line]
     assert res[0] > 1e-6 and min(res) < 1e-13
-    rc = main(["reference", "single-collision", "--initial", str(tmp_path / "missing.npy")])
+    rc = main(["reference", "single-collision", "--controls", str(tmp_path / "missing.npy")])
     assert rc == 2 and "missing.npy" in capsys.readouterr().err
 
 

@@ -94,7 +94,7 @@ def test_train_policy_samples_beyond_memory_is_refused_before_drawing(tmp_path):
 
 
 def test_crossval_starts_beyond_memory_is_refused_before_any_solve():
-    res, cpu = _timed("crossval", "single-collision", "--starts", "1000000000",
+    res, cpu = _timed("crossval", "single-collision", "--set", "gd.starts=1000000000",
                       "--no-progress")  # fmt: skip
     _one_error(res, "starts=1000000000 would need about ", "per start", "use a smaller starts")
     assert cpu < 1.0  # before: the reference and dt ran first, then exit 1 (a finding)
