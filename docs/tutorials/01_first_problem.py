@@ -113,9 +113,9 @@ for method in ("reference", "dt", "gd"):
 # %%
 # Plotting
 # --------
-# :func:`~hybridoc.workflows.validation.crossval_figures` draws the three trajectories and
-# the three controls. The optimal push is steered so that ``ball2`` leaves the collision
-# towards the origin:
+# :func:`~hybridoc.workflows.validation.comparison.crossval_figures` draws the three
+# trajectories and the three controls. The optimal push is steered so that ``ball2`` leaves
+# the collision towards the origin:
 figures = crossval_figures("single-collision", sols)
 fig_paths = figures["trajectories"]
 # sphinx_gallery_thumbnail_number = 2

@@ -36,10 +36,11 @@ from matplotlib.figure import Figure
 
 import hybridoc
 from hybridoc.problems import load_scene
-from hybridoc.problems.scene import DiscSpread, Distribution, Spread
+from hybridoc.problems.distribution import DiscSpread, Distribution, Spread
 from hybridoc.solvers.simulator import Simulator
 from hybridoc.workflows.datasets import make_dataset
-from hybridoc.workflows.policies import policy_figures, validate_policy
+from hybridoc.workflows.policies import validate_policy
+from hybridoc.workflows.policy_report import policy_figures
 from hybridoc.workflows.training import mlp_policy, train_policy
 
 QUICK = os.environ.get("HYBRIDOC_TUTORIAL_QUICK") == "1"
@@ -53,7 +54,7 @@ SNAPSHOTS = (0, 12) if QUICK else (0, 3, 6, 12)
 # %%
 # A distribution and a policy
 # ---------------------------
-# As in tutorial 8, a :class:`~hybridoc.problems.scene.Distribution` moves the start of
+# As in tutorial 8, a :class:`~hybridoc.problems.distribution.Distribution` moves the start of
 # ``ball2``, here uniformly by up to :math:`\pm 0.3` in each coordinate.
 # :meth:`~hybridoc.problems.scene.Scene.with_steps` puts the scene on the coarser grid.
 # Training and validation use different draws: the training states come from seed 1, the
@@ -69,7 +70,7 @@ print(f"grid of {scene.steps} steps (the paper's: {nominal.steps}); dt {scene.dt
 print(f"{N_TRAIN} training states")
 
 # %%
-# :func:`~hybridoc.workflows.training.mlp_policy` builds a small ``tanh`` network
+# :func:`~hybridoc.workflows.training.policy.mlp_policy` builds a small ``tanh`` network
 # :math:`(t, s) \mapsto u` with its inputs scaled to the scene. Its output is the scene's
 # initial control plus the network, whose last layer starts small, so the untrained policy
 # acts almost like the initial guess. It is a float64 ``torch.nn.Module`` that takes one
@@ -231,8 +232,9 @@ for name, rep in reports.items():
 #
 # The figures
 # -----------
-# :func:`~hybridoc.workflows.policies.policy_figures` draws what ``hybridoc validate-policy --out``
-# saves (through :func:`~hybridoc.workflows.policies.report_figures`): the histogram of the relative
+# :func:`~hybridoc.workflows.policy_report.policy_figures` draws what
+# ``hybridoc validate-policy --out`` saves (through
+# :func:`~hybridoc.workflows.policy_report.report_figures`): the histogram of the relative
 # gap and the gap over the initial-state coordinates that vary.
 labels = list(scene.to_ocp().state_labels)
 figures = {

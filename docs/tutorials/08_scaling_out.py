@@ -18,7 +18,7 @@ The file formats and the command line are described in :doc:`/datasets`.
 # %%
 # A distribution of initial states
 # --------------------------------
-# A :class:`~hybridoc.problems.scene.Distribution` says what varies in a scene: here the
+# A :class:`~hybridoc.problems.distribution.Distribution` says what varies in a scene: here the
 # start of ``ball2``, uniformly within :math:`\pm 0.2` of its nominal position in each
 # coordinate. In a TOML scene it is the ``[distribution]`` table that
 # ``toml_lines`` prints.
@@ -33,9 +33,10 @@ from distributed import Client, LocalCluster
 
 import hybridoc
 from hybridoc.problems import load_scene
-from hybridoc.problems.scene import DiscSpread, Distribution, Spread
+from hybridoc.problems.distribution import DiscSpread, Distribution, Spread
 from hybridoc.workflows.datasets import make_dataset
-from hybridoc.workflows.policies import policy_figures, validate_policy
+from hybridoc.workflows.policies import validate_policy
+from hybridoc.workflows.policy_report import policy_figures
 
 # the test suite runs a smaller version (``HYBRIDOC_TUTORIAL_QUICK=1``): a grid of 120
 # steps instead of 480, 26 draws, still two chunks (of 25 and 1), and the nominal
@@ -236,8 +237,9 @@ print("same rollouts on Dask and on the pool:", same)
 # %%
 # The figures
 # -----------
-# :func:`~hybridoc.workflows.policies.policy_figures` draws what ``hybridoc validate-policy --out``
-# saves (through :func:`~hybridoc.workflows.policies.report_figures`): the histogram of the relative
+# :func:`~hybridoc.workflows.policy_report.policy_figures` draws what
+# ``hybridoc validate-policy --out`` saves (through
+# :func:`~hybridoc.workflows.policy_report.report_figures`): the histogram of the relative
 # gap and the gap over the two initial-state coordinates that vary (red crosses: a rollout
 # whose events differ from the optimum's).
 labels = list(scene.to_ocp().state_labels)
