@@ -34,8 +34,9 @@ Many bodies: the broad phase
     values are the all-pairs kernels' rows bit for bit. The other guards stay apart by
     more than the broad phase's margin and cannot fire. The crossing search examines
     fewer guards (it halves a window for all of them when one needs it), so an event time
-    can be polished from another bracket: the same events, times and costs equal to the
-    all-pairs judge's within a few ulps (8e-15 relative seen on random crowded scenes).
+    can be polished from another bracket: the same events as the all-pairs judge, times
+    and costs bit for bit or apart by an ulp that later collisions amplify (within 5e-14
+    relative on random crowded scenes; ``docs/trust.rst``, "Resources").
 
 Not modelled
     Sustained contact (e.g. restitution 0 with a force pushing into the contact) and Zeno
