@@ -53,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.callable_eval import evaluate_callable
 from hybridoc.errors import ControlsError, EvaluationError
 from hybridoc.evaluation import Evaluation, Gradient, Segment
@@ -87,7 +88,7 @@ def evaluate(
     policy: Policy | None = None,
     hold: str = "zoh",
     graze_tol: float = 1e-10,
-    penetration_tol: float = 1e-9,
+    penetration_tol: float = tolerances.value("penetration"),
     max_events: int = MAX_EVENTS,
 ) -> Evaluation:
     """Simulate the continuous hybrid system and return its cost and events.

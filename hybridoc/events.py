@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridoc import tolerances
 from hybridoc.errors import EvaluationError, HybridocError, SimultaneousEventError
 
 __all__ = [
@@ -55,7 +56,7 @@ MAX_REPEATS_AT_ONE_TIME = 8
 """One guard firing more often than this at one instant (a cascade that only converges in the
 limit, e.g. a disc squeezed between two bodies with restitution < 1) is an error, not a count
 that depends on the grazing threshold."""
-_COMMUTE_RTOL = 1e-9
+_COMMUTE_RTOL = tolerances.value("commute")
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from typing import Any, NamedTuple
 import casadi as ca
 import numpy as np
 
-from hybridoc import broadphase, compiled
+from hybridoc import broadphase, compiled, tolerances
 from hybridoc.broadphase import ContactTable
 from hybridoc.errors import EvaluationError
 from hybridoc.ocp import HybridOCP, Structure, integrator_flow_samples
@@ -301,7 +301,7 @@ def _integrator_flow_nodes(
     return _FlowNodes(s_end, cost, node_states, win_states, sc_end)
 
 
-RK_TOL = 1e-13
+RK_TOL = tolerances.value("integration")
 """Relative and absolute tolerance of the judge's DOP853 flow (those of its CVODES flow)."""
 
 
