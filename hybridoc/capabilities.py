@@ -95,8 +95,8 @@ class Body:
 
 @dataclass(frozen=True)
 class Plane:
-    """A fixed line (a wall) of a :class:`Geometry`: the points ``x`` with
-    ``normal . (x - point) = 0``, bodies on the side the unit ``normal`` points to."""
+    """A fixed line (a wall) of a :class:`Geometry`, through ``point`` and perpendicular to
+    the unit ``normal``; the bodies are on the side the normal points to."""
 
     name: str
     point: tuple[float, float]

@@ -120,7 +120,8 @@ _TABLE = (
         "saturation",
         1e-7,
         True,
-        "how far (relative to 1 + max |bound|) argmin H may lie past a bound on an arc",
+        "how far (relative to 1 plus the largest bound magnitude) argmin H may lie past "
+        "a bound on an arc",
     ),
     Tolerance(
         "touch",

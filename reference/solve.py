@@ -506,7 +506,7 @@ def _verdict(
         status = Status.NOT_OPTIMAL
         message = (
             f"the extremal found costs {_J(best.cost):.10g}, but {c.source} costs "
-            f"{_J(c.cost):.10g} (events {c.sequence}): this is not the optimum; try --initial "
+            f"{_J(c.cost):.10g} (events {c.sequence}): this is not the optimum; try --controls "
             "with that control or --search"
         )
         cheapest = {"source": c.source, "cost": c.cost, "sequence": c.sequence}

@@ -344,3 +344,15 @@ def test_the_disc_type_check_sees_a_type_test(tmp_path, monkeypatch):
         _imports.cache_clear()
     assert _above_problems("hybridoc.workflows._probe")
     assert len(uses) == 2, uses
+
+
+def test_the_tolerance_table_in_the_docs_is_the_code_s():
+    """docs/architecture.rst lists every row of hybridoc.tolerances.TOLERANCES with its value."""
+    from hybridoc.tolerances import TOLERANCES
+
+    text = (ROOT / "docs" / "architecture.rst").read_text(encoding="utf-8")
+    rows = dict(
+        re.findall(r"   \* - ``(\w+)``\n     - ([0-9.e+-]+)\n     - (?:relative|absolute)", text)
+    )
+    assert set(rows) == set(TOLERANCES)
+    assert all(float(rows[name]) == t.value for name, t in TOLERANCES.items())

@@ -70,7 +70,7 @@ def solve_given(ocp: HybridOCP, run: Run, book: Book, guess: Guess) -> Reference
             why = str(book.reasons.get(key)).removeprefix("pruned: ")
             raise ConvergenceError(
                 f"no HMP extremal with the sequence {seq}: {why}{nor}. "
-                "hint: start from a control with these events (--initial) or check that the "
+                "hint: start from a control with these events (--controls) or check that the "
                 "sequence is feasible"
             )
         else:

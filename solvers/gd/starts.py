@@ -33,7 +33,7 @@ def run_multistart(ocp: HybridOCP, opts: GDOptions, progress: Progress) -> Solut
     if disc_simulation(ocp) and opts.contact.name != "direct":
         raise OptionError(
             "the batched multi-start explores with the compiled exact simulation of contact "
-            "'direct'; other contact models start from its result with --initial"
+            "'direct'; other contact models start from its result with --controls"
         )
     coarse = min(ocp.steps, MULTISTART_STEPS)
     rows: list[dict[str, Any]] = []

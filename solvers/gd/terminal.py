@@ -72,7 +72,7 @@ def _terminal_refusal(ocp: HybridOCP, opts: GDOptions) -> str | None:
     if opts.starts > 1 or opts.hops:
         return (
             f"the multi-start and the hops explore the unconstrained, fixed-time loss; with "
-            f"{what} use starts=1 and hops=0 (and --initial for another start)"
+            f"{what} use starts=1 and hops=0 (and --controls for another start)"
         )
     if opts.path == "torch" or not is_direct_both(opts.contact) or opts.integrator != "exact":
         return (

@@ -74,7 +74,7 @@ def claim(
                 f"the best of the {len(cands)} event sequence(s) compared ({shown}{more}: the "
                 "initial guess's and those with one of its events dropped); other sequences were "
                 "not compared, so a cheaper control may exist (--method reference searches for "
-                "the optimum; --initial or --sequence start dt elsewhere)"
+                "the optimum; --controls or --sequence start dt elsewhere)"
             ),
         )
     return status, message

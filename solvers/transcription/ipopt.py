@@ -130,7 +130,7 @@ def _not_converged(
             "the constraints cannot be met)"
         )
         hint = (
-            "start it elsewhere: another --initial guess (one whose simulation has these "
+            "start it elsewhere: another --controls guess (one whose simulation has these "
             "events, e.g. another method's solution), a finer --mesh, or another --sequence"
         )
     if terminal_count(ocp) or ocp.horizon_bounds is not None:

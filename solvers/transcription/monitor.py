@@ -64,7 +64,7 @@ class Monitor:
         return Stopped(
             f"dt: stopped at the time limit of {self.time_limit:g} s {where}; raise "
             "--time-limit, or make the NLP smaller and easier: a smaller --mesh, fewer events "
-            "(--sequence, another --initial), fewer bodies, or --method gd"
+            "(--sequence, another --controls), fewer bodies, or --method gd"
         )
 
 

@@ -508,7 +508,7 @@ def _check_size(ocp: HybridOCP, guards: Sequence[int], degree: int, mesh: Sequen
             f"and {n_g} constraints ({len(guards) + 1} phases x {'/'.join(map(str, m))} elements x "
             f"degree {degree}, {ocp.nx} states, {len(ocp.guards)} guard(s) kept apart at every "
             f"node), more than MAX_NLP_SIZE = {MAX_NLP_SIZE} (IPOPT would run for hours); "
-            "use a smaller --mesh, fewer events (--sequence, another --initial), fewer bodies, "
+            "use a smaller --mesh, fewer events (--sequence, another --controls), fewer bodies, "
             "or --method gd"
         )
 

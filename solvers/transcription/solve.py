@@ -375,7 +375,7 @@ def _solve_dt(
             status = Status.NOT_OPTIMAL
             message = (
                 f"{what}: a cheaper control is known, so this is not the optimum; try "
-                "--initial with that control, another --sequence, or --method reference"
+                "--controls with that control, another --sequence, or --method reference"
             )
         else:
             message = f"{message}; {what}" if message else what
