@@ -10,55 +10,19 @@ consume::
                u_min <= u(t) <= u_max           optional control bounds
                c(s(t), u(t)) >= 0               optional path constraints
 
-Modes
-    A system with discrete modes (flight and stance, a valve open or shut), each with its
-    own flow ``f_q`` and running cost ``L_q``, is the same model with one more state: the
-    last coordinate is the mode index ``q`` (a float: 0, 1, ...), constant along every flow
-    and set by the resets. :meth:`HybridOCP.from_modes` builds it from :class:`Mode` objects
-    and guards with a ``source`` and ``target`` mode: ``f = f_q`` and ``L = L_q`` are selected
-    by ``q``, and each guard fires only in its source mode. Every method (the judge, the
-    reference, the transcription, gradient descent) then solves it unchanged, and the hybrid
-    minimum principle comes out per mode: the Hamiltonian is ``L_q + lambda^T f_q`` on each
-    side of a switch, and the costate of ``q`` decouples (``dH/dq = 0`` between switches).
-    The state a user sees is ``(s, q)``, its last label ``"mode"``.
-
-Resets that depend on the control
-    A guard's reset may be ``s+ = g(s-, u)`` (:meth:`Guard.from_expressions` with ``u=``;
-    :attr:`Guard.uses_control`): a restitution or an impulse the controller sets at the
-    impact. On the N-grid (the judge of piecewise-constant controls, gradient descent) the
-    reset reads the control of the grid cell in which the event happens, and the judge's
-    adjoint adds ``lambda(gamma+)^T dg/du`` to that cell's gradient. In continuous time
-    (the transcription, the reference) the reset's control at each event is a decision of
-    its own, ``v_k`` in the control bounds: a single instant carries no running cost, so
-    ``v_k`` minimises ``lambda(gamma+)^T g(s(gamma-), v)`` (a linear dependence needs bounds
-    for a minimum to exist). Such a Solution stores the ``v_k``
-    (``arrays["event_controls"]``) and the judge
-    applies them at its events. The transcription and the HMP reference (where ``v_k`` are
-    shooting unknowns with their own stationarity condition) solve these problems.
+Modes, time dependence and guards
+    A system with discrete modes (:meth:`HybridOCP.from_modes`) and flows and costs that
+    read the time (``t=`` in :meth:`HybridOCP.from_expressions` and
+    :meth:`HybridOCP.from_modes`) are the same model with one more state coordinate each:
+    :mod:`hybridoc.modes` explains both lowerings, and a required final mode. A guard and its
+    reset, also one that depends on the control, is a :class:`~hybridoc.guards.Guard`
+    (:mod:`hybridoc.guards`).
 
 Terminal constraints and a free final time
     ``terminal_eq`` (``h(s(T)) = 0``) and ``terminal_ineq`` (``h(s(T)) >= 0``) are hard
     constraints; ``horizon_bounds = (T_min, T_max)`` frees the final time (``horizon`` is
     its guess). Issue #15 brings them to every method; a method that does not honour them
     yet says so instead of answering.
-
-Time-dependent flows and costs
-    ``f(t, s, u)`` and ``L(t, s, u)`` (and ``phi``, path and terminal constraints that read
-    the time) are the same model with one more state: :meth:`HybridOCP.from_expressions`
-    and :meth:`HybridOCP.from_modes` with ``t=t_sym`` add the time as a state coordinate
-    placed after ``s`` (before the mode index, which stays last), with ``t' = 1``,
-    ``t(0) = 0``, the label ``"t"``, and every reset keeping it. Every method then solves the
-    problem unchanged, and the judge's gradient and the event rule come out exact (the
-    costate of ``t`` carries ``dH/dt``: ``lambda_t + H`` is constant under a constant
-    control). Guards stay functions of ``s`` (or of ``(s, t)`` where built
-    on ``ca.vertcat(s, t)``). With a free final time the cost and constraints see the
-    time ``t`` of the stretched grid, since the time coordinate integrates ``t' = 1``.
-
-A required final mode
-    ``final_mode`` (problems with modes) ties the terminal constraints to a mode: ``s(T)``
-    must lie in that mode. The judge reports a control that ends in another mode as an
-    infinite terminal violation (:attr:`HybridOCP.terminal_violation`), and the reference
-    searches only mode sequences that end there (:meth:`HybridOCP.sequence_admissible`).
 
 What the model cannot express yet
     Static parameters (decisions constant in time): fix such a parameter and solve for
@@ -90,7 +54,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -98,8 +61,21 @@ from typing import Any, ClassVar
 import casadi as ca
 import numpy as np
 
+from hybridoc.arrays import as_float_array
 from hybridoc.capabilities import Capabilities
 from hybridoc.errors import ControlsError, SceneError
+from hybridoc.flowmaps import integrator_flow_map
+from hybridoc.flowmaps import integrator_flow_samples as integrator_flow_samples
+from hybridoc.guards import Guard
+from hybridoc.modes import (
+    MODE_LABEL,
+    Mode,
+    TimeLift,
+    checked_modes,
+    lifted_modes,
+    mode_index_of,
+    problem_fields,
+)
 from hybridoc.scales import Scales
 
 __all__ = [
@@ -118,188 +94,6 @@ MAX_STEPS = 10**6
 ``16 nu`` MB, and every solver and the judge work cell by cell) is far beyond any grid the
 methods need, and a typo such as ``steps = 1e20`` fails with one clear line instead of
 exhausting memory."""
-
-MODE_LABEL = "mode"
-"""The label of the mode index, the last state coordinate of a problem with modes."""
-
-_SAME_DEPTH = 32
-"""How deep :meth:`HybridOCP.from_modes` compares the modes' expressions for equality."""
-
-_MASKED = 1.0
-"""The value of a guard outside its source mode: positive (free space, so it neither fires
-nor counts as penetrated there) and constant along every flow of those modes (a polynomial
-of degree 0, so the guard's declared ``degree`` still holds)."""
-
-
-@dataclass(frozen=True)
-class Guard:
-    """A named guard ``psi(s) = 0`` with its reset map ``s+ = g(s-)``.
-
-    Parameters
-    ----------
-    name
-        Unique name, e.g. ``"ball1|ball2"``.
-    psi
-        CasADi Function ``s -> scalar``; positive in free space.
-    reset
-        CasADi Function ``s -> s``, or ``(s, u) -> s`` for a reset that depends on the
-        control (:attr:`uses_control`; module notes, "Resets that depend on the control").
-    kind
-        Free label reported with events, e.g. ``"disc-disc"``.
-    bodies
-        Names of the bodies involved, reported with events.
-    detector
-        Optional CasADi Function ``s -> scalar`` with the same sign and zero set as ``psi``
-        that is polynomial along the flow (e.g. a squared distance). Used only to locate
-        events; defaults to ``psi``.
-    degree
-        Degree in time of ``detector`` along the flow under a constant control, if it is a
-        polynomial (then events are located exactly from ``degree + 1`` samples per grid
-        interval); ``None`` for a general smooth guard. For a transition between modes: along
-        the flow of its source mode.
-    source, target
-        For a transition of a problem with modes (:meth:`HybridOCP.from_modes`): the mode in
-        which the guard can fire and the mode its reset enters; ``None`` for problems
-        without modes.
-    """
-
-    name: str
-    psi: ca.Function
-    reset: ca.Function
-    kind: str = "event"
-    bodies: tuple[str, ...] = ()
-    detector: ca.Function | None = None
-    degree: int | None = None
-    source: str | None = None
-    target: str | None = None
-
-    def __post_init__(self) -> None:
-        r = self.reset
-        if not isinstance(r, ca.Function) or r.n_in() not in (1, 2) or r.n_out() != 1:
-            got = f"{r.n_in()} inputs" if isinstance(r, ca.Function) else type(r).__name__
-            raise SceneError(
-                f"guard {self.name!r}: the reset must be a casadi.Function s -> s or "
-                f"(s, u) -> s, got {got}"
-            )
-
-    @property
-    def uses_control(self) -> bool:
-        """Whether the reset is a function of the state and the control, ``(s, u) -> s``."""
-        return int(self.reset.n_in()) == 2
-
-    def reset_at(self, s: Any, u: Any) -> Any:
-        """The state after the jump, ``g(s)`` or ``g(s, u)``, for symbols or numbers
-        (``u`` is read only by a reset that :attr:`uses_control`)."""
-        return self.reset(s, u) if self.uses_control else self.reset(s)
-
-    def check_reset(self, nx: int, nu: int, *, what: str | None = None) -> None:
-        """Raise a :class:`~hybridoc.errors.SceneError` naming the expected signature unless
-        the reset is ``s -> s`` or ``(s, u) -> s`` with ``s`` of size ``nx`` and ``u`` of
-        size ``nu``."""
-        r = self.reset
-        sizes = tuple(r.size_in(i) for i in range(r.n_in()))
-        want = ((nx, 1),) if r.n_in() == 1 else ((nx, 1), (nu, 1))
-        if sizes != want or r.size_out(0) != (nx, 1):
-            shown = ", ".join(f"{a}x{b}" for a, b in sizes)
-            out = "x".join(map(str, r.size_out(0)))
-            raise SceneError(
-                f"{what or f'guard {self.name!r}'}: the reset must be a Function s -> s or "
-                f"(s, u) -> s with s of size {nx} and u of size {nu} (a reset that depends on "
-                f"the control takes the state first), got inputs ({shown}) -> {out}"
-            )
-
-    @classmethod
-    def from_expressions(
-        cls,
-        name: str,
-        s: ca.SX | ca.MX,
-        psi: ca.SX | ca.MX,
-        reset: ca.SX | ca.MX,
-        *,
-        kind: str = "event",
-        bodies: Sequence[str] = (),
-        detector: ca.SX | ca.MX | None = None,
-        degree: int | None = None,
-        source: str | None = None,
-        target: str | None = None,
-        u: ca.SX | ca.MX | None = None,
-    ) -> Guard:
-        """Build a guard from symbolic expressions in the state symbol ``s``.
-
-        ``reset`` may also use the control symbol ``u`` when it is given: the reset is then
-        ``(s, u) -> s`` (module notes, "Resets that depend on the control"); a reset that
-        does not use ``u`` stays ``s -> s``.
-        """
-        tag = _casadi_name(name)
-        det = None if detector is None else ca.Function(f"det_{tag}", [s], [detector])
-        with_u = u is not None and isinstance(reset, ca.SX | ca.MX) and ca.depends_on(reset, u)
-        try:
-            g = (
-                ca.Function(f"g_{tag}", [s, u], [reset])
-                if with_u
-                else ca.Function(f"g_{tag}", [s], [reset])
-            )
-        except RuntimeError as exc:
-            # CasADi's last line names the free symbols ("variables [u] are free")
-            free = re.search(r"variables \[(.*?)\] are free", str(exc))
-            which = f"it uses {free.group(1)}" if free else str(exc).splitlines()[-1]
-            hint = "" if u is not None else " (pass u= for a reset that depends on the control)"
-            raise SceneError(
-                f"guard {name!r}: the reset must be an expression in s, or in s and u{hint}; "
-                f"{which}"
-            ) from None
-        return cls(
-            name=name,
-            psi=ca.Function(f"psi_{tag}", [s], [psi]),
-            reset=g,
-            kind=kind,
-            bodies=tuple(bodies),
-            detector=det,
-            degree=degree,
-            source=source,
-            target=target,
-        )
-
-
-@dataclass(frozen=True)
-class Mode:
-    """A discrete mode of a hybrid system: its flow and its running cost.
-
-    Parameters
-    ----------
-    name
-        Unique name, e.g. ``"stance"``.
-    f
-        CasADi Function ``(s, u) -> ds/dt`` (``s`` without the mode index).
-    L
-        Running cost, ``(s, u) -> scalar``; ``None`` for none.
-    flow_map
-        Optional exact flow map of this mode, ``(s, u, h) -> (s(h), integral_0^h L dt)`` for
-        a constant control. When every mode has one, :meth:`HybridOCP.from_modes` assembles
-        the problem's closed-form flow map from them (the judge then needs no integrator).
-    """
-
-    name: str
-    f: ca.Function
-    L: ca.Function | None = None
-    flow_map: ca.Function | None = None
-
-    @classmethod
-    def from_expressions(
-        cls,
-        name: str,
-        s: ca.SX | ca.MX,
-        u: ca.SX | ca.MX,
-        f: ca.SX | ca.MX,
-        L: ca.SX | ca.MX | float | None = None,
-    ) -> Mode:
-        """Build a mode from expressions in the state symbol ``s`` and control ``u``."""
-        tag = _casadi_name(name)
-        return cls(
-            name=name,
-            f=ca.Function(f"f_{tag}", [s, u], [f]),
-            L=None if L is None else ca.Function(f"L_{tag}", [s, u], [L]),
-        )
 
 
 class Structure:
@@ -394,8 +188,8 @@ class HybridOCP:
         and the generator ``default_rng([seed, i])`` for draw ``i``, so that a draw does
         not depend on how many are made. Data, not structure.
     final_mode
-        For a problem with modes: the mode ``s(T)`` must be in (module notes, "A required
-        final mode"); ``None`` (default): any. Part of the structure.
+        For a problem with modes: the mode ``s(T)`` must be in (:mod:`hybridoc.modes`, "A
+        required final mode"); ``None`` (default): any. Part of the structure.
     scales
         The units the problem is measured in (:class:`~hybridoc.scales.Scales`), which the
         methods use to work in numbers of order one. ``None`` (default):
@@ -467,7 +261,7 @@ class HybridOCP:
         names = [g.name for g in self.guards]
         if len(set(names)) != len(names):
             raise SceneError(f"guard names must be unique: {names}")
-        self._check_modes()
+        self.modes = checked_modes(self.modes, self.guards, self.final_mode, self.x0)
         self._check_terminal()
         self.u_min = self._bound(self.u_min, -np.inf, "u_min")
         self.u_max = self._bound(self.u_max, np.inf, "u_max")
@@ -510,43 +304,8 @@ class HybridOCP:
         if self.structure is None:
             integrator = self.flow_map is None
             if integrator:
-                self.flow_map = _integrator_flow_map(self.f, self.L)
+                self.flow_map = integrator_flow_map(self.f, self.L)
             self.structure = Structure(integrator_flow=integrator)
-
-    def _check_modes(self) -> None:
-        """The mode names, the guards' source and target modes and the mode index of x0."""
-        with_modes = [g.name for g in self.guards if g.source is not None or g.target is not None]
-        if self.modes is None:
-            if self.final_mode is not None:
-                raise SceneError(
-                    f"final_mode {self.final_mode!r} needs a problem with modes (build it with "
-                    "HybridOCP.from_modes)"
-                )
-            if with_modes:
-                raise SceneError(
-                    f"guard(s) {with_modes} have a source or target mode but the problem has "
-                    "no modes (build it with HybridOCP.from_modes)"
-                )
-            return
-        if isinstance(self.modes, str) or not all(isinstance(m, str) and m for m in self.modes):
-            raise SceneError(f"modes must be a sequence of non-empty names, got {self.modes!r}")
-        self.modes = tuple(self.modes)
-        if not self.modes:
-            raise SceneError("modes must name at least one mode")
-        if len(set(self.modes)) != len(self.modes):
-            raise SceneError(f"mode names must be unique: {list(self.modes)}")
-        for g in self.guards:
-            for role, m in (("source", g.source), ("target", g.target)):
-                if m is not None and m not in self.modes:
-                    raise SceneError(
-                        f"guard {g.name!r}: unknown {role} mode {m!r}; the modes are "
-                        f"{list(self.modes)}"
-                    )
-        self.mode_index(self.x0, what="x0")
-        if self.final_mode is not None and self.final_mode not in self.modes:
-            raise SceneError(
-                f"final_mode {self.final_mode!r} is not one of the modes {list(self.modes)}"
-            )
 
     def mode_index(self, state: Any, *, what: str = "state") -> int:
         """The mode index of a state of a problem with modes (its last coordinate).
@@ -556,16 +315,7 @@ class HybridOCP:
         hybridoc.errors.SceneError
             For a problem without modes, or an index that is not an integer or out of range.
         """
-        if self.modes is None:
-            raise SceneError(f"{self.name}: the problem has no modes")
-        arr = np.asarray(state, dtype=float).ravel()
-        q = float(arr[-1]) if arr.size else math.nan
-        if not (math.isfinite(q) and q == round(q) and 0 <= q < len(self.modes)):
-            raise SceneError(
-                f"{what}: the mode index (the last state coordinate) must be an integer from 0 "
-                f"to {len(self.modes) - 1} (modes {list(self.modes)}), got {q!r}"
-            )
-        return int(q)
+        return mode_index_of(self.modes, state, what=what, problem=self.name)
 
     def mode_of(self, state: Any) -> str:
         """The name of the mode of a state ``(s, q)`` (see :meth:`mode_index`)."""
@@ -757,9 +507,10 @@ class HybridOCP:
         With ``t`` (a scalar symbol), ``f``, ``L``, ``phi``, ``path`` and the terminal
         constraints may depend on time: the problem is built with one more state coordinate,
         the time (``t' = 1``, ``t(0) = 0``, label ``"t"``, kept by every reset), placed after
-        ``s`` (module notes, "Time-dependent flows and costs"). ``x0`` and ``state_labels``
-        then give ``s`` only; a guard may be a function of ``s`` or of ``(s, t)`` (built with
-        ``ca.vertcat(s, t)`` as its state, its reset returning ``s`` alone).
+        ``s`` (:mod:`hybridoc.modes`, "Time-dependent flows and costs"). ``x0`` and
+        ``state_labels`` then give ``s`` only; a guard may be a function of ``s`` or of
+        ``(s, t)`` (built with ``ca.vertcat(s, t)`` as its state, its reset returning ``s``
+        alone).
         """
         if t is not None:
             if "flow_map" in kwargs:
@@ -767,7 +518,7 @@ class HybridOCP:
                     "from_expressions with t: a flow_map cannot be given (the time is added "
                     "to the state); leave it out and the flow is integrated"
                 )
-            lift = _TimeLift(s, t, u)
+            lift = TimeLift(s, t, u)
             return cls.from_expressions(
                 lift.x,
                 u,
@@ -823,7 +574,7 @@ class HybridOCP:
         t: ca.SX | ca.MX | None = None,
         **kwargs: Any,
     ) -> HybridOCP:
-        """Build a problem with discrete modes (module notes, "Modes").
+        """Build a problem with discrete modes (:mod:`hybridoc.modes`, "Modes").
 
         The problem's state is ``(s, q)``: ``s`` and the mode index ``q`` (a float: 0, 1,
         ... in the order of ``modes``), constant along every flow. Its flow and running cost
@@ -836,11 +587,12 @@ class HybridOCP:
         s, u
             The state symbol (without the mode) and the control symbol.
         modes
-            :class:`Mode` objects, or a dict ``name -> (f, L)`` of expressions in ``s`` and
-            ``u`` (``L`` may be ``None`` or ``0``), in index order.
+            :class:`~hybridoc.modes.Mode` objects, or a dict ``name -> (f, L)`` of
+            expressions in ``s`` and ``u`` (``L`` may be ``None`` or ``0``), in index order.
         transitions
-            :class:`Guard` objects with ``source`` and ``target`` mode names, ``psi`` and
-            ``reset`` functions of ``s`` (:meth:`Guard.from_expressions` with ``s``). A
+            :class:`~hybridoc.guards.Guard` objects with ``source`` and ``target`` mode
+            names, ``psi`` and ``reset`` functions of ``s`` (:meth:`Guard.from_expressions
+            <hybridoc.guards.Guard.from_expressions>` with ``s``). A
             declared ``degree`` (along the source mode's flow) is kept: outside its source
             mode the guard is constant.
         initial_mode
@@ -861,11 +613,12 @@ class HybridOCP:
         t
             Optional time symbol: the modes' expressions (the dict form), ``phi``, ``path``
             and the terminal constraints may then depend on time, and the state becomes
-            ``(s, t, q)`` (module notes, "Time-dependent flows and costs"). :class:`Mode`
-            objects and transitions stay functions of ``s``.
+            ``(s, t, q)`` (:mod:`hybridoc.modes`, "Time-dependent flows and costs").
+            :class:`~hybridoc.modes.Mode` objects and transitions stay functions of ``s``.
         **kwargs
             The other fields of :class:`HybridOCP` (``u_guess``, bounds, ``name``, ...);
-            not ``flow_map`` (give each :class:`Mode` its ``flow_map`` instead).
+            not ``flow_map`` (give each :class:`~hybridoc.modes.Mode` its ``flow_map``
+            instead).
         """
         if "flow_map" in kwargs:
             raise SceneError(
@@ -873,16 +626,11 @@ class HybridOCP:
                 "one for the whole problem"
             )
         if t is not None:
-            lift = _TimeLift(s, t, u)
-            lifted = (
-                [lift.mode(str(n), spec) for n, spec in modes.items()]
-                if isinstance(modes, Mapping)
-                else [lift.mode(m.name, m) for m in _as_modes(modes, s, u)]
-            )
+            lift = TimeLift(s, t, u)
             return cls.from_modes(
                 lift.x,
                 u,
-                modes=lifted,
+                modes=lifted_modes(lift, modes, s, u),
                 transitions=[lift.guard(g) for g in transitions],
                 initial_mode=initial_mode,
                 phi=lift.of_st(phi, "phi"),
@@ -896,90 +644,20 @@ class HybridOCP:
                 else lift.of_st(terminal_ineq, "terminal_ineq"),
                 **lift.labels({**kwargs, "state_labels": state_labels}),
             )
-        mode_list = _as_modes(modes, s, u)
-        names = [m.name for m in mode_list]
-        if len(set(names)) != len(names):
-            raise SceneError(f"mode names must be unique: {names}")
-        if initial_mode not in names:
-            raise SceneError(f"initial_mode {initial_mode!r} is not one of the modes {names}")
-        ns, nu = s.numel(), u.numel()
-        x0_s = as_float_array(x0, "x0").ravel()
-        if x0_s.size != ns:
-            raise SceneError(
-                f"x0 must give the {ns} components of s (the mode index is added from "
-                f"initial_mode), got {x0_s.size}"
-            )
-        for m in mode_list:
-            if m.f.n_in() != 2 or m.f.size1_in(0) != ns or m.f.size1_in(1) != nu:
-                raise SceneError(f"mode {m.name!r}: f must be a Function (s, u) -> ds/dt")
-            if m.f.size_out(0) != (ns, 1):
-                raise SceneError(f"mode {m.name!r}: f must return {ns} derivatives")
-        sym = ca.SX if isinstance(s, ca.SX) else ca.MX
-        x, uu = sym.sym("x", ns + 1), sym.sym("u", nu)
-        xs, q = x[:ns], x[ns]
-        index = {name: float(k) for k, name in enumerate(names)}
-
-        def select(values: list[Any]) -> Any:
-            # component by component: one that is the same expression in every mode (y' = v
-            # in flight and stance, a common running cost) stays free of the mode, so that
-            # structural checks (a control weight independent of the state) still see it
-            rows = []
-            for i in range(values[0].numel()):
-                col = [v[i] for v in values]
-                if all(ca.is_equal(c, col[0], _SAME_DEPTH) for c in col[1:]):
-                    rows.append(col[0])
-                    continue
-                # mode k where q < k + 1/2: robust to a q that an NLP moves by rounding
-                out = col[-1]
-                for k in range(len(col) - 2, -1, -1):
-                    out = ca.if_else(q < k + 0.5, col[k], out)
-                rows.append(out)
-            return ca.vertcat(*rows)
-
-        f_sel = select([m.f(xs, uu) for m in mode_list])
-        L_sel = select([sym(0.0) if m.L is None else m.L(xs, uu) for m in mode_list])
-        phi_fn = ca.Function("phi_s", [s], [phi])
-        guards = [_transition(g, x, uu, ns, index, names) for g in transitions]
-        fm = None
-        if all(m.flow_map is not None for m in mode_list):
-            h = sym.sym("h")
-            ends = [m.flow_map(xs, uu, h) for m in mode_list]  # type: ignore[misc]
-            fm = ca.Function(
-                "flow_map",
-                [x, uu, h],
-                [ca.vertcat(select([e[0] for e in ends]), q), select([e[1] for e in ends])],
-                ["s", "u", "h"],
-                ["s_end", "cost"],
-            )
-        labels = None
-        if state_labels is not None:
-            labels = [*map(str, state_labels), MODE_LABEL]
-            if len(labels) != ns + 1:
-                raise SceneError(f"state_labels must name the {ns} components of s")
-        else:
-            labels = [f"s{i}" for i in range(ns)] + [MODE_LABEL]
-        return cls(
-            f=ca.Function("f", [x, uu], [ca.vertcat(f_sel, 0)]),
-            L=ca.Function("L", [x, uu], [L_sel]),
-            phi=ca.Function("phi", [x], [phi_fn(xs)]),
-            guards=guards,
-            x0=np.r_[x0_s, index[initial_mode]],
-            horizon=horizon,
-            steps=steps,
-            flow_map=fm,
-            path=None
-            if path is None
-            else ca.Function("path", [x, uu], [_in_state(path, s, u, xs, uu)]),
-            state_labels=labels,
-            modes=tuple(names),
-            terminal_eq=None
-            if terminal_eq is None
-            else ca.Function("terminal_eq", [x], [_in_s(terminal_eq, s, xs)]),
-            terminal_ineq=None
-            if terminal_ineq is None
-            else ca.Function("terminal_ineq", [x], [_in_s(terminal_ineq, s, xs)]),
-            **kwargs,
+        fields = problem_fields(
+            s,
+            u,
+            modes=modes,
+            transitions=transitions,
+            initial_mode=initial_mode,
+            phi=phi,
+            x0=x0,
+            path=path,
+            state_labels=state_labels,
+            terminal_eq=terminal_eq,
+            terminal_ineq=terminal_ineq,
         )
+        return cls(**fields, horizon=horizon, steps=steps, **kwargs)
 
     def replace(self, **changes: Any) -> HybridOCP:
         """A copy with some fields changed.
@@ -1108,34 +786,6 @@ class HybridOCP:
         raise SceneError(f"unknown guard {name!r}; the guards are {[g.name for g in self.guards]}")
 
 
-def as_float_array(value: Any, what: str, *, error: type[Exception] = SceneError) -> np.ndarray:
-    """``value`` as a float64 array; only real numbers are accepted.
-
-    Torch tensors (also ones that require grad) are detached and copied to the CPU. Complex,
-    boolean, string and object data raise ``error`` with a message naming ``what``.
-    """
-    if hasattr(value, "detach") and hasattr(value, "cpu"):  # a torch tensor, without torch
-        value = value.detach().cpu().numpy()
-    try:
-        raw = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise error(f"{what}: not a numeric array ({exc})") from None
-    if raw.dtype.kind == "O":
-        try:
-            raw = np.array(value, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise error(f"{what}: not a numeric array ({exc})") from None
-    if raw.dtype.kind == "b":
-        raise error(f"{what}: expected real numbers, got a boolean array")
-    if raw.dtype.kind == "c":
-        raise error(f"{what}: expected real numbers, got complex values")
-    if raw.dtype.kind in "USV":
-        raise error(f"{what}: not a numeric array (got text)")
-    if raw.dtype.kind not in "iuf":
-        raise error(f"{what}: not a numeric array (data of type {raw.dtype})")
-    return np.array(raw, dtype=np.float64)
-
-
 def checked_steps(steps: Any) -> int:
     """``steps`` as an int in ``[1, MAX_STEPS]``, or a :class:`SceneError` (the one check of
     a grid size, for problems and scenes alike)."""
@@ -1144,243 +794,3 @@ def checked_steps(steps: Any) -> int:
     if steps > MAX_STEPS:
         raise SceneError(f"steps must be at most {MAX_STEPS} (hybridoc.ocp.MAX_STEPS), got {steps}")
     return int(steps)
-
-
-def _as_modes(modes: Any, s: Any, u: Any) -> list[Mode]:
-    """``from_modes``'s modes as :class:`Mode` objects."""
-    if isinstance(modes, Mapping):
-        out = []
-        for name, spec in modes.items():
-            if not isinstance(spec, tuple | list) or len(spec) != 2:
-                raise SceneError(f"mode {name!r}: expected (f, L) expressions, got {spec!r}")
-            f, L = spec
-            out.append(Mode.from_expressions(str(name), s, u, f, None if L is None else L))
-        modes = out
-    modes = list(modes)
-    if not modes:
-        raise SceneError("from_modes needs at least one mode")
-    for m in modes:
-        if not isinstance(m, Mode):
-            raise SceneError(f"modes must be Mode objects or a dict name -> (f, L), got {m!r}")
-    return modes
-
-
-def _in_state(expr: Any, s: Any, u: Any, xs: Any, uu: Any) -> Any:
-    """An expression in ``(s, u)`` rewritten in the augmented state's ``s`` part."""
-    return ca.Function("tmp", [s, u], [expr])(xs, uu)
-
-
-def _in_s(expr: Any, s: Any, xs: Any) -> Any:
-    """An expression in ``s`` rewritten in the augmented state's ``s`` part."""
-    return ca.Function("tmp", [s], [expr])(xs)
-
-
-class _TimeLift:
-    """The lowering of time dependence: expressions in ``(s, t, u)`` rewritten in the state
-    ``x = (s, t)`` (module notes, "Time-dependent flows and costs")."""
-
-    def __init__(self, s: Any, t: Any, u: Any) -> None:
-        sym = ca.SX if isinstance(s, ca.SX) else ca.MX
-        if not isinstance(t, ca.SX | ca.MX) or not t.is_symbolic() or t.numel() != 1:
-            raise SceneError(f"t must be one scalar CasADi symbol (ca.SX.sym('t')), got {t!r}")
-        self.s, self.t, self.u = s, t, u
-        self.ns = int(s.numel())
-        self.x = sym.sym("st", self.ns + 1)
-        self.xs, self.xt = self.x[: self.ns], self.x[self.ns]
-
-    def _call(self, args: list[Any], values: list[Any], expr: Any, what: str) -> Any:
-        if not isinstance(expr, ca.SX | ca.MX):  # a number, e.g. L = 0
-            expr = type(self.x)(as_float_array(expr, what))
-        try:
-            fn = ca.Function(f"lift_{_casadi_name(what)}", args, [expr])
-        except RuntimeError as exc:
-            names = ", ".join(a.name() if a.is_symbolic() else "?" for a in args)
-            raise SceneError(
-                f"{what} must be an expression in ({names}) only: {str(exc).splitlines()[0]}"
-            ) from None
-        return fn(*values)
-
-    def of_stu(self, expr: Any, what: str) -> Any:
-        """``expr(s, t, u)`` as an expression in ``(x, u)``."""
-        return self._call([self.s, self.t, self.u], [self.xs, self.xt, self.u], expr, what)
-
-    def of_st(self, expr: Any, what: str) -> Any:
-        """``expr(s, t)`` as an expression in ``x``."""
-        return self._call([self.s, self.t], [self.xs, self.xt], expr, what)
-
-    def x0(self, x0: Any) -> np.ndarray:
-        arr = as_float_array(x0, "x0").ravel()
-        if arr.size != self.ns:
-            raise SceneError(
-                f"x0 must give the {self.ns} components of s (the time, 0 at the start, is "
-                f"added), got {arr.size}"
-            )
-        return np.r_[arr, 0.0]
-
-    def labels(self, kwargs: dict[str, Any]) -> dict[str, Any]:
-        """``kwargs`` with ``"t"`` appended to the state labels."""
-        out = dict(kwargs)
-        given = out.get("state_labels")
-        if given is None:
-            given = [f"s{i}" for i in range(self.ns)]
-        given = [*map(str, given)]
-        if len(given) != self.ns:
-            raise SceneError(f"state_labels must name the {self.ns} components of s")
-        out["state_labels"] = [*given, "t"]
-        return out
-
-    def _of_state(self, fn: ca.Function | None, what: str) -> Any:
-        """A function of ``s`` or of ``(s, t)`` at the symbolic ``x``."""
-        if fn is None:
-            return None
-        n = fn.size1_in(0) if fn.n_in() == 1 else -1
-        if n == self.ns:
-            return fn(self.xs)
-        if n == self.ns + 1:
-            return fn(self.x)
-        raise SceneError(f"{what} must be a Function of s ({self.ns}) or of (s, t) ({self.ns + 1})")
-
-    def _of_state_u(self, fn: ca.Function, what: str) -> Any:
-        """A reset ``(s, u)`` or ``((s, t), u)`` at the symbolic ``(x, u)``."""
-        n, nu = fn.size1_in(0), int(self.u.numel())
-        if fn.size1_in(1) != nu:
-            raise SceneError(f"{what} must be a Function (s, u) -> s with u of size {nu}")
-        if n == self.ns:
-            return fn(self.xs, self.u)
-        if n == self.ns + 1:
-            return fn(self.x, self.u)
-        raise SceneError(
-            f"{what} must be a Function of (s, u) ({self.ns}) or of ((s, t), u) ({self.ns + 1})"
-        )
-
-    def guard(self, g: Guard) -> Guard:
-        """A guard of ``s`` (or ``(s, t)``) as a guard of ``x``; its reset keeps the time."""
-        if not isinstance(g, Guard):
-            raise SceneError(f"guards must be Guard objects, got {g!r}")
-        tag = _casadi_name(g.name)
-        if g.uses_control:
-            reset = self._of_state_u(g.reset, f"guard {g.name!r}: the reset")
-        else:
-            reset = self._of_state(g.reset, f"guard {g.name!r}: the reset")
-        if reset.numel() == self.ns + 1:
-            reset = reset[: self.ns]
-        if reset.numel() != self.ns:
-            raise SceneError(f"guard {g.name!r}: the reset must return the {self.ns} components")
-        det = self._of_state(g.detector, f"guard {g.name!r}: the detector")
-        lifted = ca.vertcat(reset, self.xt)
-        return dataclasses.replace(
-            g,
-            psi=ca.Function(f"psi_{tag}", [self.x], [self._of_state(g.psi, f"guard {g.name!r}")]),
-            reset=ca.Function(f"g_{tag}", [self.x, self.u], [lifted])
-            if g.uses_control
-            else ca.Function(f"g_{tag}", [self.x], [lifted]),
-            detector=None if det is None else ca.Function(f"det_{tag}", [self.x], [det]),
-        )
-
-    def mode(self, name: str, spec: Any) -> Mode:
-        """A mode of ``from_modes`` (``(f, L)`` expressions in ``(s, t, u)``, or a
-        :class:`Mode` of ``s``) as a mode of ``x``; a Mode's flow map advances the time."""
-        x, u = self.x, self.u
-        if isinstance(spec, Mode):
-            L = None if spec.L is None else ca.Function(f"L_{name}", [x, u], [spec.L(self.xs, u)])
-            fm = None
-            if spec.flow_map is not None:
-                h = type(self.x).sym("h")
-                end, cost = spec.flow_map(self.xs, u, h)
-                fm = ca.Function(
-                    f"fm_{_casadi_name(name)}", [x, u, h], [ca.vertcat(end, self.xt + h), cost]
-                )
-            return Mode(
-                spec.name,
-                f=ca.Function(
-                    f"f_{_casadi_name(name)}", [x, u], [ca.vertcat(spec.f(self.xs, u), 1.0)]
-                ),
-                L=L,
-                flow_map=fm,
-            )
-        if not isinstance(spec, tuple | list) or len(spec) != 2:
-            raise SceneError(f"mode {name!r}: expected (f, L) expressions, got {spec!r}")
-        f, L = spec
-        return Mode.from_expressions(
-            name,
-            x,
-            u,
-            ca.vertcat(self.of_stu(f, f"mode {name!r}: f"), 1.0),
-            None if L is None else self.of_stu(L, f"mode {name!r}: L"),
-        )
-
-
-def _transition(
-    g: Guard, x: Any, u: Any, ns: int, index: dict[str, float], names: list[str]
-) -> Guard:
-    """A transition of ``from_modes`` as a guard of the augmented state ``x = (s, q)``."""
-    if not isinstance(g, Guard):
-        raise SceneError(f"transitions must be Guard objects, got {g!r}")
-    for role, m in (("source", g.source), ("target", g.target)):
-        if m is None:
-            raise SceneError(f"transition {g.name!r} needs a {role} mode (one of {names})")
-        if m not in index:
-            raise SceneError(f"transition {g.name!r}: unknown {role} mode {m!r}; modes {names}")
-    for what, fn in (("psi", g.psi), ("detector", g.detector)):
-        if fn is not None and (fn.n_in() != 1 or fn.size1_in(0) != ns):
-            raise SceneError(f"transition {g.name!r}: {what} must be a Function of s ({ns})")
-    g.check_reset(ns, int(u.numel()), what=f"transition {g.name!r}")
-    xs, q = x[:ns], x[ns]
-    here = ca.fabs(q - index[g.source]) < 0.5  # type: ignore[index]
-    tag = _casadi_name(g.name)
-
-    def masked(fn: ca.Function, prefix: str) -> ca.Function:
-        return ca.Function(f"{prefix}_{tag}", [x], [ca.if_else(here, fn(xs), _MASKED)])
-
-    after = ca.vertcat(g.reset_at(xs, u), index[g.target])  # type: ignore[index]
-    return dataclasses.replace(
-        g,
-        psi=masked(g.psi, "psi"),
-        reset=ca.Function(f"g_{tag}", [x, u] if g.uses_control else [x], [after]),
-        detector=None if g.detector is None else masked(g.detector, "det"),
-    )
-
-
-def _casadi_name(name: str) -> str:
-    """A valid CasADi function-name suffix derived from any guard name."""
-    # ASCII only: str.isalnum accepts letters such as "\u00e9", which CasADi rejects
-    out = "".join(ch if ch.isascii() and ch.isalnum() else "_" for ch in name)
-    while "__" in out:
-        out = out.replace("__", "_")
-    return out.strip("_") or "guard"
-
-
-def _integrator_flow_map(f: ca.Function, L: ca.Function) -> ca.Function:
-    """Flow map ``(s, u, h) -> (s(h), cost)`` from CVODES at tight tolerances."""
-    return integrator_flow_samples(f, L, [1.0], name="flow_map")
-
-
-def integrator_flow_samples(
-    f: ca.Function, L: ca.Function, fractions: Sequence[float], *, name: str = "flow_samples"
-) -> ca.Function:
-    """``(s, u, h) -> (s(h * fractions), cost(h * fractions))`` by one CVODES call.
-
-    ``fractions`` are increasing in (0, 1]; the outputs have one column per fraction.
-    """
-    nx, nu = f.size1_in(0), f.size1_in(1)
-    s = ca.MX.sym("s", nx)
-    u = ca.MX.sym("u", nu)
-    h = ca.MX.sym("h")
-    xs = ca.SX.sym("x", nx)
-    ps = ca.SX.sym("p", nu + 1)
-    us, hs = ps[:nu], ps[nu]
-    # time scaled to [0, 1] so that h is a parameter (and h = 0 is allowed)
-    dae = {"x": xs, "p": ps, "ode": hs * f(xs, us), "quad": hs * L(xs, us)}
-    # quad_err_con: without it CVODES steps by the state alone, and a state that is easy to
-    # integrate (a polynomial) gives long steps and a running cost off by 1e-4 relative
-    opts = {
-        "abstol": 1e-13,
-        "reltol": 1e-13,
-        "max_num_steps": 100000,
-        "show_eval_warnings": False,
-        "quad_err_con": True,
-    }
-    grid = [float(x) for x in fractions]
-    integ = ca.integrator(f"{name}_int", "cvodes", dae, 0.0, grid, opts)
-    res = integ(x0=s, p=ca.vertcat(u, h))
-    return ca.Function(name, [s, u, h], [res["xf"], res["qf"]], ["s", "u", "h"], ["s_end", "cost"])

@@ -32,6 +32,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "hybridoc.errors",
             "hybridoc.ocp",
+            "hybridoc.arrays",
+            "hybridoc.guards",
+            "hybridoc.modes",
+            "hybridoc.flowmaps",
             "hybridoc.scales",
             "hybridoc.capabilities",
             "hybridoc.tolerances",
