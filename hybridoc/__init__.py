@@ -42,8 +42,10 @@ if TYPE_CHECKING:  # pragma: no cover - what type checkers and editors see
     from hybridoc.evaluation import Evaluation, Gradient
     from hybridoc.evaluator import evaluate, gradient
     from hybridoc.events import Event
+    from hybridoc.guards import Guard
     from hybridoc.methods import solve
-    from hybridoc.ocp import Guard, HybridOCP, Mode
+    from hybridoc.modes import Mode
+    from hybridoc.ocp import HybridOCP
     from hybridoc.problem import as_ocp
     from hybridoc.problems import Disc, DiscOCP, Scene, Wall, builtin_names, load_scene
     from hybridoc.reference import solve_reference
@@ -93,10 +95,10 @@ _EXPORTS: dict[str, str] = {
     "EvaluationError": "hybridoc.errors",
     "Event": "hybridoc.events",
     "Gradient": "hybridoc.evaluation",
-    "Guard": "hybridoc.ocp",
+    "Guard": "hybridoc.guards",
     "HybridOCP": "hybridoc.ocp",
     "HybridocError": "hybridoc.errors",
-    "Mode": "hybridoc.ocp",
+    "Mode": "hybridoc.modes",
     "Scene": "hybridoc.problems",
     "SceneError": "hybridoc.errors",
     "SimultaneousEventError": "hybridoc.errors",

@@ -88,7 +88,7 @@ my_ball = HybridOCP.from_expressions(
 print(f"T = {T:.6f}, target height {target:.2f}, N = {my_ball.steps}")
 
 # %%
-# A :class:`~hybridoc.ocp.Guard` is built from the state symbol, the expression of
+# A :class:`~hybridoc.guards.Guard` is built from the state symbol, the expression of
 # :math:`\psi` and the expression of the reset. Its ``degree`` says that :math:`\psi` is a
 # polynomial of degree 2 in time while the thrust is constant, which lets the judge find
 # every bounce exactly; leave it ``None`` for a guard that is not. ``kind`` and ``bodies``

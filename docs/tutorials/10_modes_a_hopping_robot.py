@@ -34,7 +34,7 @@ What the model can and cannot express is in :doc:`/scenes` ("Modes").
 #
 #    J = (y(T) - 1.6)^2 + 0.01 \int_0^T u^2\,dt .
 #
-# Each transition is a :class:`~hybridoc.ocp.Guard` with a ``source`` and a ``target``
+# Each transition is a :class:`~hybridoc.guards.Guard` with a ``source`` and a ``target``
 # mode, written in the state without the mode.
 import os
 import time
