@@ -35,7 +35,7 @@ import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from hybridoc import tolerances
 from hybridoc.errors import OptionError, SceneError
@@ -47,6 +47,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from hybridoc.problem import ControlsLike, ProblemLike
     from hybridoc.progress import ProgressLike
     from hybridoc.solution import Solution
+
+_O = TypeVar("_O")
 
 __all__ = [
     "BUILTIN",
@@ -68,6 +70,7 @@ __all__ = [
     "nonnegative_int",
     "option",
     "option_specs",
+    "options_from_keywords",
     "options_signature",
     "parse_bool",
     "parse_setting",
@@ -271,6 +274,18 @@ def options_signature(run: Callable[..., Any], options: type) -> inspect.Signatu
         for f in dataclasses.fields(options)
     ]  # fmt: skip
     return sig.replace(parameters=params)
+
+
+def options_from_keywords(options: type[_O], keywords: Mapping[str, Any], caller: str) -> _O:
+    """``options(**keywords)`` for a thin wrapper (:func:`options_signature`), with Python's
+    own ``TypeError`` for a keyword that is no field, as a function with those keyword
+    parameters would raise (the dataclass's checks raise :class:`~hybridoc.errors.
+    OptionError` for bad values)."""
+    names = {f.name for f in dataclasses.fields(options)}
+    unknown = [k for k in keywords if k not in names]
+    if unknown:
+        raise TypeError(f"{caller}() got an unexpected keyword argument {unknown[0]!r}")
+    return options(**keywords)
 
 
 def option_specs(options: type) -> list[OptionSpec]:

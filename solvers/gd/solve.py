@@ -13,7 +13,7 @@ import numpy as np
 
 from hybridoc.errors import OptionError
 from hybridoc.evaluator import evaluate
-from hybridoc.methods import options_signature
+from hybridoc.methods import options_from_keywords, options_signature
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
@@ -156,16 +156,11 @@ def solve_gd(
     TypeError
         For a keyword that is no option.
     """
-    unknown = sorted(set(options) - _OPTION_NAMES)
-    if unknown:
-        raise TypeError(f"solve_gd() got an unexpected keyword argument {unknown[0]!r}")
-    return run_gd(problem, GDOptions(**options), initial=initial, progress=progress)
+    opts = options_from_keywords(GDOptions, options, "solve_gd")
+    return run_gd(problem, opts, initial=initial, progress=progress)
 
 
 solve_gd.__signature__ = options_signature(solve_gd, GDOptions)  # type: ignore[attr-defined]
-
-
-_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(GDOptions))
 
 
 def run_gd(

@@ -4,7 +4,6 @@ Solution assembled from the chosen candidate.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import signal
 import sys
@@ -15,7 +14,7 @@ import numpy as np
 
 from hybridoc.errors import ConvergenceError
 from hybridoc.evaluation import Evaluation
-from hybridoc.methods import Method, options_signature, settings_lines
+from hybridoc.methods import Method, options_from_keywords, options_signature, settings_lines
 from hybridoc.ocp import HybridOCP
 from hybridoc.problem import ControlsLike, ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
@@ -177,16 +176,11 @@ def solve_dt(
         The judge cannot simulate the initial guess, or the control of any converged
         candidate (e.g. sustained contact).
     """
-    unknown = [k for k in options if k not in _OPTION_NAMES]
-    if unknown:
-        raise TypeError(f"solve_dt() got an unexpected keyword argument {unknown[0]!r}")
-    return run_dt(problem, DTOptions(**options), initial=initial, progress=progress)
+    opts = options_from_keywords(DTOptions, options, "solve_dt")
+    return run_dt(problem, opts, initial=initial, progress=progress)
 
 
 solve_dt.__signature__ = options_signature(solve_dt, DTOptions)  # type: ignore[attr-defined]
-
-
-_OPTION_NAMES = frozenset(f.name for f in dataclasses.fields(DTOptions))
 
 
 def run_dt(
