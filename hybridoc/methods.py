@@ -277,10 +277,12 @@ def options_signature(run: Callable[..., Any], options: type) -> inspect.Signatu
 
 
 def options_from_keywords(options: type[_O], keywords: Mapping[str, Any], caller: str) -> _O:
-    """``options(**keywords)`` for a thin wrapper (:func:`options_signature`), with Python's
-    own ``TypeError`` for a keyword that is no field, as a function with those keyword
-    parameters would raise (the dataclass's checks raise :class:`~hybridoc.errors.
-    OptionError` for bad values)."""
+    """The options dataclass of a thin wrapper (:func:`options_signature`), built from its
+    keywords.
+
+    A keyword that is no field raises Python's own ``TypeError``, as a function with those
+    keyword parameters would; the dataclass's checks raise
+    :class:`~hybridoc.errors.OptionError` for bad values."""
     names = {f.name for f in dataclasses.fields(options)}
     unknown = [k for k in keywords if k not in names]
     if unknown:
