@@ -13,7 +13,6 @@ twice.
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
@@ -21,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from hybridoc.errors import OptionError
-from hybridoc.methods import option, positive_float
+from hybridoc.methods import option, options_signature, positive_float
 from hybridoc.reference.sequence import COST_RTOL, RTOL_RANGE, check_rtol
 from hybridoc.reference.sources import CandidateSource, SequenceStarter
 
@@ -272,18 +271,13 @@ def option_keywords(options: type) -> Callable[[_F], _F]:
     declared there only."""
 
     def decorate(fn: _F) -> _F:
-        sig = inspect.signature(fn)
-        params = [p for p in sig.parameters.values() if p.kind is not p.VAR_KEYWORD]
-        positional = [
-            p.replace(kind=p.POSITIONAL_ONLY) for p in params if p.kind is not p.KEYWORD_ONLY
-        ]
-        keywords = [p for p in params if p.kind is p.KEYWORD_ONLY]
-        keywords += [
-            inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default,
-                              annotation=f.type)
-            for f in dataclasses.fields(options)
-        ]  # fmt: skip
-        fn.__signature__ = sig.replace(parameters=positional + keywords)  # type: ignore[attr-defined]
+        sig = options_signature(fn, options)
+        fn.__signature__ = sig.replace(  # type: ignore[attr-defined]
+            parameters=[
+                p if p.kind is p.KEYWORD_ONLY else p.replace(kind=p.POSITIONAL_ONLY)
+                for p in sig.parameters.values()
+            ]
+        )
         return fn
 
     return decorate
