@@ -440,7 +440,36 @@ class CheckedNum:
         return self.cvodes(*args)
 
 
-class GuardFunctions:
+class _PerGuard:
+    """A function (or functions) per guard, built by ``_build(j)`` on first use under a
+    lock and kept; pickled without the lock and the symbols, which are made again on use."""
+
+    def __init__(self) -> None:
+        self._fns: dict[int, Any] = {}
+        self._syms: tuple[Any, ...] | None = None
+        self._lock = threading.Lock()
+
+    def __getitem__(self, j: int) -> Any:
+        with self._lock:
+            if j not in self._fns:
+                self._fns[j] = self._build(j)
+            return self._fns[j]
+
+    def _build(self, j: int) -> Any:  # pragma: no cover - every subclass defines it
+        raise NotImplementedError
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        del state["_lock"]
+        state["_syms"] = None
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+
+class GuardFunctions(_PerGuard):
     """One CasADi function per guard, built on first use (thread-safe) and kept.
 
     ``kind`` ``"reset"``: ``(s, u) -> reset``; ``"event_jac"``: ``(s, u) -> (grad psi,
@@ -451,19 +480,11 @@ class GuardFunctions:
     """
 
     def __init__(self, guards: Any, sx: bool, nx: int, nu: int, kind: str) -> None:
+        super().__init__()
         self.guards, self.sx, self.nx, self.nu, self.kind = list(guards), sx, nx, nu, kind
-        self._fns: dict[int, ca.Function | None] = {}
-        self._syms: tuple[Any, Any] | None = None
-        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self.guards)
-
-    def __getitem__(self, j: int) -> ca.Function | None:
-        with self._lock:
-            if j not in self._fns:
-                self._fns[j] = self._build(j)
-            return self._fns[j]
 
     def _build(self, j: int) -> ca.Function | None:
         if self._syms is None:
@@ -482,16 +503,6 @@ class GuardFunctions:
         if not g.uses_control:
             return None
         return dense_fn(f"reset_du{j}", [sp, u], [ca.jacobian(g.reset_at(sp, u), u)])
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        del state["_lock"]
-        state["_syms"] = None
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._lock = threading.Lock()
 
 
 _ALL_GUARD_FNS = frozenset(
@@ -523,7 +534,7 @@ class _Parts:
     nu: int
 
 
-class GuardKernels:
+class GuardKernels(_PerGuard):
     """The kernels of single guards, for the broad phase (:mod:`hybridoc.broadphase`):
     ``guard j -> (interval, window, point, contact)``, each over guard ``j`` alone, built on
     first use (thread-safe) and kept.
@@ -536,17 +547,8 @@ class GuardKernels:
     """
 
     def __init__(self, parts: _Parts, x_nodes: np.ndarray) -> None:
+        super().__init__()
         self.parts, self.x_nodes = parts, np.asarray(x_nodes, dtype=float)
-        self._fns: dict[int, tuple[ca.Function, ...]] = {}
-        self._syms: tuple[Any, ...] | None = None
-        self._lock = threading.Lock()
-
-    def __getitem__(self, j: int) -> tuple[ca.Function, ...]:
-        with self._lock:
-            fns = self._fns.get(j)
-            if fns is None:
-                fns = self._fns[j] = self._build(j)
-            return fns
 
     def _symbols(self) -> tuple[Any, ...]:
         if self._syms is None:
@@ -577,16 +579,6 @@ class GuardKernels:
         noise_psi = rounding_level(psi, sp, own_scale)
         contact = dense_fn(f"contact{j}", [sp, u], [psi, rate, accel, noise_psi])
         return interval, window, point, contact
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        del state["_lock"]
-        state["_syms"] = None
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._lock = threading.Lock()
 
 
 class Kernels:
