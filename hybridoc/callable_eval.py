@@ -36,6 +36,9 @@ from hybridoc.events import (
     accumulating,
     approaching,
     graze_threshold,
+    in_local_frame,
+    moved_events,
+    penetration_threshold,
 )
 from hybridoc.kernels import UNKNOWN_DEGREE, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
@@ -110,11 +113,9 @@ def evaluate_callable(
         raise ControlsError("give exactly one of control (u(t)) and state_feedback (pi(t, s))")
     # a scene far from the origin is simulated in its local frame (as hybridoc.evaluate
     # does): a feedback sees the state where the scene is, the results are moved back
-    outer, off = ocp, None
-    frame_of = getattr(ocp, "local_frame", None)
-    frame = frame_of() if frame_of is not None else None
-    if frame is not None:
-        ocp, off = frame
+    outer = ocp
+    ocp, off = in_local_frame(ocp)
+    if off is not None:
         if state_feedback is not None:
             feedback, shift = state_feedback, off
 
@@ -135,12 +136,7 @@ def evaluate_callable(
         ocp=outer,
         states=ev.states + off,
         final_state=ev.final_state + off,
-        events=[
-            dataclasses.replace(
-                e, state_before=e.state_before + off, state_after=e.state_after + off
-            )
-            for e in ev.events
-        ],
+        events=moved_events(ev.events, off),
         dense_pieces=[(t0, t1, _Moved(dense, off_z)) for t0, t1, dense in ev.dense_pieces],
     )
 
@@ -218,7 +214,8 @@ class _Simulation:
         sc = ocp.scales
         self.graze_tol, self.rtol = graze_threshold(ocp, graze_tol), rtol
         self.atol = atol * np.concatenate([sc.state_array, [sc.cost]])
-        self.penetration_tol, self.max_events = penetration_tol * sc.length, max_events
+        self.penetration_tol = penetration_threshold(ocp, penetration_tol)
+        self.max_events = max_events
         self.k = kernels(ocp)
         self.num = self.k.numeric()
         self.nx, self.G = ocp.nx, len(ocp.guards)

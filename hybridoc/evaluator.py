@@ -46,7 +46,6 @@ Not modelled
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable
 from typing import Any
@@ -64,6 +63,9 @@ from hybridoc.events import (
     accumulating,
     approaching,
     graze_threshold,
+    in_local_frame,
+    moved_events,
+    penetration_threshold,
 )
 from hybridoc.kernels import Kernels, Numeric, kernels
 from hybridoc.ocp import HybridOCP, as_float_array
@@ -273,11 +275,7 @@ class Forward:
         # scales' offset, exact to take off): its numbers then round at its own length scale
         # instead of at the rounding of its coordinates; the results are moved back
         self.outer = ocp
-        self.offset: np.ndarray | None = None
-        frame_of = getattr(ocp, "local_frame", None)
-        frame = frame_of() if frame_of is not None else None
-        if frame is not None:
-            ocp, self.offset = frame
+        ocp, self.offset = in_local_frame(ocp)
         self.ocp = ocp
         self.k: Kernels = kernels(ocp)
         self.num: Numeric = self.k.numeric()
@@ -285,7 +283,7 @@ class Forward:
         self.u_all = np.zeros((ocp.steps, ocp.nu)) if u_all is None else u_all
         # the tolerances are in the problem's units (module notes of hybridoc.scales)
         self.graze_tol = graze_threshold(ocp, graze_tol)
-        self.penetration_tol = penetration_tol * ocp.scales.length
+        self.penetration_tol = penetration_threshold(ocp, penetration_tol)
         self.max_events = int(max_events)
         # many guards of round bodies: the broad phase picks the guards to sample
         self.table = self.k.broad
@@ -332,9 +330,7 @@ class Forward:
             noise = noise.reshape(L, D + 1, G).transpose(0, 2, 1)
             kk = m  # intervals n .. n+kk-1 are free of events
             if G:
-                free = k.cheb.free(samples[:m], noise[:m], k.exact).all(axis=1)
-                tol = np.maximum(self.penetration_tol, 4 * noise[:m, :, -1])
-                free &= (psi_end.reshape(L, G)[:m] >= -tol).all(axis=1)
+                free = self._free(samples[:m], noise[:m], psi_end.reshape(L, G)[:m], k.exact)
                 hits = np.flatnonzero(~free)
                 if hits.size:
                     kk = int(hits[0])
@@ -386,9 +382,7 @@ class Forward:
         for i in range(m):
             S, Nz, psi_end, cand = self._broad_samples(start, uu[i], float(hh[i]))
             if cand.size:
-                free = k.cheb.free(S, Nz, k.exact[cand]).all()
-                tol = np.maximum(self.penetration_tol, 4 * Nz[:, -1])
-                if not (free and (psi_end >= -tol).all()):
+                if not self._free(S, Nz, psi_end, k.exact[cand]):
                     kk, first = i, (s_end[i], float(cost[i]), S, Nz, cand)
                     break
             start = s_end[i]
@@ -417,6 +411,13 @@ class Forward:
             psi_end[r] = psi[0]
         return S, Nz, psi_end, cand
 
+    def _free(self, S: np.ndarray, Nz: np.ndarray, psi_end: np.ndarray, exact: np.ndarray) -> Any:
+        """Whether no guard (the last axis) crosses over an interval: the Chebyshev test on
+        its samples ``S`` (rounding levels ``Nz``), and no value at the end below the
+        penetration tolerance (or four rounding levels)."""
+        tol = np.maximum(self.penetration_tol, 4 * Nz[..., -1])
+        return (self.k.cheb.free(S, Nz, exact) & (psi_end >= -tol)).all(axis=-1)
+
     def _contacts(
         self, s: np.ndarray, u: np.ndarray, extra: Any = ()
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -425,8 +426,7 @@ class Forward:
         ``extra``, and for the others (apart by more than the broad phase's margin) ``psi =
         inf``, the rest 0 (not due, not penetrated)."""
         if self.table is None:
-            psi, rate, accel, noise = self.num.contact(s, u)
-            return psi, rate, accel, noise
+            return self.num.contact(s, u)
         G = self.k.G
         psi, rate, accel, noise = np.full(G, np.inf), np.zeros(G), np.zeros(G), np.zeros(G)
         cand = np.union1d(self.table.candidates(s, u, 0.0), np.asarray(list(extra), dtype=int))
@@ -452,12 +452,7 @@ class Forward:
             s = s + off
             s_arr = s_arr + off
             self.segments = [seg._replace(s0=seg.s0 + off) for seg in self.segments]
-            self.events = [
-                dataclasses.replace(
-                    e, state_before=e.state_before + off, state_after=e.state_after + off
-                )
-                for e in self.events
-            ]
+            self.events = moved_events(self.events, off)
         return Evaluation(
             cost=cost,
             terminal_cost=terminal,

@@ -28,6 +28,7 @@ Several guards at one instant
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,6 +48,9 @@ __all__ = [
     "approaching",
     "commute_defect",
     "graze_threshold",
+    "in_local_frame",
+    "moved_events",
+    "penetration_threshold",
 ]
 
 EPS = float(np.finfo(float).eps)
@@ -146,6 +150,33 @@ def graze_threshold(ocp: Any, graze_tol: float) -> float:
     """
     sc = ocp.scales
     return float(graze_tol) * (sc.length / sc.time)
+
+
+def penetration_threshold(ocp: Any, penetration_tol: float) -> float:
+    """The depth below which a guard counts as penetrated, of a tolerance given in guard
+    units (:attr:`Scales.length <hybridoc.scales.Scales.length>`), as
+    :func:`graze_threshold` scales its own."""
+    return penetration_tol * ocp.scales.length
+
+
+def in_local_frame(ocp: Any) -> tuple[Any, np.ndarray | None]:
+    """``(problem, offset)``: the problem in its local frame and the offset to add back to
+    its states, where it has one (a disc scene far from the origin:
+    ``DiscOCP.local_frame``), else ``(ocp, None)``. The judges simulate there, so that the
+    numbers round at the scene's own length scale rather than at its coordinates'."""
+    frame_of = getattr(ocp, "local_frame", None)
+    frame = frame_of() if frame_of is not None else None
+    return (ocp, None) if frame is None else frame
+
+
+def moved_events(events: list[Event], offset: np.ndarray) -> list[Event]:
+    """``events`` with their states moved by ``offset`` (back from a local frame)."""
+    return [
+        dataclasses.replace(
+            e, state_before=e.state_before + offset, state_after=e.state_after + offset
+        )
+        for e in events
+    ]
 
 
 def commute_defect(
