@@ -125,15 +125,10 @@ def _write_solve_outputs(ocp: Any, sol: Any, stem: Path, method: str) -> list[Pa
     import numpy as np
 
     from hybridoc.cli.evaluate import save, write_figures
-    from hybridoc.evaluator import evaluate
-    from hybridoc.workflows.validation import judged_evaluation
+    from hybridoc.workflows.validation import figure_evaluation
 
     written = list(sol.save(stem))
-    # the evaluation the solution was judged with; judged again only where it has none
-    ev = judged_evaluation(sol)
-    written += write_figures(
-        ocp, evaluate(ocp, sol.controls) if ev is None else ev, stem, label=method
-    )
+    written += write_figures(ocp, figure_evaluation(ocp, sol), stem, label=method)
     if sol.info.get("landscape"):  # any method that reports extremals by sequence
         from hybridoc.cli.reference import write_landscape
 

@@ -50,6 +50,7 @@ from hybridoc.workflows.validation.measures import (
     RESULT_STATUSES,
     control_errors,
     event_comparison,
+    figure_evaluation,
     judged_evaluation,
     method_entry,
 )
@@ -70,6 +71,7 @@ __all__ = [
     "crossval",
     "crossval_figures",
     "event_comparison",
+    "figure_evaluation",
     "judged_evaluation",
     "local_gap",
     "method_entry",

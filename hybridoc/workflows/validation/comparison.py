@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hybridoc.errors import HybridocError, OptionError
-from hybridoc.evaluator import evaluate
 from hybridoc.methods import BUILTIN, METHODS, REFERENCE_METHOD, solve
 from hybridoc.problem import ProblemLike, as_ocp
 from hybridoc.progress import Progress, ProgressLike, progress_scope
@@ -21,7 +20,7 @@ from hybridoc.solution import Solution, Status
 from hybridoc.workflows.validation.measures import (
     RESULT_STATUSES,
     event_comparison,
-    judged_evaluation,
+    figure_evaluation,
     method_entry,
     relative,
     sequence_text,
@@ -539,10 +538,7 @@ def crossval_figures(problem: ProblemLike, sols: Mapping[str, Solution]) -> dict
         title=f"{ocp.name}: controls",
         event_times={name: [e["time"] for e in s.events] for name, s in sols.items()},
     )
-    evals = {
-        name: ev if (ev := judged_evaluation(s)) is not None else evaluate(ocp, s.controls)
-        for name, s in sols.items()
-    }
+    evals = {name: figure_evaluation(ocp, s) for name, s in sols.items()}
     figs["trajectories"] = plot_trajectories(
         ocp, evals, title=f"{ocp.name}: trajectories (reference drawn, others dashed)"
     )

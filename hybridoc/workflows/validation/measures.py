@@ -24,6 +24,7 @@ __all__ = [
     "control_errors",
     "event_comparison",
     "event_key",
+    "figure_evaluation",
     "judged_evaluation",
     "method_entry",
     "relative",
@@ -126,3 +127,14 @@ def judged_evaluation(sol: Solution) -> Evaluation | None:
 
     ev = getattr(sol, "evaluation", None)
     return ev if isinstance(ev, Evaluation) else None
+
+
+def figure_evaluation(ocp: Any, sol: Solution) -> Evaluation:
+    """The evaluation to draw ``sol`` from: the one its cost came from
+    (:func:`judged_evaluation`), or, where it keeps none, the judge's of its grid controls."""
+    ev = judged_evaluation(sol)
+    if ev is not None:
+        return ev
+    from hybridoc.evaluator import evaluate
+
+    return evaluate(ocp, sol.controls)
