@@ -222,8 +222,13 @@ class ReferenceOptions:
         why = why or _sources_error(self.sources)
         if why:
             raise OptionError(why)
+        m = self.multistart
+        if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
+            # int(2.5) in the search would hide a mistake; -1 failed deep inside gd
+            raise OptionError(f"multistart must be an integer >= 0, got {m!r}")
         object.__setattr__(self, "rtol", rtol)
         object.__setattr__(self, "budget", float(self.budget))
+        object.__setattr__(self, "multistart", int(self.multistart))
         if self.time_limit is not None:
             object.__setattr__(self, "time_limit", float(self.time_limit))
 

@@ -165,3 +165,15 @@ def test_landscape_figure_marks_the_chosen_sequence():
     assert texts == ["a|w", "a|b", "(no event)"]  # sorted by cost, failed ones left out
     labels = ax.get_legend_handles_labels()[1]
     assert "the reference's optimum" in labels
+
+
+@pytest.mark.parametrize("bad", [2.5, -1, True, "4"])
+def test_reference_multistart_is_a_whole_number(bad):
+    """multistart was truncated deep in the search (2.5 -> 2) or failed inside gd (-1):
+    now one OptionError naming it, before any work."""
+    from hybridoc.errors import OptionError
+    from hybridoc.reference.options import ReferenceOptions
+
+    with pytest.raises(OptionError, match="multistart must be an integer >= 0"):
+        ReferenceOptions(multistart=bad)
+    assert ReferenceOptions(multistart=3).multistart == 3

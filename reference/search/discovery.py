@@ -220,7 +220,7 @@ def _run_source(ocp: HybridOCP, run: Run, book: Book, guess: Guess, source: Any)
     t0 = time.perf_counter()
     context = SourceContext(
         controls=guess.controls, evaluation=guess.evaluation, progress=book.progress,
-        multistart=int(run.multistart), max_events=MAX_EVENTS,
+        multistart=run.multistart, max_events=MAX_EVENTS,
         best_cost=min((k.cost for k in book.rivals()), default=math.inf), say=book.say,
         budget_s=book.left(),
     )  # fmt: skip
