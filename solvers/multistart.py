@@ -22,6 +22,7 @@ import numpy as np
 
 from hybridoc.ocp import HybridOCP, Structure
 from hybridoc.problems import scene_of
+from hybridoc.scales import optimizer_units
 from hybridoc.solvers.starting import (
     diverse_controls,
     diverse_starts,
@@ -458,7 +459,7 @@ def explore(
         starts = starting_controls(ocp, count, seed=seed)
     # the batched L-BFGS runs in scaled controls u / cs on the loss (J / jc) / dt~ (the
     # units of gd, hybridoc.scales.optimizer_units): the same descent in any units
-    cs, jc, tc = _units(ocp)
+    cs, jc, tc = optimizer_units(ocp)
     per = jc * (coarse.dt / tc)
     U0 = resample(np.asarray(starts, dtype=float), coarse.steps) / cs
 
@@ -505,13 +506,6 @@ def explore(
         report.extend(rows)
     out.sort(key=lambda r: r["cost"])
     return out
-
-
-def _units(ocp: HybridOCP) -> tuple[np.ndarray, float, float]:
-    """:func:`hybridoc.scales.optimizer_units` (the control, cost and time scales)."""
-    from hybridoc.scales import optimizer_units
-
-    return optimizer_units(ocp)
 
 
 def _same(f: np.ndarray, b: int, c: int) -> bool:
